@@ -1,0 +1,3 @@
+from agv_fe.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,42 @@
+"""`agv-fe`: the product's command line."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+#: Subcommand name -> module with ``register(subparsers)``. Order is the help order.
+COMMANDS = {
+    "synth": "agv_fe.commands.synth",
+    "simulate": "agv_fe.commands.simulate",
+    "replay": "agv_fe.commands.replay",
+    "demo": "agv_fe.commands.demo",
+    "bench": "agv_fe.commands.bench",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="agv-fe",
+        description="Certified actuator fault estimation for autonomous ground vehicles.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for module in COMMANDS.values():
+        importlib.import_module(module).register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.handler(args))
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,39 @@
+"""`agv-fe bench`: run the benchmarks and write their reports under docs/benchmarks/."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+from typing import Any
+
+#: Benchmark name -> module with ``run(out_dir) -> Path``.
+BENCHMARKS = {
+    "synthesis": "agv_fe.benchmarks.synthesis",
+}
+
+
+def register(sub: Any) -> None:
+    parser = sub.add_parser(
+        "bench",
+        help="run the benchmarks, write docs/benchmarks/*.md",
+        description="Speed, accuracy and capacity benchmarks. Figures are ratios or medians measured in one run.",
+    )
+    parser.add_argument("--only", default=None, help=f"comma-separated subset of: {', '.join(BENCHMARKS)}")
+    parser.add_argument("--out", default="docs/benchmarks", metavar="DIR", help="where to write the reports")
+    parser.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    names = list(BENCHMARKS) if args.only is None else [n.strip() for n in args.only.split(",") if n.strip()]
+    unknown = [n for n in names if n not in BENCHMARKS]
+    if unknown:
+        print(f"agv-fe: error: unknown benchmark(s) {', '.join(unknown)}; known: {', '.join(BENCHMARKS)}")
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        print(f"benchmark {name} ...", flush=True)
+        path = importlib.import_module(BENCHMARKS[name]).run(out)
+        print(f"  written {path}")
+    return 0

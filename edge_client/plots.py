@@ -1,0 +1,66 @@
+"""PNG figures in the manner of the paper's Figs. 3-6 (matplotlib, no display needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+from edge_client.simulation import SimulationResult
+
+TRUE_STYLE = {"color": "tab:blue", "lw": 1.6, "label": "true"}
+EST_STYLE = {"color": "tab:red", "lw": 1.2, "ls": "--", "label": "estimated"}
+
+
+def plot_states(result: SimulationResult, path: str | Path, vehicle: int = 0, title: str = "") -> Path:
+    """Figs. 3/5: (a) X-Y trajectory, (b) v_x, (c) v_y, (d) r, true vs estimated."""
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), constrained_layout=True)
+    t = result.t
+    ax = axes[0, 0]
+    ax.plot(result.pose[:, vehicle, 0], result.pose[:, vehicle, 1], color="tab:blue", lw=1.6)
+    ax.set(xlabel="X [m]", ylabel="Y [m]", title="(a) trajectory X-Y")
+    ax.axis("equal")
+    labels = [
+        ("v_x [m/s]", "(b) longitudinal speed v_x"),
+        ("v_y [m/s]", "(c) lateral speed v_y"),
+        ("r [rad/s]", "(d) yaw rate r"),
+    ]
+    for k, (ylabel, name) in enumerate(labels):
+        ax = axes.flat[k + 1]
+        ax.plot(t, result.x[:, vehicle, k], **TRUE_STYLE)
+        ax.plot(t, result.x_hat[:, vehicle, k], **EST_STYLE)
+        ax.set(xlabel="t [s]", ylabel=ylabel, title=name)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best")
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_faults(result: SimulationResult, path: str | Path, vehicle: int = 0, title: str = "") -> Path:
+    """Figs. 4/6: (a) torque fault T_f, (b) steering fault delta_f, true vs estimated."""
+    fig, axes = plt.subplots(2, 1, figsize=(11, 7), constrained_layout=True, sharex=True)
+    t = result.t
+    for k, (ylabel, name) in enumerate([("T_f [N m]", "(a) torque fault"), ("delta_f [rad]", "(b) steering fault")]):
+        ax = axes[k]
+        ax.plot(t, result.f[:, vehicle, k], **TRUE_STYLE)
+        ax.plot(t, result.f_hat[:, vehicle, k], **EST_STYLE)
+        true = result.f[:, vehicle, k]
+        span = max(float(abs(true).max()), 1e-9)
+        ax.set_ylim(min(float(true.min()), 0.0) - 0.6 * span, max(float(true.max()), 0.0) + 0.6 * span)
+        ax.set(ylabel=ylabel, title=name)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best")
+    axes[-1].set_xlabel("t [s]")
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,246 @@
+"""Observer synthesis: existence checks, LMI solve with solver fallback, verification, decay-rate bisection.
+
+:func:`synthesize` is the one entry point: vehicle parameters, bounds and
+options in, :class:`~synth.gains.ObserverGains` with a verified certificate
+out, or an exception of :mod:`synth.errors` that says why not.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from importlib import metadata
+
+import numpy as np
+
+from synth.augmented import AugmentedModel
+from synth.certificate import Certificate, VerificationReport, verify
+from synth.errors import BadParameters, SolverFailed, VerificationFailed
+from synth.existence import check_decoupled_detectability, check_detectability
+from synth.fuzzy import NTSModel
+from synth.gains import ObserverGains, gains_hash
+from synth.lmi import DesignCoordinates, LMISolution, Theorem2LMIs, design_coordinates, gains_from_solution
+from synth.model import FloatArray
+from synth.options import DesignOptions
+from synth.params import OperatingBounds, VehicleParams
+
+
+@dataclass(frozen=True)
+class _Verified:
+    solution: LMISolution
+    report: VerificationReport
+    M: FloatArray
+    N: FloatArray
+    L: FloatArray
+
+
+def synthesize(
+    params: VehicleParams | None = None,
+    bounds: OperatingBounds | None = None,
+    options: DesignOptions | None = None,
+) -> ObserverGains:
+    """Design certified observer gains (Theorem 2, or the robust design).
+
+    Raises :class:`~synth.errors.Infeasible` when the design cannot exist (with
+    the reason), :class:`~synth.errors.SolverFailed` when no solver returns a
+    point, :class:`~synth.errors.VerificationFailed` when no returned point
+    passes the numpy check. Never returns unverified gains.
+    """
+    params = params or VehicleParams()
+    bounds = bounds or OperatingBounds()
+    options = options or DesignOptions()
+    if options.design == "robust":
+        raise BadParameters("the 'robust' design is not implemented yet; use 'paper'")
+    started = time.perf_counter()
+    timings: dict[str, float] = {}
+    aug = AugmentedModel.build(NTSModel.build(params, bounds), options.fault_order)
+    if options.check_existence:
+        if options.decoupled:
+            check_decoupled_detectability(aug)
+        else:
+            check_detectability(aug)
+    timings["existence_s"] = time.perf_counter() - started
+
+    mark = time.perf_counter()
+    dc = design_coordinates(
+        aug, difference=options.difference_coordinates, torque_fault_scale=options.torque_fault_scale
+    )
+    lmis = Theorem2LMIs(
+        dc, decoupled=options.decoupled, lyapunov=options.lyapunov, form=options.lmi_form, margin=options.margin
+    )
+    timings["build_s"] = time.perf_counter() - mark
+
+    mark = time.perf_counter()
+    solves = 0
+    best, failures = _solve_verified(lmis, aug, dc, 1.0, options.solvers, options.solver_time_limit_s)
+    solves += len(options.solvers) if best is None else 1 + len(failures)
+    if best is None:
+        if failures and all(isinstance(f, VerificationFailed) for f in failures):
+            raise VerificationFailed(
+                "every solver returned gains that fail the numpy verification: " + "; ".join(str(f) for f in failures),
+                {"failures": [str(f) for f in failures]},
+            )
+        raise SolverFailed(
+            f"no solver found a feasible point of the {lmis.n_lmis} LMIs of Theorem 2 "
+            f"({', '.join(options.solvers)}): " + "; ".join(str(f) for f in failures)
+        )
+    timings["solve_s"] = time.perf_counter() - mark
+    timings["compile_s"] = best.solution.extra.get("compile_s", float("nan"))
+    timings["solver_s"] = best.solution.extra.get("solver_s", float("nan"))
+
+    if options.optimise_decay_rate:
+        mark = time.perf_counter()
+        best, probes = _bisect_decay_rate(lmis, aug, dc, best, options)
+        solves += probes
+        timings["bisection_s"] = time.perf_counter() - mark
+
+    timings["total_s"] = time.perf_counter() - started
+    return _package(params, bounds, options, aug, dc, lmis, best, timings, solves)
+
+
+def _solve_verified(
+    lmis: Theorem2LMIs,
+    aug: AugmentedModel,
+    dc: DesignCoordinates,
+    alpha: float,
+    solvers: tuple[str, ...],
+    time_limit_s: float,
+) -> tuple[_Verified | None, list[Exception]]:
+    """Try each solver in turn; return the first solution that passes verification."""
+    failures: list[Exception] = []
+    for solver in solvers:
+        solution = lmis.solve(alpha, solver, time_limit_s)
+        if isinstance(solution, str):
+            failures.append(SolverFailed(solution))
+            continue
+        try:
+            return _check(aug, dc, solution), failures
+        except VerificationFailed as exc:
+            failures.append(VerificationFailed(f"{solver} ({solution.status}): {exc}", exc.details))
+    return None, failures
+
+
+def _check(aug: AugmentedModel, dc: DesignCoordinates, solution: LMISolution) -> _Verified:
+    M, N, L = gains_from_solution(dc, solution.E, solution.H)
+    MG_row_design = M @ dc.G @ dc.rho_row
+    N_phys = np.einsum("ab,ibc,cd->iad", dc.T_inv, N, dc.T)
+    M_phys = dc.T_inv @ M @ dc.T
+    row = np.zeros((1, aug.n))
+    row[0, 1] = 1.0
+    report = verify(
+        aug.nts,
+        N,
+        MG_row_design,
+        solution.P,
+        solution.R,
+        dc.rho_vertices(),
+        solution.alpha,
+        N_phys,
+        M_phys @ aug.G_bar @ row,
+    )
+    return _Verified(solution=solution, report=report, M=M, N=N, L=L)
+
+
+def _bisect_decay_rate(
+    lmis: Theorem2LMIs,
+    aug: AugmentedModel,
+    dc: DesignCoordinates,
+    feasible: _Verified,
+    options: DesignOptions,
+) -> tuple[_Verified, int]:
+    """Bisection on alpha (N^T P N < alpha^2 P): the smallest certified decay rate.
+
+    Only the first solver is used while probing: a probe that fails, for any
+    reason, counts as infeasible, which can only make the result conservative.
+    """
+    best = feasible
+    high = feasible.report.certified_decay_rate
+    # Every frozen error matrix of a design with decay rate alpha has spectral
+    # radius below alpha. The first design's worst radius is where the physics
+    # floor usually lies (NOTES.md, finding 4), so probe there first; if it is
+    # feasible after all, fall back to plain bisection below it.
+    low = min(feasible.report.spectral_radius_max, high)
+    probes = 0
+    candidate, _ = _solve_verified(lmis, aug, dc, low, options.solvers[:1], options.solver_time_limit_s)
+    probes += 1
+    if candidate is not None:
+        best, high, low = candidate, min(low, candidate.report.certified_decay_rate), 0.0
+    while high - low > options.decay_rate_tolerance and probes < 40:
+        mid = 0.5 * (low + high)
+        candidate, _ = _solve_verified(lmis, aug, dc, mid, options.solvers[:1], options.solver_time_limit_s)
+        probes += 1
+        if candidate is None:
+            low = mid
+        else:
+            best = candidate
+            high = min(mid, candidate.report.certified_decay_rate)
+    return best, probes
+
+
+def _package(
+    params: VehicleParams,
+    bounds: OperatingBounds,
+    options: DesignOptions,
+    aug: AugmentedModel,
+    dc: DesignCoordinates,
+    lmis: Theorem2LMIs,
+    best: _Verified,
+    timings: dict[str, float],
+    solves: int,
+) -> ObserverGains:
+    """Back to physical coordinates, with the certificate."""
+    T, T_inv = dc.T, dc.T_inv
+    sol = best.solution
+    N = np.einsum("ab,ibc,cd->iad", T_inv, best.N, T)
+    L = np.einsum("ab,ibc->iac", T_inv, best.L)
+    M = T_inv @ best.M @ T
+    E = T_inv @ sol.E
+    report = best.report
+    vertex_lmis = len(report.lmi_min_eigenvalues)
+    certificate = Certificate(
+        design=options.design,
+        fault_order=options.fault_order,
+        lyapunov=options.lyapunov,
+        lmi_form=options.lmi_form,
+        decoupled=options.decoupled,
+        verified=True,
+        decay_rate=report.certified_decay_rate,
+        requested_decay_rate=sol.alpha,
+        spectral_radius_max=report.spectral_radius_max,
+        spectral_radius_at=report.spectral_radius_at,
+        grid_points=report.grid_points,
+        n_lmis_solved=lmis.n_lmis,
+        n_lmis_verified=vertex_lmis,
+        lmi_min_eigenvalue=min(report.lmi_min_eigenvalues),
+        lmi_min_eigenvalues=report.lmi_min_eigenvalues,
+        P_min_eigenvalues=report.P_min_eigenvalues,
+        margin=options.margin,
+        solver=sol.solver,
+        solver_version=_solver_version(sol.solver),
+        solver_status=sol.status,
+        solver_iterations=sol.iterations,
+        solves=solves,
+        timings_s={k: round(v, 6) for k, v in timings.items()},
+        content_hash=gains_hash(params, bounds, options, N, L, M, E),
+    )
+    return ObserverGains(
+        params=params,
+        bounds=bounds,
+        options=options,
+        N=N,
+        L=L,
+        M=M,
+        E=E,
+        P=sol.P,
+        R=sol.R,
+        T=T,
+        certificate=certificate,
+    )
+
+
+def _solver_version(solver: str) -> str:
+    package = {"CLARABEL": "clarabel", "SCS": "scs"}.get(solver, solver.lower())
+    try:
+        return f"{package} {metadata.version(package)}, cvxpy {metadata.version('cvxpy')}"
+    except metadata.PackageNotFoundError as exc:
+        raise BadParameters(f"solver {solver!r} is not installed") from exc

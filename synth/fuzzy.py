@@ -1,0 +1,235 @@
+"""Takagi-Sugeno representations of the Euler-discretised vehicle (eqs. 14-16).
+
+:class:`NTSModel` is the paper's N-TS model (eq. 15): 4 rules whose premise
+xi = [V_x, r] = [1/v_x, r] is measured, a nonlinear consequent g(xi) of
+measured signals only, and the unmeasured nonlinearity G phi(x), phi = v_y^2.
+Typos of the printed eq. (15) are corrected as in NOTES.md: g_1 divides by
+I_e, s multiplies both terms of g_2, g_3 carries the factor r, and the
+numerator of h_2 is (r - r_min).
+
+:class:`ConventionalTSModel` is the 8-rule sector-nonlinearity model of
+eq. (14), premise [v_x, 1/v_x, v_y], kept for comparison (Remark 2): its
+premise contains the unmeasured v_y.
+
+Both are built from the parameters and bounds, never typed by hand.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from synth.model import C, FloatArray, continuous_matrices
+from synth.params import OperatingBounds, VehicleParams
+
+#: Index of each premise corner (V_x, r) in the rule ordering of eq. (16):
+#: rule 1 (low, low), rule 2 (low, high), rule 3 (high, low), rule 4 (high, high).
+RULE_CORNERS = ((0, 0), (0, 1), (1, 0), (1, 1))
+
+
+def sector_weights(z: ArrayLike, low: float, high: float) -> tuple[FloatArray, FloatArray]:
+    """The two sector-nonlinearity weights of a scalar premise, shape (...) each.
+
+    Returns (w_low, w_high) with w_low + w_high = 1, w_low = (high - z)/(high - low).
+    ``z`` is not clipped here: callers clip to the design domain first.
+    """
+    z = np.asarray(z, dtype=float)
+    w_low = (high - z) / (high - low)
+    return w_low, 1.0 - w_low
+
+
+@dataclass(frozen=True)
+class NTSModel:
+    """The N-TS fuzzy model of eq. (15) with the memberships of eq. (16).
+
+    A : (4, 3, 3)  vertex matrices A_i = A(V_x, r) at the premise corners
+    B : (3, 2)     s B_v
+    D : (3, 1)     s D_v
+    F : (3, 2)     s F_v
+    G : (3, 1)     [0, -s C_y/M_v, 0]^T
+    C : (2, 3)     measurement matrix
+    premise_low, premise_high : (2,)  bounds of xi = [V_x [s/m], r [rad/s]]
+    """
+
+    params: VehicleParams
+    bounds: OperatingBounds
+    A: FloatArray
+    B: FloatArray
+    D: FloatArray
+    F: FloatArray
+    G: FloatArray
+    C: FloatArray
+    premise_low: FloatArray
+    premise_high: FloatArray
+
+    @classmethod
+    def build(cls, params: VehicleParams, bounds: OperatingBounds) -> NTSModel:
+        """Build the vertex matrices from the parameters and the premise box."""
+        V_lo, V_hi = bounds.inverse_speed_bounds
+        r_lo, r_hi = bounds.yaw_rate_bounds
+        corners = [(V_lo, V_hi)[a] for a, _ in RULE_CORNERS], [(r_lo, r_hi)[b] for _, b in RULE_CORNERS]
+        A = np.stack([_vertex_matrix(V, r, params) for V, r in zip(*corners, strict=True)])
+        cm = continuous_matrices(params)
+        s = params.sample_period_s
+        G = np.array([[0.0], [-s * params.lateral_drag_coeff / params.mass_kg], [0.0]])
+        return cls(
+            params=params,
+            bounds=bounds,
+            A=A,
+            B=s * cm.B_v,
+            D=s * cm.D_v,
+            F=s * cm.F_v,
+            G=G,
+            C=C.copy(),
+            premise_low=np.array([V_lo, r_lo]),
+            premise_high=np.array([V_hi, r_hi]),
+        )
+
+    @property
+    def n_rules(self) -> int:
+        return int(self.A.shape[0])
+
+    def premise(self, v_x: ArrayLike, r: ArrayLike) -> FloatArray:
+        """xi = [1/v_x, r] of eq. (15), shape (..., 2)."""
+        return np.stack([1.0 / np.asarray(v_x, dtype=float), np.asarray(r, dtype=float)], axis=-1)
+
+    def in_domain(self, xi: ArrayLike) -> np.ndarray:
+        """True where the premise lies in the design box, shape (...)."""
+        xi = np.asarray(xi, dtype=float)
+        inside = (xi >= self.premise_low) & (xi <= self.premise_high)
+        return np.asarray(np.all(inside, axis=-1))
+
+    def clip_premise(self, xi: ArrayLike) -> FloatArray:
+        """The premise clipped to the design box, shape (..., 2)."""
+        return np.clip(np.asarray(xi, dtype=float), self.premise_low, self.premise_high)
+
+    def memberships(self, xi: ArrayLike) -> FloatArray:
+        """h_i(xi) of eq. (16), shape (..., 4). Inside the box they lie on the simplex."""
+        xi = np.asarray(xi, dtype=float)
+        wV = sector_weights(xi[..., 0], self.premise_low[0], self.premise_high[0])
+        wr = sector_weights(xi[..., 1], self.premise_low[1], self.premise_high[1])
+        return np.stack([wV[a] * wr[b] for a, b in RULE_CORNERS], axis=-1)
+
+    def g(self, v_x: ArrayLike, r: ArrayLike) -> FloatArray:
+        """The measured nonlinear consequent g(xi) of eq. (15), corrected, shape (..., 3)."""
+        k = self.params.symbols()
+        s = k["s"]
+        v_x = np.asarray(v_x, dtype=float)
+        r = np.asarray(r, dtype=float)
+        # g_1 = -s C_x v_x^2 / I_e
+        g1 = -s * k["C_x"] * v_x**2 / k["I_e"]
+        # g_2 = s (2 (C_r l_r - C_f l_f) / (M_v v_x) - v_x) r
+        g2 = s * (2.0 * (k["C_r"] * k["l_r"] - k["C_f"] * k["l_f"]) / (k["M_v"] * v_x) - v_x) * r
+        # g_3 = -s 2 (C_f l_f^2 + C_r l_r^2) / (I_z v_x) r
+        g3 = -s * 2.0 * (k["C_f"] * k["l_f"] ** 2 + k["C_r"] * k["l_r"] ** 2) / (k["I_z"] * v_x) * r
+        return np.stack([g1, g2, g3], axis=-1)
+
+    @staticmethod
+    def phi(x: ArrayLike) -> FloatArray:
+        """The unmeasured nonlinearity phi(x) = v_y^2, shape (...)."""
+        x = np.asarray(x, dtype=float)
+        return np.asarray(x[..., 1] ** 2)
+
+    def step(self, x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike) -> FloatArray:
+        """x_{k+1} of eq. (15), shape (..., 3); equals the Euler step (12) inside S_x."""
+        x = np.asarray(x, dtype=float)
+        h = self.memberships(self.premise(x[..., 0], x[..., 2]))
+        Ax = np.einsum("...i,ijk,...k->...j", h, self.A, x)
+        return (
+            Ax
+            + np.asarray(u_d, dtype=float) @ self.B.T
+            + np.asarray(w, dtype=float)[..., None] * self.D[:, 0]
+            + np.asarray(f, dtype=float) @ self.F.T
+            + self.g(x[..., 0], x[..., 2])
+            + self.phi(x)[..., None] * self.G[:, 0]
+        )
+
+
+def _vertex_matrix(V_x: float, r: float, p: VehicleParams) -> FloatArray:
+    """A(V_x, r) of eq. (15) at one premise point, shape (3, 3)."""
+    k = p.symbols()
+    s = k["s"]
+    return np.array(
+        [
+            [1.0, s * r, 0.0],
+            [0.0, 1.0 - s * 2.0 * (k["C_f"] + k["C_r"]) / k["M_v"] * V_x, 0.0],
+            [0.0, s * 2.0 * (k["l_r"] * k["C_r"] - k["C_f"] * k["l_f"]) / k["I_z"] * V_x, 1.0],
+        ]
+    )
+
+
+@dataclass(frozen=True)
+class ConventionalTSModel:
+    """The conventional 8-rule TS model of eq. (14), premise varpi = [v_x, 1/v_x, v_y].
+
+    A : (8, 3, 3)  A_i = I + s A_v at the corners of the premise box, rule index
+                   i = 4 a + 2 b + c for corner (v_x, 1/v_x, v_y) = (a, b, c), 0 = low.
+    """
+
+    params: VehicleParams
+    bounds: OperatingBounds
+    A: FloatArray
+    B: FloatArray
+    D: FloatArray
+    F: FloatArray
+    C: FloatArray
+    premise_low: FloatArray
+    premise_high: FloatArray
+
+    @classmethod
+    def build(cls, params: VehicleParams, bounds: OperatingBounds) -> ConventionalTSModel:
+        low = np.array([bounds.vx_min_mps, 1.0 / bounds.vx_max_mps, bounds.vy_min_mps])
+        high = np.array([bounds.vx_max_mps, 1.0 / bounds.vx_min_mps, bounds.vy_max_mps])
+        corners = [np.where(np.array(c) == 1, high, low) for c in itertools.product((0, 1), repeat=3)]
+        A = np.stack([_affine_state_matrix(float(v_x), float(inv), float(v_y), params) for v_x, inv, v_y in corners])
+        cm = continuous_matrices(params)
+        s = params.sample_period_s
+        return cls(
+            params=params,
+            bounds=bounds,
+            A=A,
+            B=s * cm.B_v,
+            D=s * cm.D_v,
+            F=s * cm.F_v,
+            C=C.copy(),
+            premise_low=low,
+            premise_high=high,
+        )
+
+    def memberships(self, varpi: ArrayLike) -> FloatArray:
+        """h_i(varpi), shape (..., 8): products of the three sector weights."""
+        varpi = np.asarray(varpi, dtype=float)
+        weights = [sector_weights(varpi[..., j], self.premise_low[j], self.premise_high[j]) for j in range(3)]
+        return np.stack(
+            [weights[0][a] * weights[1][b] * weights[2][c] for a, b, c in itertools.product((0, 1), repeat=3)],
+            axis=-1,
+        )
+
+    def step(self, x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike) -> FloatArray:
+        """x_{k+1} of eq. (14), shape (..., 3)."""
+        x = np.asarray(x, dtype=float)
+        varpi = np.stack([x[..., 0], 1.0 / x[..., 0], x[..., 1]], axis=-1)
+        h = self.memberships(varpi)
+        Ax = np.einsum("...i,ijk,...k->...j", h, self.A, x)
+        return (
+            Ax
+            + np.asarray(u_d, dtype=float) @ self.B.T
+            + np.asarray(w, dtype=float)[..., None] * self.D[:, 0]
+            + np.asarray(f, dtype=float) @ self.F.T
+        )
+
+
+def _affine_state_matrix(v_x: float, inv_v_x: float, v_y: float, p: VehicleParams) -> FloatArray:
+    """I + s A_v(x) with v_x, 1/v_x and v_y treated as independent premises, shape (3, 3)."""
+    k = p.symbols()
+    s = k["s"]
+    a11 = -k["C_x"] * v_x / k["I_e"]
+    a22 = -2.0 * (k["C_f"] + k["C_r"]) / k["M_v"] * inv_v_x - k["C_y"] * v_y / k["M_v"]
+    a23 = 2.0 * (k["C_r"] * k["l_r"] - k["C_f"] * k["l_f"]) / k["M_v"] * inv_v_x - v_x
+    a32 = 2.0 * (k["l_r"] * k["C_r"] - k["C_f"] * k["l_f"]) / k["I_z"] * inv_v_x
+    a33 = -2.0 * (k["C_f"] * k["l_f"] ** 2 + k["C_r"] * k["l_r"] ** 2) / k["I_z"] * inv_v_x
+    A_v = np.array([[a11, 0.0, v_y], [0.0, a22, a23], [0.0, a32, a33]])
+    return np.eye(3) + s * A_v

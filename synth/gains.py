@@ -1,0 +1,160 @@
+"""Certified observer gains: the output of a synthesis and the input of the runtime observer.
+
+Gains are stored in physical shift coordinates, the paper's form of eq. (19):
+
+    z_{k+1} = N(h) z_k + L(h) y_k + M T1 (g(xi_k) + B u_k) + M G_bar phi(x_hat_k)
+    x_hat_k = z_k - E y_k
+
+The Lyapunov multipliers P_i, R are kept in the solver's coordinates
+(x' = T x_bar) where they are well conditioned, with T alongside, so that a
+stored design can be re-verified anywhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from synth.augmented import AugmentedModel
+from synth.certificate import Certificate, content_hash, verify
+from synth.errors import VerificationFailed
+from synth.fuzzy import NTSModel
+from synth.model import FloatArray
+from synth.options import DesignOptions
+from synth.params import OperatingBounds, VehicleParams
+
+GAINS_FORMAT = "agv-fe-gains/1"
+
+
+def gains_hash(
+    params: VehicleParams,
+    bounds: OperatingBounds,
+    options: DesignOptions,
+    N: FloatArray,
+    L: FloatArray,
+    M: FloatArray,
+    E: FloatArray,
+) -> str:
+    """Content hash of runtime gains and everything they were designed for."""
+    meta = {
+        "format": GAINS_FORMAT,
+        "params": params.model_dump(),
+        "bounds": bounds.model_dump(),
+        "options": options.model_dump(mode="json"),
+    }
+    return content_hash({"N": N, "L": L, "M": M, "E": E}, meta)
+
+
+@dataclass(frozen=True)
+class ObserverGains:
+    """Gains of eq. (19) with their certificate.
+
+    N : (r, n, n); L : (r, n, 2); M : (n, n); E : (n, 2)   physical coordinates
+    P : (r or 1, n, n); R : (n, n)                          design coordinates
+    T : (n, n)                                              x_design = T x_bar
+    """
+
+    params: VehicleParams
+    bounds: OperatingBounds
+    options: DesignOptions
+    N: FloatArray
+    L: FloatArray
+    M: FloatArray
+    E: FloatArray
+    P: FloatArray
+    R: FloatArray
+    T: FloatArray
+    certificate: Certificate
+
+    @cached_property
+    def model(self) -> AugmentedModel:
+        """The augmented model the gains were designed for."""
+        return AugmentedModel.build(NTSModel.build(self.params, self.bounds), self.options.fault_order)
+
+    @property
+    def version(self) -> str:
+        """A short, stable identifier of these gains: the first 12 hex digits of the content hash."""
+        return self.certificate.content_hash[:12]
+
+    def content_hash(self) -> str:
+        """Recompute the content hash of these gains (see :func:`gains_hash`)."""
+        return gains_hash(self.params, self.bounds, self.options, self.N, self.L, self.M, self.E)
+
+    def to_dict(self, *, matrices: bool = True) -> dict[str, Any]:
+        """A JSON-ready dict; ``matrices=False`` leaves out the arrays (summary only)."""
+        data: dict[str, Any] = {
+            "format": GAINS_FORMAT,
+            "version": self.version,
+            "params": self.params.model_dump(),
+            "bounds": self.bounds.model_dump(),
+            "options": self.options.model_dump(mode="json"),
+            "certificate": asdict(self.certificate),
+        }
+        if matrices:
+            data["matrices"] = {
+                name: np.asarray(getattr(self, name)).tolist() for name in ("N", "L", "M", "E", "P", "R", "T")
+            }
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], *, reverify: bool = True) -> ObserverGains:
+        """Rebuild gains from :meth:`to_dict` output; check the hash and, by default, re-run verification."""
+        if data.get("format") != GAINS_FORMAT:
+            raise VerificationFailed(f"unknown gains format {data.get('format')!r}, expected {GAINS_FORMAT!r}")
+        if "matrices" not in data:
+            raise VerificationFailed("the gains document has no 'matrices' section")
+        mats = {k: np.asarray(v, dtype=float) for k, v in data["matrices"].items()}
+        gains = cls(
+            params=VehicleParams.model_validate(data["params"]),
+            bounds=OperatingBounds.model_validate(data["bounds"]),
+            options=DesignOptions.model_validate(data["options"]),
+            N=mats["N"],
+            L=mats["L"],
+            M=mats["M"],
+            E=mats["E"],
+            P=mats["P"],
+            R=mats["R"],
+            T=mats["T"],
+            certificate=Certificate(**data["certificate"]),
+        )
+        recomputed = gains.content_hash()
+        if recomputed != gains.certificate.content_hash:
+            raise VerificationFailed(
+                f"content hash mismatch: the file says {gains.certificate.content_hash[:12]}, "
+                f"the matrices hash to {recomputed[:12]}; the gains were altered or truncated"
+            )
+        if reverify:
+            gains.reverify()
+        return gains
+
+    def design_frame(self) -> tuple[FloatArray, FloatArray]:
+        """N_i and the rank-one DMVT term M G_bar rho_row, both in design coordinates."""
+        T, T_inv = self.T, np.linalg.inv(self.T)
+        N_design = np.einsum("ab,ibc,cd->iad", T, self.N, T_inv)
+        return N_design, T @ self.MG_row @ T_inv
+
+    @property
+    def MG_row(self) -> FloatArray:
+        """M G_bar e_vy^T, physical coordinates: the error term per unit rho, (n, n)."""
+        aug = self.model
+        row = np.zeros((1, aug.n))
+        row[0, 1] = 1.0
+        return self.M @ aug.G_bar @ row
+
+    def reverify(self) -> None:
+        """Re-run the numpy verification of the stored design; raise if it fails."""
+        N_design, MG_design = self.design_frame()
+        verify(
+            self.model.nts,
+            N_design,
+            MG_design,
+            self.P,
+            self.R,
+            self.model.rho_vertices(),
+            self.certificate.requested_decay_rate,
+            self.N,
+            self.MG_row,
+        )

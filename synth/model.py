@@ -1,0 +1,147 @@
+"""The 2-DOF nonlinear vehicle model (eqs. 1-6) and its Euler discretisation (eq. 12).
+
+State x = [v_x, v_y, r] ([m/s], [m/s], [rad/s]); demanded input
+u_d = [T_d, delta_d] ([N m], [rad]); disturbance w = F_w (lateral wind force
+[N]); actuator faults f = [T_f, delta_f] ([N m], [rad]); output y = [v_x, r].
+
+All functions broadcast over leading axes, so one call serves one vehicle or a
+fleet: ``x`` of shape (..., 3), ``u`` of shape (..., 2), ``w`` of shape (...),
+``f`` of shape (..., 2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from synth.params import VehicleParams
+
+FloatArray = NDArray[np.floating[Any]]
+
+#: Measurement matrix of eq. (4): y = C x = [v_x, r].
+C = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+STATE_NAMES = ("v_x", "v_y", "r")
+FAULT_NAMES = ("T_f", "delta_f")
+
+
+@dataclass(frozen=True)
+class ContinuousMatrices:
+    """The constant matrices of eqs. (3) and (6).
+
+    B_v : (3, 2)  input matrix
+    D_v : (3, 1)  wind matrix
+    F_v : (3, 2)  fault matrix, F_v = B_v diag(b_T, b_delta)
+    """
+
+    B_v: FloatArray
+    D_v: FloatArray
+    F_v: FloatArray
+
+
+def continuous_matrices(p: VehicleParams) -> ContinuousMatrices:
+    """B_v, D_v and F_v of eqs. (3) and (6)."""
+    k = p.symbols()
+    b11 = 1.0 / k["I_e"]
+    b22 = 2.0 * k["C_f"] / k["M_v"]
+    b32 = 2.0 * k["l_f"] * k["C_f"] / k["I_z"]
+    B_v = np.array([[b11, 0.0], [0.0, b22], [0.0, b32]])
+    D_v = np.array([[0.0], [0.0], [1.0 / k["I_z"]]])
+    F_v = B_v @ np.diag([k["b_T"], k["b_delta"]])
+    return ContinuousMatrices(B_v=B_v, D_v=D_v, F_v=F_v)
+
+
+def tire_forces(x: ArrayLike, steer_rad: ArrayLike, p: VehicleParams) -> tuple[FloatArray, FloatArray]:
+    """Front and rear lateral tyre forces F_yf, F_yr of eq. (2) [N].
+
+    x : (..., 3) state; steer_rad : (...) applied front wheel angle delta [rad].
+    """
+    x = np.asarray(x, dtype=float)
+    k = p.symbols()
+    v_x, v_y, r = x[..., 0], x[..., 1], x[..., 2]
+    # eq. (2): F_yf = 2 C_f (delta - (v_y + l_f r)/v_x), F_yr = 2 C_r (l_r r - v_y)/v_x
+    F_yf = 2.0 * k["C_f"] * (np.asarray(steer_rad, dtype=float) - (v_y + k["l_f"] * r) / v_x)
+    F_yr = 2.0 * k["C_r"] * (k["l_r"] * r - v_y) / v_x
+    return F_yf, F_yr
+
+
+def continuous_dynamics(
+    x: ArrayLike,
+    u_d: ArrayLike,
+    w: ArrayLike,
+    f: ArrayLike,
+    p: VehicleParams,
+) -> FloatArray:
+    """dx/dt of eqs. (1), (2) and (5): the plant as physics, not as a matrix form.
+
+    x : (..., 3) [m/s, m/s, rad/s]; u_d : (..., 2) demanded [N m, rad];
+    w : (...) lateral wind force F_w [N]; f : (..., 2) faults [N m, rad].
+    Returns (..., 3).
+    """
+    x = np.asarray(x, dtype=float)
+    u_d = np.asarray(u_d, dtype=float)
+    f = np.asarray(f, dtype=float)
+    k = p.symbols()
+    # eq. (5): applied inputs T = T_d + b_T T_f, delta = delta_d + b_delta delta_f
+    torque = u_d[..., 0] + k["b_T"] * f[..., 0]
+    steer = u_d[..., 1] + k["b_delta"] * f[..., 1]
+    v_x, v_y, r = x[..., 0], x[..., 1], x[..., 2]
+    F_yf, F_yr = tire_forces(x, steer, p)
+    # eq. (1)
+    dv_x = (torque - k["C_x"] * v_x**2) / k["I_e"] + v_y * r
+    dv_y = (F_yf + F_yr - k["C_y"] * v_y**2) / k["M_v"] - v_x * r
+    dr = (k["l_f"] * F_yf - k["l_r"] * F_yr) / k["I_z"] + np.asarray(w, dtype=float) / k["I_z"]
+    return np.stack([dv_x, dv_y, dr], axis=-1)
+
+
+def state_matrix(x: ArrayLike, p: VehicleParams) -> FloatArray:
+    """A_v(x) of eq. (3), shape (..., 3, 3), such that dx/dt = A_v(x) x + B_v u + D_v w + F_v f."""
+    x = np.asarray(x, dtype=float)
+    k = p.symbols()
+    v_x, v_y = x[..., 0], x[..., 1]
+    a11 = -k["C_x"] * v_x / k["I_e"]
+    a22 = -2.0 * (k["C_f"] + k["C_r"]) / (k["M_v"] * v_x) - k["C_y"] * v_y / k["M_v"]
+    a23 = 2.0 * (k["C_r"] * k["l_r"] - k["C_f"] * k["l_f"]) / (k["M_v"] * v_x) - v_x
+    a32 = 2.0 * (k["l_r"] * k["C_r"] - k["C_f"] * k["l_f"]) / (k["I_z"] * v_x)
+    a33 = -2.0 * (k["C_f"] * k["l_f"] ** 2 + k["C_r"] * k["l_r"] ** 2) / (k["I_z"] * v_x)
+    zero = np.zeros_like(v_x)
+    return np.stack(
+        [
+            np.stack([a11, zero, v_y], axis=-1),
+            np.stack([zero, a22, a23], axis=-1),
+            np.stack([zero, a32, a33], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def euler_step(
+    x: ArrayLike,
+    u_d: ArrayLike,
+    w: ArrayLike,
+    f: ArrayLike,
+    p: VehicleParams,
+) -> FloatArray:
+    """One step of eq. (12): x_{k+1} = x_k + s * dx/dt(x_k), shape (..., 3)."""
+    x = np.asarray(x, dtype=float)
+    return x + p.sample_period_s * continuous_dynamics(x, u_d, w, f, p)
+
+
+def rk4_step(
+    x: ArrayLike,
+    u_d: ArrayLike,
+    w: ArrayLike,
+    f: ArrayLike,
+    p: VehicleParams,
+    dt_s: float,
+) -> FloatArray:
+    """One classical Runge-Kutta step of length ``dt_s`` [s] with inputs held, shape (..., 3)."""
+    x = np.asarray(x, dtype=float)
+    k1 = continuous_dynamics(x, u_d, w, f, p)
+    k2 = continuous_dynamics(x + 0.5 * dt_s * k1, u_d, w, f, p)
+    k3 = continuous_dynamics(x + 0.5 * dt_s * k2, u_d, w, f, p)
+    k4 = continuous_dynamics(x + dt_s * k3, u_d, w, f, p)
+    return x + (dt_s / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)

@@ -1,0 +1,21 @@
+"""Designs shared by the whole suite: each synthesis runs once per session."""
+
+from __future__ import annotations
+
+import pytest
+
+from synth.design import synthesize
+from synth.gains import ObserverGains
+from synth.options import DesignOptions
+
+
+@pytest.fixture(scope="session")
+def paper_gains() -> ObserverGains:
+    """The paper's design (Theorem 2 without decoupling, fuzzy P, fault order 3) with decay-rate bisection."""
+    return synthesize(options=DesignOptions(design="paper"))
+
+
+@pytest.fixture(scope="session")
+def paper_gains_order1() -> ObserverGains:
+    """A fast design for tests that only need some certified gains."""
+    return synthesize(options=DesignOptions(design="paper", fault_order=1, optimise_decay_rate=False))

@@ -1,0 +1,79 @@
+import numpy as np
+import pytest
+
+from edge_client.library import builtin_scenario
+from edge_client.simulation import observer_factory, run
+from synth.observer import FuzzyObserver, RuntimeGains, initial_observer_state, observer_step
+from tests.tolerances import BATCH_EQUALITY_ATOL, CONVERGENCE_FRACTION
+
+
+@pytest.mark.parametrize("name", ["paper-1", "paper-2"])
+def test_fault_estimates_converge_on_noise_free_paper_scenarios(paper_gains, name):
+    result = run([builtin_scenario(name)], observer_factory(paper_gains))
+    rmse = result.rmse(after_s=3.0)
+    amplitude = result.fault_amplitude()[0]
+    assert rmse["T_f"][0] < CONVERGENCE_FRACTION * amplitude[0]
+    assert rmse["delta_f"][0] < CONVERGENCE_FRACTION * amplitude[1]
+    assert result.in_domain.all()
+
+
+def test_batch_step_equals_single_vehicle_steps(paper_gains_order1):
+    rng = np.random.default_rng(0)
+    nv = 5
+    y = np.column_stack([rng.uniform(6, 25, nv), rng.uniform(-0.4, 0.4, nv)])
+    u = np.column_stack([rng.uniform(0, 300, nv), rng.uniform(-0.05, 0.05, nv)])
+    batch = FuzzyObserver(paper_gains_order1, y)
+    singles = [FuzzyObserver(paper_gains_order1, y[i : i + 1]) for i in range(nv)]
+    for _ in range(20):
+        result = batch.step(y, u)
+        for i, obs in enumerate(singles):
+            np.testing.assert_allclose(obs.step(y[i], u[i]).x_hat[0], result.x_hat[i], atol=BATCH_EQUALITY_ATOL)
+        y = y + rng.normal(0, 0.01, y.shape)
+
+
+def test_step_implements_algorithm_1(paper_gains_order1):
+    """x_hat = z - E y; z+ = N(h) z + L(h) y + M T1 (g + B u) + M G_bar phi(x_hat), written out longhand."""
+    g = paper_gains_order1
+    rt = RuntimeGains.from_gains(g)
+    nts = g.model.nts
+    y = np.array([[14.0, 0.2]])
+    u = np.array([[120.0, 0.01]])
+    z = initial_observer_state(rt, y, np.array([[13.0, 0.4, 0.1]]))
+    z_next, result = observer_step(rt, z, y, u)
+    x_hat = z[0] - g.E @ y[0]
+    h = nts.memberships(nts.premise(14.0, 0.2))
+    N_h = np.einsum("i,ijk->jk", h, g.N)
+    L_h = np.einsum("i,ijk->jk", h, g.L)
+    expected = (
+        N_h @ z[0]
+        + L_h @ y[0]
+        + g.M @ g.model.T1 @ (nts.g(14.0, 0.2) + nts.B @ u[0])
+        + g.M @ g.model.G_bar[:, 0] * x_hat[1] ** 2
+    )
+    np.testing.assert_allclose(result.x_hat[0], x_hat, atol=1e-12)
+    np.testing.assert_allclose(result.x_hat[0, :3], [13.0, 0.4, 0.1], atol=1e-12)
+    np.testing.assert_allclose(z_next[0], expected, rtol=1e-12, atol=1e-9)
+
+
+def test_out_of_domain_premise_is_clipped_and_flagged(paper_gains_order1):
+    obs = FuzzyObserver(paper_gains_order1, np.array([[2.0, 0.0], [12.0, 0.9], [12.0, 0.1]]))
+    result = obs.step(np.array([[2.0, 0.0], [12.0, 0.9], [12.0, 0.1]]), np.zeros((3, 2)))
+    np.testing.assert_array_equal(result.in_domain, [False, False, True])
+    assert np.all(np.isfinite(obs.z))
+
+
+def test_phi_uses_the_saturated_lateral_speed(paper_gains_order1):
+    """A wild v_y estimate feeds phi(v_y_max), never v_y_hat^2 (keeps rho inside S_rho)."""
+    g = paper_gains_order1
+    rt = RuntimeGains.from_gains(g)
+    y = np.array([[12.0, 0.1]])
+    u = np.zeros((1, 2))
+    far = initial_observer_state(rt, y, np.array([[12.0, 40.0, 0.1]]))
+    edge = initial_observer_state(rt, y, np.array([[12.0, 1.5, 0.1]]))
+    z_far, res_far = observer_step(rt, far, y, u)
+    z_edge, _ = observer_step(rt, edge, y, u)
+    assert not res_far.vy_in_bounds[0]
+    # the difference is the linear part only: N(h) (far - edge), no phi difference
+    h = g.model.nts.memberships(g.model.nts.premise(12.0, 0.1))
+    linear = np.einsum("i,ijk->jk", h, g.N) @ (far - edge)[0]
+    np.testing.assert_allclose(z_far[0] - z_edge[0], linear, rtol=1e-9, atol=1e-9)
