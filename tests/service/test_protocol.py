@@ -1,0 +1,79 @@
+import math
+
+import pytest
+
+from service.protocol import (
+    MEASUREMENT_HEADER_SIZE,
+    Alarm,
+    Estimate,
+    Measurement,
+    ProtocolError,
+    all_buckets,
+    bucket_of,
+    parse_vehicle_key,
+    shard_buckets,
+    vehicle_key,
+)
+
+
+def test_measurement_round_trip_is_compact():
+    m = Measurement("veh-001", 42, 1_700_000_000_123_456_789, 12.5, -0.125, 180.0, 0.0125)
+    payload = m.encode()
+    assert len(payload) == MEASUREMENT_HEADER_SIZE + len("veh-001") == 71
+    assert Measurement.decode(payload) == m
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda b: b[:20], "too short"),
+        (lambda b: b"XXXX" + b[4:], "bad magic"),
+        (lambda b: b[:4] + bytes([9]) + b[5:], "unsupported measurement format version 9"),
+        (lambda b: b + b"junk", "does not match its header"),
+        (lambda b: b[:64] + b"bad/id!", "invalid vehicle id"),
+    ],
+)
+def test_malformed_measurements_say_what_is_wrong(mutate, message):
+    good = Measurement("veh-001", 1, 0, 10.0, 0.0, 0.0, 0.0).encode()
+    with pytest.raises(ProtocolError, match=message):
+        Measurement.decode(mutate(good))
+
+
+def test_non_finite_values_survive_decoding_for_the_service_to_reject():
+    m = Measurement.decode(Measurement("v1", 1, 0, math.nan, 0.0, math.inf, 0.0).encode())
+    assert not m.is_finite()
+
+
+def test_keys_buckets_and_shards():
+    key = vehicle_key("truck-7", "meas")
+    assert key == f"agv/v1/{bucket_of('truck-7')}/truck-7/meas"
+    assert parse_vehicle_key(key) == ("truck-7", "meas")
+    with pytest.raises(ProtocolError):
+        parse_vehicle_key("agv/v1/b00/truck-7/other")
+    with pytest.raises(ProtocolError):
+        vehicle_key("a/b", "meas")
+    shards = [set(shard_buckets(i, 3)) for i in range(3)]
+    assert set().union(*shards) == set(all_buckets())
+    assert sum(len(s) for s in shards) == len(all_buckets())
+
+
+def test_json_messages_round_trip():
+    e = Estimate(
+        vehicle="v1",
+        seq=3,
+        t_ns=5,
+        vx=10,
+        vy=0.1,
+        r=0.0,
+        torque_fault=30.0,
+        steer_fault=0.01,
+        in_domain=True,
+        gain_version="abc123",
+    )
+    assert Estimate.decode(e.encode()) == e
+    a = Alarm(
+        vehicle="v1", id="al-1", kind="torque_fault", level="FAULT", state="raised", t_ns=1, value=31.0, threshold=20.0
+    )
+    assert Alarm.decode(a.encode()) == a
+    with pytest.raises(ProtocolError, match="invalid Alarm"):
+        Alarm.decode(b'{"v": 1, "vehicle": "v1"}')
