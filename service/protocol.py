@@ -37,7 +37,7 @@ import re
 import struct
 import zlib
 from dataclasses import dataclass
-from typing import Literal, cast
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -113,7 +113,7 @@ def parse_vehicle_key(key: str) -> tuple[str, Kind]:
     if len(parts) != 5 or parts[1] != f"v{PROTOCOL_VERSION}" or parts[4] not in KINDS:
         raise ProtocolError(f"not a vehicle key of protocol v{PROTOCOL_VERSION}: {key!r}")
     vehicle_id = check_vehicle_id(parts[3])
-    return vehicle_id, cast(Kind, parts[4])
+    return vehicle_id, parts[4]
 
 
 @dataclass(frozen=True, slots=True)
