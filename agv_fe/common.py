@@ -130,6 +130,23 @@ def design_options(args: argparse.Namespace, profile: VehicleProfileFile) -> Des
     return options
 
 
+def add_estimator_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--estimator",
+        choices=("observer", "ekf"),
+        default="observer",
+        help="the certified fuzzy observer (default) or the augmented-state EKF baseline, tuned from the same "
+        "design options (noise model, fault order)",
+    )
+
+
+def estimator_factory(args: argparse.Namespace, gains: Any) -> Any:
+    """The estimator selected by --estimator, for these gains (the EKF takes their params and tuning)."""
+    from edge_client.simulation import ekf_factory, observer_factory
+
+    return ekf_factory(gains) if args.estimator == "ekf" else observer_factory(gains)
+
+
 def fail(exc: CommandError) -> int:
     print(f"agv-fe: error: {exc}", file=sys.stderr)
     return exc.exit_code

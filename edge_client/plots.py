@@ -64,3 +64,28 @@ def plot_faults(result: SimulationResult, path: str | Path, vehicle: int = 0, ti
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_fault_overlay(results: dict[str, SimulationResult], path: str | Path, title: str = "") -> Path:
+    """Fault estimates of several estimators on the same run, over the truth."""
+    fig, axes = plt.subplots(2, 1, figsize=(11, 7), constrained_layout=True, sharex=True)
+    first = next(iter(results.values()))
+    styles = [("tab:red", "--"), ("tab:green", ":"), ("tab:purple", "-.")]
+    for k, (ylabel, name) in enumerate([("T_f [N m]", "(a) torque fault"), ("delta_f [rad]", "(b) steering fault")]):
+        ax = axes[k]
+        ax.plot(first.t, first.f[:, 0, k], color="tab:blue", lw=1.8, label="true")
+        for (label, result), (color, ls) in zip(results.items(), styles, strict=False):
+            ax.plot(result.t, result.f_hat[:, 0, k], color=color, ls=ls, lw=1.1, label=label)
+        true = first.f[:, 0, k]
+        span = max(float(abs(true).max()), 1e-9)
+        ax.set_ylim(min(float(true.min()), 0.0) - 0.8 * span, max(float(true.max()), 0.0) + 0.8 * span)
+        ax.set(ylabel=ylabel, title=name)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best")
+    axes[-1].set_xlabel("t [s]")
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,4 +1,9 @@
-"""Closed runs of plant + estimator: the engine behind `agv-fe simulate`, `compare` and the accuracy bench."""
+"""Closed runs of plant + estimators: the engine behind `agv-fe simulate`, `compare` and the accuracy bench.
+
+:func:`simulate_plant` records what the vehicles did and measured;
+:func:`estimate` runs any batch estimator over such a record, so that several
+estimators see exactly the same noisy data; :func:`run` does both.
+"""
 
 from __future__ import annotations
 
@@ -48,12 +53,24 @@ def observer_factory(gains: ObserverGains) -> EstimatorFactory:
     return make
 
 
-@dataclass
-class SimulationResult:
-    """Time histories of a batch run, K samples, nv vehicles.
+def ekf_factory(gains_or_options: ObserverGains) -> EstimatorFactory:
+    """An :data:`EstimatorFactory` for the EKF tuned like these gains (params, bounds, noise model, fault order)."""
+    from synth.ekf import AugmentedEKF
 
-    x, x_hat : (K, nv, 3); f, f_hat : (K, nv, 2); y, u : (K, nv, 2);
-    pose : (K, nv, 3); wind : (K, nv); in_domain : (K, nv); t : (K,)
+    g = gains_or_options
+
+    def make(y0: FloatArray, x_hat0: FloatArray | None) -> BatchEstimator:
+        return AugmentedEKF(g.params, g.bounds, g.options.noise, g.options.fault_order, y0, x_hat0)
+
+    return make
+
+
+@dataclass
+class PlantRecord:
+    """What a batch of vehicles did and measured, K samples, nv vehicles.
+
+    x : (K, nv, 3) true state; f : (K, nv, 2) true faults; y : (K, nv, 2) measured;
+    u : (K, nv, 2) demanded inputs; pose : (K, nv, 3); wind : (K, nv); t : (K,)
     """
 
     scenarios: list[Scenario]
@@ -64,9 +81,19 @@ class SimulationResult:
     u: FloatArray
     wind: FloatArray
     pose: FloatArray
-    x_hat: FloatArray
-    f_hat: FloatArray
-    in_domain: NDArray[np.bool_]
+
+    def observer_initial_state(self) -> FloatArray | None:
+        init = [s.observer_initial_state for s in self.scenarios]
+        return None if any(i is None for i in init) else np.array(init, dtype=float)
+
+
+@dataclass
+class SimulationResult(PlantRecord):
+    """A :class:`PlantRecord` with one estimator's output: x_hat (K, nv, 3), f_hat (K, nv, 2), in_domain (K, nv)."""
+
+    x_hat: FloatArray = field(default_factory=lambda: np.zeros(0))
+    f_hat: FloatArray = field(default_factory=lambda: np.zeros(0))
+    in_domain: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
     step_times_s: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def rmse(self, after_s: float = 0.0) -> dict[str, FloatArray]:
@@ -86,42 +113,44 @@ class SimulationResult:
         return np.asarray(np.abs(self.f).max(axis=0))
 
 
-def run(
-    scenarios: Sequence[Scenario],
-    estimator: EstimatorFactory,
-    *,
-    substeps: int = 10,
-) -> SimulationResult:
-    """Simulate the scenarios as one batch and run the estimator on the measurements."""
+def simulate_plant(scenarios: Sequence[Scenario], *, substeps: int = 10) -> PlantRecord:
+    """Simulate the scenarios as one batch and record everything."""
     plant = PlantSimulator(scenarios, substeps=substeps)
     n_samples = int(plant.n_samples.max())
     nv = plant.n_vehicles
-    out = {
-        "x": np.zeros((n_samples, nv, 3)),
-        "f": np.zeros((n_samples, nv, 2)),
-        "y": np.zeros((n_samples, nv, 2)),
-        "u": np.zeros((n_samples, nv, 2)),
-        "wind": np.zeros((n_samples, nv)),
-        "pose": np.zeros((n_samples, nv, 3)),
-        "x_hat": np.zeros((n_samples, nv, 3)),
-        "f_hat": np.zeros((n_samples, nv, 2)),
-    }
-    in_domain = np.zeros((n_samples, nv), dtype=bool)
-    step_times = np.zeros(n_samples)
-    t = np.zeros(n_samples)
-    est: BatchEstimator | None = None
+    rec = PlantRecord(
+        scenarios=list(scenarios),
+        t=np.arange(n_samples) * plant.sample_period_s,
+        x=np.zeros((n_samples, nv, 3)),
+        f=np.zeros((n_samples, nv, 2)),
+        y=np.zeros((n_samples, nv, 2)),
+        u=np.zeros((n_samples, nv, 2)),
+        wind=np.zeros((n_samples, nv)),
+        pose=np.zeros((n_samples, nv, 3)),
+    )
     for k in range(n_samples):
         sample = plant.step()
-        if est is None:
-            init = [s.observer_initial_state for s in scenarios]
-            x_hat0 = None if any(i is None for i in init) else np.array(init, dtype=float)
-            est = estimator(sample.y, x_hat0)
+        rec.x[k], rec.f[k], rec.y[k], rec.u[k] = sample.x, sample.f, sample.y, sample.u
+        rec.wind[k], rec.pose[k] = sample.wind, sample.pose
+    return rec
+
+
+def estimate(record: PlantRecord, estimator: EstimatorFactory) -> SimulationResult:
+    """Run an estimator over a record; every step is timed."""
+    n_samples, nv = record.y.shape[:2]
+    x_hat = np.zeros((n_samples, nv, 3))
+    f_hat = np.zeros((n_samples, nv, 2))
+    in_domain = np.zeros((n_samples, nv), dtype=bool)
+    step_times = np.zeros(n_samples)
+    est = estimator(record.y[0], record.observer_initial_state())
+    for k in range(n_samples):
         started = time.perf_counter()
-        result = est.step(sample.y, sample.u)
+        out = est.step(record.y[k], record.u[k])
         step_times[k] = time.perf_counter() - started
-        t[k] = sample.t
-        out["x"][k], out["f"][k], out["y"][k], out["u"][k] = sample.x, sample.f, sample.y, sample.u
-        out["wind"][k], out["pose"][k] = sample.wind, sample.pose
-        out["x_hat"][k], out["f_hat"][k] = result.state, result.faults
-        in_domain[k] = result.in_domain
-    return SimulationResult(scenarios=list(scenarios), t=t, in_domain=in_domain, step_times_s=step_times, **out)
+        x_hat[k], f_hat[k], in_domain[k] = out.state, out.faults, out.in_domain
+    return SimulationResult(**record.__dict__, x_hat=x_hat, f_hat=f_hat, in_domain=in_domain, step_times_s=step_times)
+
+
+def run(scenarios: Sequence[Scenario], estimator: EstimatorFactory, *, substeps: int = 10) -> SimulationResult:
+    """Simulate the scenarios and run the estimator on their measurements."""
+    return estimate(simulate_plant(scenarios, substeps=substeps), estimator)

@@ -50,7 +50,9 @@ def synthesize(
     bounds = bounds or OperatingBounds()
     options = options or DesignOptions()
     if options.design == "robust":
-        raise BadParameters("the 'robust' design is not implemented yet; use 'paper'")
+        from synth.robust import synthesize_robust
+
+        return synthesize_robust(params, bounds, options)
     started = time.perf_counter()
     timings: dict[str, float] = {}
     aug = AugmentedModel.build(NTSModel.build(params, bounds), options.fault_order)

@@ -100,14 +100,24 @@ def design_coordinates(
     *,
     difference: bool = True,
     torque_fault_scale: float = DEFAULT_TORQUE_FAULT_SCALE,
+    state_scales: FloatArray | None = None,
 ) -> DesignCoordinates:
-    """The solver coordinates: difference coordinates for the fault chain and a scaled torque unit."""
+    """The solver coordinates: difference coordinates for the fault chain, then a diagonal scaling.
+
+    By default only the torque-fault components are scaled (by ``torque_fault_scale``);
+    ``state_scales`` (n,) sets the unit of every coordinate instead.
+    """
     if not np.isfinite(torque_fault_scale) or torque_fault_scale <= 0:
         raise BadParameters(f"torque_fault_scale must be positive and finite, got {torque_fault_scale!r}")
     n = aug.n
     basis = difference_coordinates(aug.fault_order) if difference else np.eye(n)
-    scale = np.ones(n)
-    scale[3::2] = torque_fault_scale  # every torque-fault component of the chain
+    if state_scales is None:
+        scale = np.ones(n)
+        scale[3::2] = torque_fault_scale  # every torque-fault component of the chain
+    else:
+        scale = np.asarray(state_scales, dtype=float)
+        if scale.shape != (n,) or not np.all(np.isfinite(scale)) or np.any(scale <= 0):
+            raise BadParameters(f"state_scales must be {n} positive finite numbers, got {state_scales!r}")
     T = np.diag(1.0 / scale) @ basis
     T_inv = np.linalg.inv(T)
     e_vy = np.zeros((1, n))

@@ -32,23 +32,40 @@ from synth.augmented import VY_INDEX
 from synth.gains import ObserverGains
 from synth.model import FloatArray
 
+#: The measured nonlinear consequent g(xi) of eq. (15) is linear in these monomials of (v_x, r).
+G_FEATURES = ("v_x^2", "r/v_x", "v_x r")
+
+
+def g_feature_matrix(gains: ObserverGains) -> FloatArray:
+    """(3, 3) matrix K with g(v_x, r) = K @ [v_x^2, r / v_x, v_x r] (eq. 15, corrected)."""
+    k = gains.params.symbols()
+    s = k["s"]
+    K = np.zeros((3, 3))
+    K[0, 0] = -s * k["C_x"] / k["I_e"]  # g_1 = -s C_x v_x^2 / I_e
+    K[1, 1] = s * 2.0 * (k["C_r"] * k["l_r"] - k["C_f"] * k["l_f"]) / k["M_v"]  # g_2, r/v_x part
+    K[1, 2] = -s  # g_2, -s v_x r part
+    K[2, 1] = -s * 2.0 * (k["C_f"] * k["l_f"] ** 2 + k["C_r"] * k["l_r"] ** 2) / k["I_z"]  # g_3
+    return K
+
 
 @dataclass(frozen=True)
 class RuntimeGains:
-    """Gains rearranged for the batched step.
+    """Gains stacked for the batched step: z_{k+1}^T = W^T Phi with one feature column per vehicle.
 
-    NL : (n + 2, r * n)  [N_i, L_i] stacked so that [z, y] @ NL gives every rule's update
-    MT1 : (n, 3); MT1B : (n, 2); MG : (n,); E : (n, 2)
+    Phi = [h_1 [z; y]; ...; h_r [z; y]; v_x^2; r/v_x; v_x r; u; phi]   (r (n + 2) + 6, nv)
+    W   = [[N_1^T; L_1^T]; ...; [N_r^T; L_r^T]; (M T1 K)^T; (M T1 B)^T; (M G_bar)^T]   (r (n + 2) + 6, n)
+
+    so the whole of Algorithm 1, line 9, is two broadcast products and one GEMM.
     """
 
     gains: ObserverGains
-    NL: FloatArray
-    MT1: FloatArray
-    MT1B: FloatArray
-    MG: FloatArray
+    WT: FloatArray
     E: FloatArray
+    E_is_zero: bool
     n: int
     n_rules: int
+    premise_low: FloatArray
+    premise_high: FloatArray
     vy_low: float
     vy_high: float
 
@@ -56,19 +73,26 @@ class RuntimeGains:
     def from_gains(cls, gains: ObserverGains) -> RuntimeGains:
         aug = gains.model
         r, n, _ = gains.N.shape
-        stacked = np.concatenate([gains.N, gains.L], axis=2)  # (r, n, n + 2)
-        NL = np.ascontiguousarray(stacked.transpose(2, 0, 1).reshape(n + 2, r * n))
         MT1 = gains.M @ aug.T1
+        rule_rows = np.concatenate([gains.N, gains.L], axis=2).transpose(0, 2, 1).reshape(r * (n + 2), n)
+        W = np.vstack(
+            [
+                rule_rows,
+                (MT1 @ g_feature_matrix(gains)).T,
+                (MT1 @ aug.nts.B).T,
+                (gains.M @ aug.G_bar).T,
+            ]
+        )
         vy_low, vy_high = aug.nts.bounds.lateral_speed_bounds
         return cls(
             gains=gains,
-            NL=NL,
-            MT1=MT1,
-            MT1B=MT1 @ aug.nts.B,
-            MG=(gains.M @ aug.G_bar)[:, 0],
+            WT=np.ascontiguousarray(W.T),
             E=gains.E,
+            E_is_zero=not np.any(gains.E),
             n=n,
             n_rules=r,
+            premise_low=aug.nts.premise_low,
+            premise_high=aug.nts.premise_high,
             vy_low=vy_low,
             vy_high=vy_high,
         )
@@ -121,25 +145,49 @@ def observer_step(rt: RuntimeGains, z: FloatArray, y: ArrayLike, u: ArrayLike) -
 
     z : (nv, n) observer state; y : (nv, 2) measured [v_x [m/s], r [rad/s]];
     u : (nv, 2) demanded [T_d [N m], delta_d [rad]]. Inputs must be finite.
+
+    Internally the batch is laid out vehicles-last (structure of arrays), so
+    every elementwise loop runs over the fleet; the returned z_{k+1} is the
+    transpose of a contiguous (n, nv) array, which makes the next call's
+    transposes free.
     """
-    y = np.asarray(y, dtype=float)
-    u = np.asarray(u, dtype=float)
-    nts = rt.gains.model.nts
+    yT = np.asarray(y, dtype=float).T
+    uT = np.asarray(u, dtype=float).T
+    zT = z.T
+    nv = yT.shape[1]
     # line 8: x_hat_k = z_k - E y_k
-    x_hat = z - y @ rt.E.T
-    xi = nts.premise(y[:, 0], y[:, 1])
-    in_domain = nts.in_domain(xi)
-    xi = nts.clip_premise(xi)
-    h = nts.memberships(xi)  # (nv, r)
-    v_x = 1.0 / xi[:, 0]
-    r = xi[:, 1]
+    x_hat = z if rt.E_is_zero else z - yT.T @ rt.E.T
+    # premise xi = [1/v_x, r], flagged when outside the design box, then clipped
+    V_x = 1.0 / yT[0]
+    r = yT[1]
+    lo, hi = rt.premise_low, rt.premise_high
+    in_domain = (V_x >= lo[0]) & (V_x <= hi[0]) & (r >= lo[1]) & (r <= hi[1])
+    V_x = np.clip(V_x, lo[0], hi[0])
+    r = np.clip(r, lo[1], hi[1])
+    # memberships of eq. (16): products of the two sector weights
+    a = (hi[0] - V_x) / (hi[0] - lo[0])
+    b = (hi[1] - r) / (hi[1] - lo[1])
+    h = np.empty((4, nv))
+    np.multiply(a, b, out=h[0])
+    np.subtract(a, h[0], out=h[1])
+    np.subtract(b, h[0], out=h[2])
+    h[3] = 1.0 - a - h[2]
     vy_hat = x_hat[:, VY_INDEX]
     vy_in_bounds = (vy_hat >= rt.vy_low) & (vy_hat <= rt.vy_high)
-    phi = np.clip(vy_hat, rt.vy_low, rt.vy_high) ** 2
-    # line 9: z_{k+1} = N(h) z + L(h) y + M T1 (g + B u) + M G_bar phi(x_hat)
-    per_rule = (np.concatenate([z, y], axis=1) @ rt.NL).reshape(-1, rt.n_rules, rt.n)
-    z_next = np.einsum("vi,vij->vj", h, per_rule)
-    z_next += nts.g(v_x, r) @ rt.MT1.T + u @ rt.MT1B.T + phi[:, None] * rt.MG
+    # line 9 as W^T Phi: rule blend of [z, y], the monomials of g, u, and phi(sat(v_y_hat))
+    n, n2 = rt.n, rt.n + 2
+    width = rt.n_rules * n2
+    Phi = np.empty((width + 6, nv))
+    blend = Phi[:width].reshape(rt.n_rules, n2, nv)
+    np.multiply(h[:, None, :], zT[None, :, :], out=blend[:, :n])
+    np.multiply(h[:, None, :], yT[None, :, :], out=blend[:, n:])
+    v_x = 1.0 / V_x
+    np.multiply(v_x, v_x, out=Phi[width])
+    np.multiply(r, V_x, out=Phi[width + 1])
+    np.multiply(v_x, r, out=Phi[width + 2])
+    Phi[width + 3 : width + 5] = uT
+    Phi[width + 5] = np.clip(vy_hat, rt.vy_low, rt.vy_high) ** 2
+    z_next = (rt.WT @ Phi).T
     return z_next, StepResult(x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds)
 
 

@@ -6,29 +6,67 @@ it the same way; :func:`synth.design.synthesize` receives it read-only.
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 DesignName = Literal["paper", "paper-decoupled", "robust"]
 SolverName = Literal["CLARABEL", "SCS"]
 
 
-class DesignOptions(BaseModel):
-    """Options of an observer design.
+class NoiseModel(BaseModel):
+    """What the noise-aware ('robust') design and the EKF assume about the real world.
 
-    ``paper``: Theorem 2 without exact decoupling (wind as a bounded
-    disturbance), stability with the best certified decay rate.
-    ``paper-decoupled``: Theorem 2 as printed, M D_bar = 0; impossible for
-    this plant, refused with the reason before any solve.
-    ``robust``: the noise-aware guaranteed-cost design (synth.robust).
+    The sensor sigmas are those of the measured y = [v_x, r]; the wind is a
+    lateral force treated as white noise of this RMS; the fault rates are RMS
+    rates of change of the faults, which set the tracking bandwidth (faster =
+    quicker detection, noisier estimates); the scales weight the two fault
+    channels in the cost (an error of one scale unit on either channel costs
+    the same).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    design: DesignName = Field("paper", description="which design to run")
+    vx_sigma_mps: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = Field(
+        0.05, description="standard deviation of the v_x measurement noise [m/s]"
+    )
+    r_sigma_radps: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
+        0.005, description="standard deviation of the yaw-rate measurement noise [rad/s]"
+    )
+    wind_sigma_n: Annotated[float, Field(ge=0, le=1e5, allow_inf_nan=False)] = Field(
+        300.0, description="RMS of the lateral wind force, treated as white noise [N]"
+    )
+    torque_fault_rate_nm_per_s: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = Field(
+        50.0, description="RMS rate of change of the torque fault [N m/s]"
+    )
+    steer_fault_rate_rad_per_s: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = Field(
+        0.02, description="RMS rate of change of the steering fault [rad/s]"
+    )
+    torque_fault_scale_nm: Annotated[float, Field(gt=0, allow_inf_nan=False)] = Field(
+        10.0, description="torque-fault error that costs one unit [N m]"
+    )
+    steer_fault_scale_rad: Annotated[float, Field(gt=0, allow_inf_nan=False)] = Field(
+        0.005, description="steering-fault error that costs one unit [rad]"
+    )
+
+
+class DesignOptions(BaseModel):
+    """Options of an observer design.
+
+    ``robust`` (default): the noise-aware guaranteed-cost design (synth.robust).
+    ``paper``: Theorem 2 without exact decoupling (wind as a bounded
+    disturbance), stability with the best certified decay rate.
+    ``paper-decoupled``: Theorem 2 as printed, M D_bar = 0; impossible for
+    this plant, refused with the reason before any solve.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    design: DesignName = Field("robust", description="which design to run")
     fault_order: Literal[1, 2, 3] = Field(
-        3, description="order q of the fault model (z - 1)^q; 3 is the paper's triple integrator (eq. 17)"
+        3,
+        description="order q of the fault model (z - 1)^q; 3 is the paper's triple integrator (eq. 17). "
+        "Default: 3 for the paper's designs, 1 for 'robust'",
     )
     lyapunov: Literal["fuzzy", "common"] = Field(
         "fuzzy", description="fuzzy P(h) = sum h_i P_i (32 vertex LMIs) or one common P (8 vertex LMIs)"
@@ -54,6 +92,20 @@ class DesignOptions(BaseModel):
     )
     difference_coordinates: bool = Field(True, description="solve with the fault chain in difference coordinates")
     check_existence: bool = Field(True, description="refuse impossible designs before solving")
+    noise: NoiseModel = Field(default_factory=NoiseModel, description="noise assumptions of the 'robust' design")
+    robust_decay_rate: Annotated[float, Field(gt=0, lt=1)] = Field(
+        0.995,
+        description="decay rate the 'robust' design must certify on top of its cost (0.995 per 10 ms "
+        "sample = a 2 s time constant)",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_fault_order(cls, data: Any) -> Any:
+        """The paper's designs use its triple integrator; the robust design a random walk."""
+        if isinstance(data, dict) and "fault_order" not in data:
+            return {**data, "fault_order": 1 if data.get("design", "robust") == "robust" else 3}
+        return data
 
     @property
     def decoupled(self) -> bool:

@@ -15,18 +15,24 @@ REPEATS = 5
 CASES: list[tuple[str, DesignOptions]] = [
     (
         "fuzzy P(h), Petersen form (16 LMIs of size 19)",
-        DesignOptions(lyapunov="fuzzy", lmi_form="petersen", optimise_decay_rate=False),
+        DesignOptions(design="paper", lyapunov="fuzzy", lmi_form="petersen", optimise_decay_rate=False),
     ),
     (
         "fuzzy P(h), paper's vertex form (32 LMIs of size 18)",
-        DesignOptions(lyapunov="fuzzy", lmi_form="vertex", optimise_decay_rate=False),
+        DesignOptions(design="paper", lyapunov="fuzzy", lmi_form="vertex", optimise_decay_rate=False),
     ),
     (
         "common P, Petersen form (4 LMIs)",
-        DesignOptions(lyapunov="common", lmi_form="petersen", optimise_decay_rate=False),
+        DesignOptions(design="paper", lyapunov="common", lmi_form="petersen", optimise_decay_rate=False),
     ),
-    ("common P, vertex form (8 LMIs)", DesignOptions(lyapunov="common", lmi_form="vertex", optimise_decay_rate=False)),
-    ("fuzzy P(h), Petersen form, with decay-rate bisection", DesignOptions(lyapunov="fuzzy", lmi_form="petersen")),
+    (
+        "common P, vertex form (8 LMIs)",
+        DesignOptions(design="paper", lyapunov="common", lmi_form="vertex", optimise_decay_rate=False),
+    ),
+    (
+        "fuzzy P(h), Petersen form, with decay-rate bisection",
+        DesignOptions(design="paper", lyapunov="fuzzy", lmi_form="petersen"),
+    ),
 ]
 
 

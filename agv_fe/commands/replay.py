@@ -8,7 +8,14 @@ from typing import Any
 
 import numpy as np
 
-from agv_fe.common import CommandError, add_design_arguments, fail, gains_from_args
+from agv_fe.common import (
+    CommandError,
+    add_design_arguments,
+    add_estimator_argument,
+    estimator_factory,
+    fail,
+    gains_from_args,
+)
 
 
 def register(sub: Any) -> None:
@@ -26,13 +33,13 @@ def register(sub: Any) -> None:
         metavar="VX,VY,R",
         help="observer initial [v_x, v_y, r] (default: measured v_x, r and v_y = 0)",
     )
-    add_design_arguments(parser, default_design="paper")
+    add_design_arguments(parser, default_design="robust")
+    add_estimator_argument(parser)
     parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from edge_client.recording import RecordingError, read_recording, write_estimates
-    from synth.observer import FuzzyObserver
 
     try:
         x0 = _initial_state(args.initial_state)
@@ -43,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(str(exc)) from exc
     except CommandError as exc:
         return fail(exc)
-    observer = FuzzyObserver(gains, recording.y[:1], x0)
+    observer = estimator_factory(args, gains)(recording.y[:1], x0)
     n = len(recording)
     x_hat = np.zeros((n, 3))
     f_hat = np.zeros((n, 2))
@@ -56,8 +63,9 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         return fail(CommandError(f"{args.out}: cannot write: {exc.strerror}"))
     print(
-        f"replayed {n} samples ({recording.t[-1] - recording.t[0]:.2f} s) with the '{gains.options.design}' "
-        f"observer (version {gains.version}); premise in domain {in_domain.mean():.1%} of the time"
+        f"replayed {n} samples ({recording.t[-1] - recording.t[0]:.2f} s) with the "
+        f"{'EKF' if args.estimator == 'ekf' else repr(gains.options.design) + ' observer'} "
+        f"(gains version {gains.version}); premise in domain {in_domain.mean():.1%} of the time"
     )
     print(f"written {Path(args.out)}")
     return 0

@@ -9,7 +9,14 @@ from typing import Any
 
 import numpy as np
 
-from agv_fe.common import CommandError, add_design_arguments, fail, gains_from_args
+from agv_fe.common import (
+    CommandError,
+    add_design_arguments,
+    add_estimator_argument,
+    estimator_factory,
+    fail,
+    gains_from_args,
+)
 
 
 def register(sub: Any) -> None:
@@ -31,7 +38,8 @@ def register(sub: Any) -> None:
     parser.add_argument("--seed", type=int, default=None, help="noise seed (default: the scenario's)")
     parser.add_argument("--gains", metavar="gains.json", help="use stored gains instead of synthesising")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
-    add_design_arguments(parser, default_design="paper")
+    add_design_arguments(parser, default_design="robust")
+    add_estimator_argument(parser)
     parser.set_defaults(handler=run)
 
 
@@ -80,7 +88,6 @@ def resolve_scenario(name: str, noise: Any, seed: int | None) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from edge_client.plots import plot_faults, plot_states
-    from edge_client.simulation import observer_factory
     from edge_client.simulation import run as simulate
 
     try:
@@ -92,15 +99,17 @@ def run(args: argparse.Namespace) -> int:
         return fail(exc)
     except OSError as exc:
         return fail(CommandError(f"{args.out}: cannot create: {exc.strerror}"))
-    result = simulate([scenario], observer_factory(gains))
+    result = simulate([scenario], estimator_factory(args, gains))
     write_csv(out / "simulation.csv", result)
-    title = f"{scenario.name}: {gains.options.design} observer"
+    who = "EKF" if args.estimator == "ekf" else f"{gains.options.design} observer"
+    title = f"{scenario.name}: {who}"
     plot_states(result, out / "states.png", title=title)
     plot_faults(result, out / "faults.png", title=title)
     rmse_all = {k: float(v[0]) for k, v in result.rmse().items()}
     rmse_late = {k: float(v[0]) for k, v in result.rmse(after_s=3.0).items()}
     summary = {
         "scenario": scenario.name,
+        "estimator": args.estimator,
         "design": gains.options.design,
         "gain_version": gains.version,
         "noise": scenario.noise.model_dump(),
@@ -110,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         "in_domain_fraction": float(result.in_domain.mean()),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"{scenario.name}: {len(result.t)} samples, design '{gains.options.design}' (version {gains.version})")
+    print(f"{scenario.name}: {len(result.t)} samples, {who} (gains version {gains.version})")
     print(f"{'signal':<10}{'RMSE':>14}{'RMSE t>=3s':>14}  unit")
     units = {"v_x": "m/s", "v_y": "m/s", "r": "rad/s", "T_f": "N m", "delta_f": "rad"}
     for name, unit in units.items():

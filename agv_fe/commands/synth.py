@@ -16,7 +16,7 @@ def register(sub: Any) -> None:
         help="design certified observer gains (LMIs of Theorem 2)",
         description="Solve the observer LMIs, verify the result in numpy and write gains + certificate as JSON.",
     )
-    add_design_arguments(parser, default_design="paper")
+    add_design_arguments(parser, default_design="robust")
     parser.add_argument("--out", required=True, metavar="gains.json", help="where to write gains and certificate")
     parser.set_defaults(handler=run)
 

@@ -94,15 +94,19 @@ def test_a_solver_point_that_fails_verification_is_an_error_never_gains(monkeypa
 
     monkeypatch.setattr(Theorem2LMIs, "solve", corrupted)
     with pytest.raises(VerificationFailed, match="numpy verification"):
-        synthesize(options=DesignOptions(fault_order=1, optimise_decay_rate=False, solvers=("CLARABEL",)))
+        synthesize(
+            options=DesignOptions(design="paper", fault_order=1, optimise_decay_rate=False, solvers=("CLARABEL",))
+        )
 
 
 @pytest.mark.parametrize(
     "options",
     [
-        DesignOptions(fault_order=1, lmi_form="vertex", optimise_decay_rate=False),
-        DesignOptions(fault_order=2, lyapunov="common", optimise_decay_rate=False),
-        DesignOptions(fault_order=1, solvers=("SCS",), optimise_decay_rate=False, solver_time_limit_s=30.0),
+        DesignOptions(design="paper", fault_order=1, lmi_form="vertex", optimise_decay_rate=False),
+        DesignOptions(design="paper", fault_order=2, lyapunov="common", optimise_decay_rate=False),
+        DesignOptions(
+            design="paper", fault_order=1, solvers=("SCS",), optimise_decay_rate=False, solver_time_limit_s=30.0
+        ),
     ],
     ids=["vertex-form", "common-P", "scs-only"],
 )
@@ -115,6 +119,6 @@ def test_other_forms_and_solvers_are_verified(options):
 
 
 def test_bisection_improves_on_the_stability_design(paper_gains_order1):
-    best = synthesize(options=DesignOptions(fault_order=1))
+    best = synthesize(options=DesignOptions(design="paper", fault_order=1))
     assert best.certificate.decay_rate <= paper_gains_order1.certificate.decay_rate
     assert best.certificate.solves >= 2

@@ -1,0 +1,332 @@
+"""The noise-aware ('robust') observer design: an H2 guaranteed cost with the fuzzy structure kept.
+
+The paper's Theorem 2 only asks for stability, and its gains amplify sensor
+noise into torque-fault estimates of thousands of N m (NOTES.md, finding 5).
+Here the same observer structure (eq. 19, with E = 0 so that M = I and
+N_i = A_bar_i - L_i C_bar) is designed to minimise a bound on the steady-state
+variance of the weighted fault-estimation error, with inputs
+
+* sensor noise v on y = [v_x, r] (per-channel sigma), entering through L_i,
+* lateral wind w (RMS force), entering through D_bar,
+* fault drift eta, the white noise driving the fault model (how fast faults
+  may change: the tracking bandwidth), entering the last fault-chain block.
+
+Error dynamics: e_{k+1} = (A_bar(h) + G_bar rho e_vy^T - L(h) C_bar) e_k + B(h) d_k,
+B_i = [D_bar sigma_w, -L_i Sigma_v, B_eta Sigma_eta], d white with unit
+covariance; performance z = C_z e, the fault errors divided by their scales.
+
+With the slack R of Theorem 2 and X_i = R L_i, for every i, j (and rho, via
+Petersen's lemma as in synth.lmi):
+
+    [[P_i - C_z^T C_z, *], [R A(i, rho) - X_i C_bar, R + R^T - P_j]] > 0
+    [[Z, *], [R B_i, R + R^T - P_j]] >= 0,          R B_i = [R D_bar s_w, -X_i S_v, R B_eta S_eta]
+
+and minimise trace Z. Then E[V_{k+1}] - E[V_k] <= -E|z_k|^2 + trace Z with
+V = e^T P(h) e, so the time-average E|z|^2 <= trace Z for every premise
+trajectory and every rho in S_rho: a guaranteed H2 cost. The first family also
+certifies stability (it implies the Theorem 2 LMI at alpha = 1), verified in
+numpy like every design.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cvxpy as cp
+import numpy as np
+import scipy.linalg
+
+from synth.augmented import N_FAULTS, N_STATES, AugmentedModel
+from synth.certificate import Certificate, verify
+from synth.design import _solver_version
+from synth.errors import BadParameters, SolverFailed, VerificationFailed
+from synth.existence import check_detectability
+from synth.fuzzy import NTSModel
+from synth.gains import ObserverGains, gains_hash
+from synth.lmi import _SOLVER_OPTIONS, _TIME_LIMIT_OPTION, DesignCoordinates, design_coordinates
+from synth.model import FloatArray
+from synth.options import DesignOptions, NoiseModel
+from synth.params import OperatingBounds, VehicleParams
+
+
+@dataclass(frozen=True)
+class NoiseInputs:
+    """The disturbance channels of the error dynamics, physical coordinates.
+
+    B_fixed : (n, m_f) wind and fault-drift inputs (scaled to unit variance)
+    Sigma_v : (2, 2) diag of the sensor sigmas
+    C_z     : (2, n) performance output: fault errors divided by their scales
+    """
+
+    B_fixed: FloatArray
+    Sigma_v: FloatArray
+    C_z: FloatArray
+
+
+def noise_inputs(aug: AugmentedModel, noise: NoiseModel) -> NoiseInputs:
+    """Build the input and performance matrices of the H2 problem from the noise model."""
+    n = aug.n
+    s = aug.nts.params.sample_period_s
+    last = slice(n - N_FAULTS, n)
+    B_eta = np.zeros((n, N_FAULTS))
+    # the drift enters the last block of the fault chain; per-sample std = rate * s
+    B_eta[last, :] = np.diag([noise.torque_fault_rate_nm_per_s * s, noise.steer_fault_rate_rad_per_s * s])
+    B_wind = aug.D_bar * noise.wind_sigma_n
+    C_z = np.zeros((N_FAULTS, n))
+    C_z[0, N_STATES] = 1.0 / noise.torque_fault_scale_nm
+    C_z[1, N_STATES + 1] = 1.0 / noise.steer_fault_scale_rad
+    return NoiseInputs(
+        B_fixed=np.hstack([B_wind, B_eta]),
+        Sigma_v=np.diag([noise.vx_sigma_mps, noise.r_sigma_radps]),
+        C_z=C_z,
+    )
+
+
+def error_scales(aug: AugmentedModel, noise: NoiseModel) -> FloatArray:
+    """Units of the solver coordinates for the H2 problem: the expected size of each estimation error.
+
+    v_x and r: their sensor sigmas; v_y: 0.05 m/s; fault f: the cost scales; the
+    differences of the fault chain: the per-sample drift. Every
+    coordinate of the error is then O(1), which is what lets the interior-point
+    solver find the optimum rather than a point that is 'optimal' to tolerance
+    but thousands of times worse (measured: cost 7.4e3 instead of 0.3).
+    """
+    s = aug.nts.params.sample_period_s
+    drift = np.array([noise.torque_fault_rate_nm_per_s * s, noise.steer_fault_rate_rad_per_s * s])
+    fault = np.array([noise.torque_fault_scale_nm, noise.steer_fault_scale_rad])
+    scales = [noise.vx_sigma_mps, 0.05, noise.r_sigma_radps]
+    for m in range(aug.fault_order):
+        scales += list(fault if m == 0 else drift)
+    return np.array(scales, dtype=float)
+
+
+#: The H2 objective converges to 6-7 digits and Clarabel then stalls short of its
+#: default 1e-8 gap ("AlmostSolved" -> optimal_inaccurate). A relative gap of 1e-6
+#: is what it reaches on the default design (fault order 1); the bound is
+#: recomputed in numpy from the returned point regardless.
+_H2_TOLERANCES: dict[str, dict[str, float]] = {"CLARABEL": {"tol_gap_abs": 1e-6, "tol_gap_rel": 1e-6}}
+
+
+class H2LMIs:
+    """The guaranteed-cost LMIs above, in design coordinates."""
+
+    def __init__(
+        self, dc: DesignCoordinates, inputs: NoiseInputs, *, lyapunov: str, margin: float, alpha: float
+    ) -> None:
+        n, r = dc.n, dc.n_rules
+        p = dc.C.shape[0]
+        B_fixed = dc.T @ inputs.B_fixed
+        C_z = inputs.C_z @ dc.T_inv
+        m = B_fixed.shape[1] + p
+        n_P = r if lyapunov == "fuzzy" else 1
+        self.dc = dc
+        self.P = [cp.Variable((n, n), symmetric=True, name=f"P{i + 1}") for i in range(n_P)]
+        self.R = cp.Variable((n, n), name="R")
+        self.X = [cp.Variable((n, p), name=f"X{i + 1}") for i in range(r)]
+        self.Z = cp.Variable((m, m), symmetric=True, name="Z")
+        sym_R = self.R + self.R.T
+        rho_lo, rho_hi = dc.rho_vertices()
+        rho_mid, rho_rad = 0.5 * (rho_lo + rho_hi), 0.5 * (rho_hi - rho_lo)
+        b = np.vstack([dc.rho_row.T, np.zeros((n, 1))])
+        CzTCz = C_z.T @ C_z
+        constraints: list[cp.Constraint] = [P_i >> margin * np.eye(n) for P_i in self.P]
+        for i in range(r):
+            P_i = self.P[i if n_P > 1 else 0]
+            RB_i = cp.hstack([self.R @ B_fixed, -self.X[i] @ inputs.Sigma_v])
+            for j in range(n_P):
+                P_j = self.P[j]
+                Q0 = self.R @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
+                L0 = cp.bmat([[alpha**2 * P_i - CzTCz, Q0.T], [Q0, sym_R - P_j]])
+                lam = cp.Variable(name=f"lambda_{i + 1}{j + 1}")
+                a = cp.vstack([np.zeros((n, 1)), rho_rad * (self.R @ dc.G)])
+                block = cp.bmat([[L0 - lam * (b @ b.T), a], [a.T, cp.reshape(lam, (1, 1), order="C")]])
+                constraints.append(0.5 * (block + block.T) >> margin * np.eye(2 * n + 1))
+                cost = cp.bmat([[self.Z, RB_i.T], [RB_i, sym_R - P_j]])
+                constraints.append(0.5 * (cost + cost.T) >> 0)
+        self.n_lmis = len(constraints) - n_P
+        self.problem = cp.Problem(cp.Minimize(cp.trace(self.Z)), constraints)
+        self.alpha = alpha
+        self.B_fixed = B_fixed
+        self.C_z = C_z
+        self.Sigma_v = inputs.Sigma_v
+
+    def solve(self, solver: str, time_limit_s: float) -> str | None:
+        """Solve; None on success, else why not."""
+        options = {
+            **_SOLVER_OPTIONS.get(solver, {}),
+            **_H2_TOLERANCES.get(solver, {}),
+            _TIME_LIMIT_OPTION[solver]: time_limit_s,
+        }
+        try:
+            self.problem.solve(solver=solver, **options)
+        except cp.error.SolverError as exc:
+            return f"{solver} stopped without a solution ({str(exc).split('.')[0]})"
+        if self.problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or self.R.value is None:
+            return f"{solver} status {self.problem.status}"
+        return None
+
+
+def verify_h2_bound(
+    dc: DesignCoordinates, lmis: H2LMIs, N: FloatArray, H: FloatArray, P: FloatArray, R: FloatArray
+) -> tuple[float, float]:
+    """Recompute the guaranteed cost in numpy: (bound, min eigenvalue of the cost-weighted Lyapunov LMIs).
+
+    bound = max_ij trace(B_i^T R^T (R + R^T - P_j)^-1 R B_i) >= trace(B_i^T P_j B_i), valid when every
+    [[alpha^2 P_i - C_z^T C_z, (R N_i(rho))^T], [R N_i(rho), R + R^T - P_j]] is positive definite.
+    """
+    r = N.shape[0]
+    n_P = P.shape[0]
+    CzTCz = lmis.C_z.T @ lmis.C_z
+    MG = dc.G @ dc.rho_row
+    worst_eig = np.inf
+    bound = 0.0
+    for i in range(r):
+        P_i = P[i if n_P > 1 else 0]
+        B_i = np.hstack([lmis.B_fixed, -H[i] @ lmis.Sigma_v])
+        for j in range(n_P):
+            S_j = R + R.T - P[j]
+            for rho in dc.rho_vertices():
+                RN = R @ (N[i] + rho * MG)
+                block = np.block([[lmis.alpha**2 * P_i - CzTCz, RN.T], [RN, S_j]])
+                worst_eig = min(worst_eig, float(np.linalg.eigvalsh(0.5 * (block + block.T))[0]))
+            RB = R @ B_i
+            bound = max(bound, float(np.trace(RB.T @ scipy.linalg.solve(S_j, RB, assume_a="sym"))))
+    return bound, worst_eig
+
+
+def synthesize_robust(params: VehicleParams, bounds: OperatingBounds, options: DesignOptions) -> ObserverGains:
+    """Design the noise-aware observer; same guarantees and errors as :func:`synth.design.synthesize`."""
+    if options.design != "robust":
+        raise BadParameters(f"synthesize_robust needs design='robust', got {options.design!r}")
+    started = time.perf_counter()
+    timings: dict[str, float] = {}
+    aug = AugmentedModel.build(NTSModel.build(params, bounds), options.fault_order)
+    if options.check_existence:
+        check_detectability(aug)
+    timings["existence_s"] = time.perf_counter() - started
+    mark = time.perf_counter()
+    dc = design_coordinates(
+        aug, difference=options.difference_coordinates, state_scales=error_scales(aug, options.noise)
+    )
+    lmis = H2LMIs(
+        dc,
+        noise_inputs(aug, options.noise),
+        lyapunov=options.lyapunov,
+        margin=options.margin,
+        alpha=options.robust_decay_rate,
+    )
+    timings["build_s"] = time.perf_counter() - mark
+
+    failures: list[str] = []
+    for solver in options.solvers:
+        mark = time.perf_counter()
+        why = lmis.solve(solver, options.solver_time_limit_s)
+        timings["solve_s"] = time.perf_counter() - mark
+        if why is not None:
+            failures.append(why)
+            continue
+        try:
+            return _verified_gains(params, bounds, options, aug, dc, lmis, solver, timings, started)
+        except (VerificationFailed, np.linalg.LinAlgError) as exc:
+            failures.append(f"{solver} ({lmis.problem.status}): {exc}")
+    if failures and all("numpy" in f or "verification" in f or "fails" in f for f in failures):
+        raise VerificationFailed("every solver returned gains that fail the numpy verification: " + "; ".join(failures))
+    raise SolverFailed(f"no solver found a point of the {lmis.n_lmis} robust-design LMIs: " + "; ".join(failures))
+
+
+def _verified_gains(
+    params: VehicleParams,
+    bounds: OperatingBounds,
+    options: DesignOptions,
+    aug: AugmentedModel,
+    dc: DesignCoordinates,
+    lmis: H2LMIs,
+    solver: str,
+    timings: dict[str, float],
+    started: float,
+) -> ObserverGains:
+    R = np.asarray(lmis.R.value)
+    P = np.stack([np.asarray(P_i.value) for P_i in lmis.P])
+    H = np.stack([np.linalg.solve(R, np.asarray(X_i.value)) for X_i in lmis.X])
+    # E = 0: M = I, N_i = A_bar_i - H_i C_bar (eq. 43), L_i = H_i (eq. 44)
+    N = dc.A - H @ dc.C
+    mark = time.perf_counter()
+    report = verify(
+        aug.nts,
+        N,
+        dc.G @ dc.rho_row,
+        P,
+        R,
+        dc.rho_vertices(),
+        lmis.alpha,
+        np.einsum("ab,ibc,cd->iad", dc.T_inv, N, dc.T),
+        _MG_row_physical(aug),
+    )
+    bound, cost_lmi_min = verify_h2_bound(dc, lmis, N, H, P, R)
+    if cost_lmi_min <= 0:
+        raise VerificationFailed(f"a cost-weighted Lyapunov LMI fails in numpy (min eigenvalue {cost_lmi_min:.3e})")
+    timings["verify_s"] = time.perf_counter() - mark
+    timings["total_s"] = time.perf_counter() - started
+    n = aug.n
+    N_phys = np.einsum("ab,ibc,cd->iad", dc.T_inv, N, dc.T)
+    L_phys = np.einsum("ab,ibc->iac", dc.T_inv, H)
+    M_phys = np.eye(n)
+    E_phys = np.zeros((n, 2))
+    stats = lmis.problem.solver_stats
+    certificate = Certificate(
+        design=options.design,
+        fault_order=options.fault_order,
+        lyapunov=options.lyapunov,
+        lmi_form="petersen",
+        decoupled=False,
+        verified=True,
+        decay_rate=report.certified_decay_rate,
+        requested_decay_rate=lmis.alpha,
+        spectral_radius_max=report.spectral_radius_max,
+        spectral_radius_at=report.spectral_radius_at,
+        grid_points=report.grid_points,
+        n_lmis_solved=lmis.n_lmis,
+        n_lmis_verified=len(report.lmi_min_eigenvalues),
+        lmi_min_eigenvalue=min(report.lmi_min_eigenvalues),
+        lmi_min_eigenvalues=report.lmi_min_eigenvalues,
+        P_min_eigenvalues=report.P_min_eigenvalues,
+        margin=options.margin,
+        solver=solver,
+        solver_version=_solver_version(solver),
+        solver_status=str(lmis.problem.status),
+        solver_iterations=stats.num_iters if stats is not None else None,
+        solves=1,
+        timings_s={k: round(v, 6) for k, v in timings.items()},
+        content_hash=gains_hash(params, bounds, options, N_phys, L_phys, M_phys, E_phys),
+        performance={
+            "h2_cost_bound": bound,
+            "h2_cost_solver": float(lmis.problem.value),
+            "weighted_fault_error_rms_bound": float(np.sqrt(bound)),
+            "cost_lmi_min_eigenvalue": cost_lmi_min,
+        },
+        notes=[
+            "guaranteed H2 cost: time-average E|C_z e|^2 <= h2_cost_bound for white unit-covariance inputs "
+            "scaled by the noise model (sensor sigmas, wind RMS, fault drift rates), every premise trajectory "
+            "and every rho in S_rho; C_z = fault errors / (torque_fault_scale_nm, steer_fault_scale_rad)",
+        ],
+    )
+    return ObserverGains(
+        params=params,
+        bounds=bounds,
+        options=options,
+        N=N_phys,
+        L=L_phys,
+        M=M_phys,
+        E=E_phys,
+        P=P,
+        R=R,
+        T=dc.T,
+        certificate=certificate,
+    )
+
+
+def _MG_row_physical(aug: AugmentedModel) -> FloatArray:
+    row = np.zeros((1, aug.n))
+    row[0, 1] = 1.0
+    return aug.G_bar @ row

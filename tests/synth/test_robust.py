@@ -1,0 +1,77 @@
+import numpy as np
+import pytest
+
+from edge_client.library import builtin_scenario
+from edge_client.scenario import REALISTIC_NOISE
+from edge_client.simulation import estimate, observer_factory, simulate_plant
+from synth.design import synthesize
+from synth.gains import ObserverGains
+from synth.options import DesignOptions, NoiseModel
+from synth.robust import noise_inputs
+
+
+@pytest.fixture(scope="session")
+def robust_gains() -> ObserverGains:
+    return synthesize(options=DesignOptions(design="robust"))
+
+
+def test_robust_is_the_default_design_with_a_random_walk_fault_model():
+    options = DesignOptions()
+    assert options.design == "robust"
+    assert options.fault_order == 1
+    assert DesignOptions(design="paper").fault_order == 3
+
+
+def test_robust_design_is_verified_and_reports_its_bound(robust_gains):
+    c = robust_gains.certificate
+    assert c.verified and c.design == "robust"
+    assert c.decay_rate <= robust_gains.options.robust_decay_rate < 1.0
+    assert c.spectral_radius_max < c.decay_rate
+    assert min(c.lmi_min_eigenvalues) > 0 and c.performance["cost_lmi_min_eigenvalue"] > 0
+    # the numpy bound and the solver's objective agree
+    assert c.performance["h2_cost_bound"] == pytest.approx(c.performance["h2_cost_solver"], rel=0.05)
+
+
+def test_robust_gains_keep_the_error_dynamics_stable_over_the_premise_grid(robust_gains):
+    """Frozen error matrices N(h) + M G_bar rho e_vy^T on a 61 x 61 x 13 grid: all strictly inside the unit circle."""
+    from synth.certificate import spectral_radius_grid
+
+    radius, _, points = spectral_radius_grid(
+        robust_gains.model.nts, robust_gains.N, robust_gains.MG_row, (-3, 3), 61, 13
+    )
+    assert points == 61 * 61 * 13
+    assert radius < robust_gains.certificate.decay_rate
+
+
+def test_h2_bound_covers_the_exact_cost_at_frozen_premises(robust_gains):
+    """At every frozen premise the exact steady-state cost (Lyapunov equation) is below the guaranteed bound."""
+    import scipy.linalg
+
+    g = robust_gains
+    aug = g.model
+    ni = noise_inputs(aug, g.options.noise)
+    bound = g.certificate.performance["h2_cost_bound"]
+    for V in np.linspace(aug.nts.premise_low[0], aug.nts.premise_high[0], 7):
+        for r in np.linspace(aug.nts.premise_low[1], aug.nts.premise_high[1], 5):
+            h = aug.nts.memberships(np.array([V, r]))
+            N = np.einsum("i,ijk->jk", h, g.N)
+            L = np.einsum("i,ijk->jk", h, g.L)
+            B = np.hstack([ni.B_fixed, -L @ ni.Sigma_v])
+            W = scipy.linalg.solve_discrete_lyapunov(N, B @ B.T)
+            assert np.trace(ni.C_z @ W @ ni.C_z.T) <= bound
+
+
+def test_noise_model_validation_names_the_field():
+    with pytest.raises(ValueError, match="vx_sigma_mps"):
+        NoiseModel(vx_sigma_mps=-0.1)
+
+
+def test_robust_design_beats_the_stability_only_design_under_noise(robust_gains, paper_gains):
+    """NOTES.md finding 5: with realistic noise the paper's gains give torque-fault errors of thousands of N m."""
+    record = simulate_plant([builtin_scenario("paper-1", noise=REALISTIC_NOISE, seed=1)])
+    robust = estimate(record, observer_factory(robust_gains)).rmse(after_s=3.0)
+    paper = estimate(record, observer_factory(paper_gains)).rmse(after_s=3.0)
+    assert paper["T_f"][0] > 1000.0
+    assert robust["T_f"][0] < 30.0
+    assert robust["T_f"][0] < paper["T_f"][0] / 50
+    assert robust["delta_f"][0] < paper["delta_f"][0]
