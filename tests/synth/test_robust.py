@@ -75,3 +75,24 @@ def test_robust_design_beats_the_stability_only_design_under_noise(robust_gains,
     assert robust["T_f"][0] < 30.0
     assert robust["T_f"][0] < paper["T_f"][0] / 50
     assert robust["delta_f"][0] < paper["delta_f"][0]
+
+
+def test_one_operating_point_design_equals_the_kalman_predictor_from_scipy():
+    """Oracle: on a premise box shrunk to a point (and |v_y| <= 1e-4 so rho ~ 0), the guaranteed H2 cost
+    is the steady-state cost of the Kalman predictor of the same linear model (scipy's DARE)."""
+    import scipy.linalg
+
+    from synth.params import OperatingBounds
+
+    bounds = OperatingBounds(
+        vx_min_mps=12.0, vx_max_mps=12.0001, vy_min_mps=-1e-4, vy_max_mps=1e-4, r_min_radps=0.1, r_max_radps=0.1001
+    )
+    g = synthesize(bounds=bounds, options=DesignOptions(design="robust", robust_decay_rate=0.99999))
+    aug = g.model
+    ni = noise_inputs(aug, g.options.noise)
+    h = aug.nts.memberships(aug.nts.premise(12.00005, 0.10005))
+    A = aug.A_bar_at(h)
+    Q = ni.B_fixed @ ni.B_fixed.T
+    P = scipy.linalg.solve_discrete_are(A.T, aug.C_bar.T, Q + 1e-12 * np.eye(aug.n), ni.Sigma_v**2)
+    kalman_cost = float(np.trace(ni.C_z @ P @ ni.C_z.T))
+    assert g.certificate.performance["h2_cost_bound"] == pytest.approx(kalman_cost, rel=0.02)
