@@ -12,6 +12,7 @@ COMMANDS = {
     "synth": "agv_fe.commands.synth",
     "simulate": "agv_fe.commands.simulate",
     "replay": "agv_fe.commands.replay",
+    "serve": "agv_fe.commands.serve",
     "demo": "agv_fe.commands.demo",
     "bench": "agv_fe.commands.bench",
 }
