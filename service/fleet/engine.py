@@ -75,6 +75,15 @@ REJECT_REASONS: tuple[RejectReason, ...] = (
 BURST_REASONS = frozenset({"malformed", "id_mismatch", "non_finite", "out_of_range"})
 
 
+def _classify(payload: bytes, vehicle_id: str) -> RejectReason:
+    """Why a payload of the wrong size was refused: another vehicle's valid measurement, or garbage."""
+    try:
+        claimed = Measurement.decode(payload).vehicle_id
+    except ProtocolError:
+        return "malformed"
+    return "id_mismatch" if claimed != vehicle_id else "malformed"
+
+
 class FleetError(Exception):
     """A request the fleet cannot carry out; the text says why."""
 
@@ -278,7 +287,7 @@ class FleetEngine:
                 if vehicle is None:
                     continue
             if len(payload) != vehicle.payload_len:
-                self._reject(vehicle, "malformed", now_mono, result)
+                self._reject(vehicle, _classify(payload, vehicle.id), now_mono, result)
                 continue
             magic, version, flags, _, seq, t_ns, vx, r, torque, steer, _ = unpack(payload)
             if magic != MAGIC or version != PROTOCOL_VERSION:
