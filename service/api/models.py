@@ -257,6 +257,7 @@ class GainsInfo(BaseModel):
         json_schema_extra={
             "examples": [
                 {
+                    "format": "agv-fe-gains/1",
                     "profile": "default",
                     "version": "3f9a1c0b7d2e",
                     "params": {"mass_kg": 1481.0},
@@ -269,12 +270,18 @@ class GainsInfo(BaseModel):
         }
     )
 
+    format: str = Field(
+        description="gains document format; with ?matrices=true the answer loads with "
+        "synth.gains.ObserverGains.from_dict"
+    )
     profile: str
     version: str
     params: dict[str, Any]
     bounds: dict[str, Any]
     options: dict[str, Any]
-    certificate: dict[str, Any] = Field(description="certificate summary: decay rate, spectral radius, solver, timings")
+    certificate: dict[str, Any] = Field(
+        description="certificate: decay rate, spectral radius, solver, timings (per-LMI lists with ?matrices=true)"
+    )
     matrices: dict[str, Any] | None = Field(description="N, L, M, E, P, R, T when ?matrices=true")
 
 

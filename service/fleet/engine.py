@@ -197,6 +197,7 @@ class FleetEngine:
         self.banks: dict[str, ProfileBank] = {}
         self.vehicles: dict[str, Vehicle] = {}
         self._by_key: dict[str, Vehicle] = {}
+        self._presence: dict[str, bool] = {}  # liveliness of vehicles not registered yet
         self._clock_ns = clock_ns
         self._monotonic = monotonic
         self.started_mono = monotonic()
@@ -248,7 +249,7 @@ class FleetEngine:
             self.config.prefix,
             self._clock_ns() if registered_t_ns is None else registered_t_ns,
         )
-        vehicle.last_seen_mono = None
+        vehicle.alive = self._presence.pop(vehicle_id, None)
         self.vehicles[vehicle_id] = vehicle
         self._by_key[vehicle.meas_key] = vehicle
         if self.events.wants("vehicle"):
@@ -630,6 +631,7 @@ class FleetEngine:
         changes: list[AlarmChange] = []
         vehicle = self.vehicles.get(vehicle_id)
         if vehicle is None:
+            self._presence[vehicle_id] = alive
             return changes
         vehicle.alive = alive
         if not alive and not vehicle.stale:

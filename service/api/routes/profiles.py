@@ -106,9 +106,11 @@ def get_gains(
             raise HTTPException(status.HTTP_404_NOT_FOUND, detail=f"profile {name!r} has no gain version {wanted!r}")
         doc = stored if matrices else {k: v for k, v in stored.items() if k != "matrices"}
     certificate = dict(doc["certificate"])
-    certificate.pop("lmi_min_eigenvalues", None)
-    certificate.pop("P_min_eigenvalues", None)
+    if not matrices:
+        certificate.pop("lmi_min_eigenvalues", None)
+        certificate.pop("P_min_eigenvalues", None)
     return GainsInfo(
+        format=doc["format"],
         profile=name,
         version=doc["version"],
         params=doc["params"],
