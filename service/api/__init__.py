@@ -1,4 +1,9 @@
-"""The REST API: routers per resource and their dependencies."""
+"""The REST API: routers per resource and their dependencies.
+
+Every handler is ``async def``: it runs on the event loop that owns the
+fleet, between two ingest ticks, so it reads and changes the fleet state
+without locks (FastAPI would run a plain ``def`` handler in a thread pool).
+"""
 
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ from service.app import Service
 _bearer = HTTPBearer(auto_error=False, description="the token of setting auth.token (or DATA_DIR/api-token)")
 
 
-def get_service(request: Request) -> Service:
+async def get_service(request: Request) -> Service:
     service: Service = request.app.state.service
     return service
 
@@ -37,14 +37,14 @@ def _check(service: Service, credentials: HTTPAuthorizationCredentials | None) -
     return "operator"
 
 
-def require_token(
+async def require_token(
     service: ServiceDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> str:
     """Mutating endpoints: a valid bearer token, always."""
     return _check(service, credentials)
 
 
-def require_read(
+async def require_read(
     service: ServiceDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> None:
     """Read endpoints: open unless setting auth.open_reads is false."""

@@ -56,6 +56,7 @@ def write_profiles(path: Path, profiles: dict[str, dict[str, Any]]) -> Path:
 
 def make_settings(tmp_path: Path, profiles: dict[str, dict[str, Any]] | None = None, **overrides: Any) -> Settings:
     profiles = profiles if profiles is not None else {"default": {"design": FAST_DESIGN}}
+    tmp_path.mkdir(parents=True, exist_ok=True)
     data: dict[str, Any] = {
         "data_dir": str(tmp_path / "data"),
         "profiles_file": str(write_profiles(tmp_path / "profiles.json", profiles)),

@@ -19,7 +19,7 @@ def _info(record: dict[str, object]) -> AlarmInfo:
 
 
 @router.get("", response_model=list[AlarmInfo], summary="latched alarms (default) or the recent history")
-def list_alarms(
+async def list_alarms(
     service: ServiceDep,
     scope: Annotated[
         Literal["latched", "all"], Query(description="'latched': not yet cleared and acknowledged")
@@ -40,7 +40,7 @@ def list_alarms(
     responses={404: {"description": "no such alarm"}},
     summary="one alarm and its events",
 )
-def get_alarm(service: ServiceDep, alarm_id: str) -> AlarmDetail:
+async def get_alarm(service: ServiceDep, alarm_id: str) -> AlarmDetail:
     live = service.engine.alarms.get(alarm_id)
     record = live.to_dict() if live is not None else service.db.alarm(alarm_id)
     if record is None:
@@ -58,7 +58,7 @@ def get_alarm(service: ServiceDep, alarm_id: str) -> AlarmDetail:
     },
     summary="acknowledge a latched alarm (stored before the answer)",
 )
-def acknowledge(
+async def acknowledge(
     service: ServiceDep,
     alarm_id: str,
     _operator: Operator,

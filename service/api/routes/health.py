@@ -14,7 +14,7 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/health", response_model=Health, summary="the process is up")
-def health(service: ServiceDep) -> Health:
+async def health(service: ServiceDep) -> Health:
     return Health(**service.status())
 
 
@@ -24,7 +24,7 @@ def health(service: ServiceDep) -> Health:
     summary="every profile has active gains and Zenoh is connected",
     responses={503: {"model": Readiness, "description": "not ready yet (gains being designed)"}},
 )
-def ready(service: ServiceDep, response: Response) -> Readiness:
+async def ready(service: ServiceDep, response: Response) -> Readiness:
     answer = Readiness(
         ready=service.ready,
         transport=service.transport_up,
@@ -41,7 +41,7 @@ def ready(service: ServiceDep, response: Response) -> Readiness:
     summary="Prometheus metrics (text format 0.0.4)",
     responses={200: {"content": {"text/plain": {"example": "agv_fe_measurements_received_total 120000\n"}}}},
 )
-def metrics(service: ServiceDep) -> PlainTextResponse:
+async def metrics(service: ServiceDep) -> PlainTextResponse:
     engine, m, jobs = service.engine, service.metrics, service.jobs
     out = Exposition()
     out.metric(

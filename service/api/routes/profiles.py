@@ -41,12 +41,12 @@ def _info(service: Service, bank: ProfileBank) -> ProfileInfo:
 
 
 @router.get("", response_model=list[ProfileInfo], summary="every profile")
-def list_profiles(service: ServiceDep) -> list[ProfileInfo]:
+async def list_profiles(service: ServiceDep) -> list[ProfileInfo]:
     return [_info(service, bank) for bank in service.engine.banks.values()]
 
 
 @router.get("/{name}", response_model=ProfileInfo, responses={404: {"description": "no such profile"}})
-def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
+async def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
     return _info(service, _bank(service, name))
 
 
@@ -57,7 +57,7 @@ def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
     responses={**AUTH, 200: {"model": ProfileChange, "description": "only thresholds or limits changed: applied"}},
     summary="create or change a profile; new parameters, bounds or design options start a synthesis job",
 )
-def put_profile(
+async def put_profile(
     service: ServiceDep, name: ProfileName, spec: ProfileSpec, _operator: Operator, response: Response
 ) -> ProfileChange:
     job = service.put_profile(name, spec)
@@ -75,7 +75,9 @@ def put_profile(
     responses={**AUTH, 404: {"description": "no such profile"}},
     summary="design the profile's gains again (for example after a change of the default design)",
 )
-def resynthesise(service: ServiceDep, name: ProfileName, _operator: Operator, response: Response) -> ProfileChange:
+async def resynthesise(
+    service: ServiceDep, name: ProfileName, _operator: Operator, response: Response
+) -> ProfileChange:
     _bank(service, name)
     job = service.resynthesise(name)
     response.headers["Location"] = f"/jobs/{job.id}"
@@ -88,7 +90,7 @@ def resynthesise(service: ServiceDep, name: ProfileName, _operator: Operator, re
     responses={404: {"description": "no such profile, or no active gains yet"}},
     summary="the active gains: certificate summary, matrices on request",
 )
-def get_gains(
+async def get_gains(
     service: ServiceDep,
     name: ProfileName,
     matrices: Annotated[bool, Query(description="include N, L, M, E, P, R, T")] = False,

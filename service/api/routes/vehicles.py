@@ -28,7 +28,7 @@ def _vehicle(service: Service, vehicle_id: str) -> Vehicle:
 
 
 @router.get("", response_model=list[VehicleStatus], summary="every vehicle of this replica with status and counters")
-def list_vehicles(
+async def list_vehicles(
     service: ServiceDep,
     profile: Annotated[str | None, Query(description="only this profile")] = None,
     level: Annotated[str | None, Query(description="only this level: OK, WARN, FAULT, STALE")] = None,
@@ -48,7 +48,7 @@ def list_vehicles(
 @router.get(
     "/{vehicle_id}", response_model=VehicleDetail, responses=NOT_FOUND, summary="status, latest estimate, alarms"
 )
-def get_vehicle(service: ServiceDep, vehicle_id: VehicleId) -> VehicleDetail:
+async def get_vehicle(service: ServiceDep, vehicle_id: VehicleId) -> VehicleDetail:
     engine = service.engine
     vehicle = _vehicle(service, vehicle_id)
     alarms = [AlarmInfo(**r.to_dict(), latched=True) for r in engine.alarms.for_vehicle(vehicle.id)]
@@ -63,7 +63,7 @@ def get_vehicle(service: ServiceDep, vehicle_id: VehicleId) -> VehicleDetail:
     responses=NOT_FOUND,
     summary="recent estimates of every sample, oldest first",
 )
-def get_estimates(
+async def get_estimates(
     service: ServiceDep,
     vehicle_id: VehicleId,
     limit: Annotated[int, Query(ge=1, le=100_000, description="at most this many (newest)")] = 100,
@@ -79,7 +79,7 @@ def get_estimates(
     responses={401: {"description": "missing or invalid token"}, 404: {"description": "no such profile"}},
     summary="register a vehicle or move it to another profile",
 )
-def assign_vehicle(
+async def assign_vehicle(
     service: ServiceDep, vehicle_id: VehicleId, body: VehicleAssignment, _operator: Operator
 ) -> VehicleStatus:
     try:
