@@ -152,7 +152,7 @@ def test_stale_by_lost_liveliness_and_by_timeout(server, zprobe):
     for k in range(20):
         zprobe.put(constant_measurement("live-1", k))
         zprobe.put(constant_measurement("quiet-1", k))
-    wait_for(lambda: server.vehicle("live-1")["alive"] is True, what="liveliness seen")
+    wait_for(lambda: server.get("/vehicles/live-1").json().get("alive") is True, what="liveliness seen")
     token.undeclare()
     lost = wait_for(
         lambda: [a for a in zprobe.collect().alarms if a.vehicle == "live-1" and a.kind == "stale"], what="stale"
@@ -212,7 +212,7 @@ def test_unknown_vehicles_are_rejected_when_the_setting_says_so(tmp_path):
             p.put(constant_measurement("stranger-1", k))
             p.put(constant_measurement("known-1", k))
         wait_for(lambda: len(p.estimates_of("known-1")) >= 10, what="estimates")
-        metrics = srv.get("/metrics").text
-        assert 'agv_fe_measurements_rejected_total{reason="unknown_vehicle"} 10' in metrics
+        line = 'agv_fe_measurements_rejected_total{reason="unknown_vehicle"} 10'
+        wait_for(lambda: line in srv.get("/metrics").text, what="10 unknown-vehicle rejects")
         assert srv.get("/vehicles/stranger-1").status_code == 404
         assert p.estimates_of("stranger-1") == []
