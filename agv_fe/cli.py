@@ -13,6 +13,7 @@ COMMANDS = {
     "simulate": "agv_fe.commands.simulate",
     "replay": "agv_fe.commands.replay",
     "compare": "agv_fe.commands.compare",
+    "serve": "agv_fe.commands.serve",
     "demo": "agv_fe.commands.demo",
     "bench": "agv_fe.commands.bench",
 }

@@ -107,6 +107,11 @@ def service_liveliness_key(replica_id: str, prefix: str = DEFAULT_PREFIX) -> str
     return f"{prefix}/v{PROTOCOL_VERSION}/service/{replica_id}/alive"
 
 
+def service_liveliness_selector(prefix: str = DEFAULT_PREFIX) -> str:
+    """Key expression matching the liveliness tokens of every service replica."""
+    return f"{prefix}/v{PROTOCOL_VERSION}/service/*/alive"
+
+
 def parse_vehicle_key(key: str) -> tuple[str, Kind]:
     """(vehicle_id, kind) from a vehicle key expression; raise on anything else."""
     parts = key.split("/")
@@ -176,6 +181,16 @@ class Measurement:
         return all(math.isfinite(v) for v in (self.vx_mps, self.r_radps, self.torque_nm, self.steer_rad))
 
 
+def unpack_measurement_header(payload: bytes) -> tuple[bytes, int, int, int, int, int, float, float, float, float, int]:
+    """The raw header fields (magic, version, flags, id length, seq, t_ns, v_x, r, T_d, delta_d, reserved).
+
+    The service's hot path: no validation beyond the size, which the caller
+    checks (``len(payload) >= MEASUREMENT_HEADER_SIZE``). Use
+    :meth:`Measurement.decode` for a checked decode with a readable error.
+    """
+    return _HEADER.unpack_from(payload)
+
+
 class _Message(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -197,7 +212,32 @@ Level = Literal["OK", "WARN", "FAULT", "STALE"]
 
 
 class Estimate(_Message):
-    """The service's estimate for one measurement (JSON)."""
+    """The service's estimate for one measurement (JSON).
+
+    The service writes it with :func:`encode_estimate` (the same JSON, faster);
+    clients read it with :meth:`Estimate.decode`.
+    """
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "v": 1,
+                    "vehicle": "truck-7",
+                    "seq": 1042,
+                    "t_ns": 1_700_000_010_420_000_000,
+                    "vx": 10.42,
+                    "vy": -0.031,
+                    "r": 0.012,
+                    "torque_fault": 29.7,
+                    "steer_fault": 0.0012,
+                    "in_domain": True,
+                    "gain_version": "3f9a1c0b7d2e",
+                    "level": "OK",
+                }
+            ]
+        }
+    )
 
     seq: int = Field(description="sequence number of the measurement this answers")
     t_ns: int = Field(description="timestamp of that measurement [ns]")
@@ -211,12 +251,77 @@ class Estimate(_Message):
     level: Level = Field("OK", description="the vehicle's current alarm level")
 
 
+_ESTIMATE_JSON = (
+    '{"v":1,"vehicle":"%s","seq":%d,"t_ns":%d,"vx":%r,"vy":%r,"r":%r,'
+    '"torque_fault":%r,"steer_fault":%r,"in_domain":%s,"gain_version":"%s","level":"%s"}'
+)
+
+
+def encode_estimate(
+    vehicle_id: str,
+    seq: int,
+    t_ns: int,
+    vx: float,
+    vy: float,
+    r: float,
+    torque_fault: float,
+    steer_fault: float,
+    in_domain: bool,
+    gain_version: str,
+    level: Level,
+) -> bytes:
+    """The JSON of :class:`Estimate`, written without building the model (about 3x faster).
+
+    The caller guarantees finite floats, a valid vehicle id and a hex gain
+    version, so no escaping is needed; ``Estimate.decode`` reads the result.
+    """
+    return (
+        _ESTIMATE_JSON
+        % (
+            vehicle_id,
+            seq,
+            t_ns,
+            vx,
+            vy,
+            r,
+            torque_fault,
+            steer_fault,
+            "true" if in_domain else "false",
+            gain_version,
+            level,
+        )
+    ).encode()
+
+
 AlarmKind = Literal["torque_fault", "steer_fault", "out_of_domain", "stale", "rejected_inputs"]
 AlarmState = Literal["raised", "cleared", "acknowledged"]
 
 
 class Alarm(_Message):
-    """An alarm event (JSON): raised, cleared (condition gone) or acknowledged (by an operator)."""
+    """An alarm event (JSON): raised, cleared (condition gone) or acknowledged (by an operator).
+
+    ``raised`` is sent when the condition starts and again, with the same id,
+    each time its level changes or a latched alarm's condition returns.
+    """
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "v": 1,
+                    "vehicle": "truck-7",
+                    "id": "al-000017",
+                    "kind": "torque_fault",
+                    "level": "FAULT",
+                    "state": "raised",
+                    "value": 212.5,
+                    "threshold": 200.0,
+                    "t_ns": 1_700_000_012_000_000_000,
+                    "message": "|T_f| >= 200 N m for 0.5 s",
+                }
+            ]
+        }
+    )
 
     id: str = Field(description="alarm id, stable across its events")
     kind: AlarmKind

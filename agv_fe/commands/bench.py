@@ -11,6 +11,7 @@ from typing import Any
 BENCHMARKS = {
     "synthesis": "agv_fe.benchmarks.synthesis",
     "accuracy": "agv_fe.benchmarks.accuracy",
+    "service_load": "agv_fe.benchmarks.service_load",
 }
 
 

@@ -1,0 +1,92 @@
+"""`agv-fe serve`: the cloud service (FastAPI on uvicorn plus a Zenoh session)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    parser = sub.add_parser(
+        "serve",
+        help="run the fleet service: Zenoh ingest, observers, alarms, REST API",
+        description="Run the service. Settings come from AGV_FE_* environment variables (nested with '__', "
+        "see README.md, 'Service'); these flags override them.",
+    )
+    parser.add_argument("--http-port", type=int, default=None, metavar="PORT", help="HTTP port (AGV_FE_HTTP__PORT)")
+    parser.add_argument("--http-host", default=None, metavar="HOST", help="HTTP bind address (AGV_FE_HTTP__HOST)")
+    parser.add_argument(
+        "--zenoh-endpoint",
+        default=None,
+        metavar="tcp/HOST:PORT",
+        help="where the in-process router listens, or the router a client connects to (AGV_FE_ZENOH__ENDPOINT)",
+    )
+    parser.add_argument(
+        "--zenoh-mode", choices=("router", "client"), default=None, help="Zenoh mode (AGV_FE_ZENOH__MODE)"
+    )
+    parser.add_argument("--data-dir", default=None, metavar="DIR", help="database directory (AGV_FE_DATA_DIR)")
+    parser.add_argument("--profiles", default=None, metavar="FILE", help="initial profiles (AGV_FE_PROFILES_FILE)")
+    parser.add_argument(
+        "--shard",
+        default=None,
+        metavar="INDEX/REPLICAS",
+        help="serve shard INDEX of REPLICAS, e.g. 0/2 (AGV_FE_SHARD__INDEX, AGV_FE_SHARD__REPLICAS)",
+    )
+    parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+    parser.set_defaults(handler=run)
+
+
+def build_settings(args: argparse.Namespace) -> Any:
+    """Settings from the environment, overridden by the flags that were given."""
+    from pydantic import ValidationError
+
+    from agv_fe.common import CommandError, validation_message
+    from service.settings import Settings
+
+    overrides: dict[str, Any] = {}
+    if args.http_port is not None or args.http_host is not None:
+        overrides["http"] = {k: v for k, v in (("port", args.http_port), ("host", args.http_host)) if v is not None}
+    zenoh = {k: v for k, v in (("endpoint", args.zenoh_endpoint), ("mode", args.zenoh_mode)) if v is not None}
+    if zenoh:
+        overrides["zenoh"] = zenoh
+    if args.data_dir is not None:
+        overrides["data_dir"] = args.data_dir
+    if args.profiles is not None:
+        overrides["profiles_file"] = args.profiles
+    if args.shard is not None:
+        try:
+            index, replicas = (int(x) for x in args.shard.split("/"))
+        except ValueError:
+            raise CommandError(f"--shard: expected INDEX/REPLICAS such as 0/2, got {args.shard!r}") from None
+        overrides["shard"] = {"index": index, "replicas": replicas}
+    try:
+        base = Settings()
+        merged = base.model_dump()
+        for key, value in overrides.items():
+            if isinstance(value, dict):
+                merged[key] = {**merged[key], **value}
+            else:
+                merged[key] = value
+        if base.auth.token is not None:
+            merged["auth"]["token"] = base.auth.token.get_secret_value()
+        return Settings.model_validate(merged)
+    except ValidationError as exc:
+        raise CommandError(f"invalid settings:\n{validation_message(exc, '')}") from exc
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    import uvicorn
+
+    from agv_fe.common import CommandError, fail
+    from service.app import create_app
+
+    try:
+        settings = build_settings(args)
+    except CommandError as exc:
+        return fail(exc)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    app = create_app(settings)
+    uvicorn.run(app, host=settings.http.host, port=settings.http.port, log_level=args.log_level, lifespan="on")
+    return 0

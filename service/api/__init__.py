@@ -1,0 +1,23 @@
+"""The REST API: routers per resource and their dependencies.
+
+Every handler is ``async def``: it runs on the event loop that owns the
+fleet, between two ingest ticks, so it reads and changes the fleet state
+without locks (FastAPI would run a plain ``def`` handler in a thread pool).
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends
+
+from service.api.deps import require_read
+from service.api.routes import alarms, health, jobs, profiles, vehicles
+from service.settings import Settings
+
+
+def build_router(settings: Settings) -> APIRouter:
+    router = APIRouter()
+    router.include_router(health.router)
+    reads = [Depends(require_read)]
+    for module in (vehicles, alarms, profiles, jobs):
+        router.include_router(module.router, dependencies=reads)
+    return router

@@ -1,0 +1,292 @@
+"""Response and request bodies of the REST API, with OpenAPI examples."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, JsonValue
+
+from service.profiles import ProfileSpec
+from service.protocol import AlarmKind, Estimate, Level
+
+_COUNTERS_EXAMPLE: dict[str, JsonValue] = {
+    "accepted": 12000,
+    "estimates": 12000,
+    "published": 1200,
+    "missing": 3,
+    "gaps": 1,
+    "restarts": 0,
+}
+_REJECTED_EXAMPLE: dict[str, JsonValue] = {
+    "malformed": 0,
+    "id_mismatch": 0,
+    "unknown_vehicle": 0,
+    "duplicate": 2,
+    "out_of_order": 1,
+    "non_finite": 0,
+    "out_of_range": 0,
+    "no_gains": 0,
+}
+
+
+class Health(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"status": "ok", "replica": "replica-0", "buckets": ["b00"], "uptime_s": 12.5}]}
+    )
+
+    status: Literal["ok"] = "ok"
+    replica: str
+    buckets: list[str]
+    uptime_s: float
+
+
+class Readiness(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [{"ready": False, "transport": True, "profiles": {"default": None, "van": "3f9a1c0b7d2e"}}]
+        }
+    )
+
+    ready: bool = Field(description="every profile has active gains and Zenoh is up")
+    transport: bool
+    profiles: dict[str, str | None] = Field(description="active gain version per profile (null: none yet)")
+
+
+class VehicleStatus(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "truck-7",
+                    "profile": "default",
+                    "level": "OK",
+                    "stale": False,
+                    "alive": True,
+                    "last_seq": 12003,
+                    "last_seen_ns": 1_700_000_120_030_000_000,
+                    "seconds_since_seen": 0.004,
+                    "gain_version": "3f9a1c0b7d2e",
+                    "counters": _COUNTERS_EXAMPLE,
+                    "rejected": _REJECTED_EXAMPLE,
+                }
+            ]
+        }
+    )
+
+    id: str
+    profile: str
+    level: Level
+    stale: bool
+    alive: bool | None = Field(description="liveliness token present (null: the vehicle declares none)")
+    last_seq: int | None
+    last_seen_ns: int | None = Field(description="service clock when the last measurement arrived [ns]")
+    seconds_since_seen: float | None
+    gain_version: str | None
+    counters: dict[str, int] = Field(
+        description="accepted samples, estimates computed and published, missing samples, gaps, observer restarts"
+    )
+    rejected: dict[str, int] = Field(description="rejected or dropped samples by reason")
+
+
+class AlarmInfo(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "al-3c5d0e1f2a4b",
+                    "vehicle": "truck-7",
+                    "profile": "default",
+                    "kind": "torque_fault",
+                    "level": "FAULT",
+                    "peak_level": "FAULT",
+                    "state": "raised",
+                    "acknowledged": False,
+                    "raised_t_ns": 1_700_000_012_000_000_000,
+                    "cleared_t_ns": None,
+                    "acknowledged_t_ns": None,
+                    "acknowledged_by": None,
+                    "value": 212.5,
+                    "threshold": 200.0,
+                    "message": "|T_f| >= 200 N m for 0.5 s",
+                    "occurrences": 1,
+                    "updated_t_ns": 1_700_000_012_000_000_000,
+                    "latched": True,
+                }
+            ]
+        }
+    )
+
+    id: str
+    vehicle: str
+    profile: str
+    kind: AlarmKind
+    level: Level
+    peak_level: Level
+    state: Literal["raised", "cleared"]
+    acknowledged: bool
+    raised_t_ns: int
+    cleared_t_ns: int | None
+    acknowledged_t_ns: int | None
+    acknowledged_by: str | None
+    value: float | None
+    threshold: float | None
+    message: str
+    occurrences: int
+    updated_t_ns: int
+    latched: bool = Field(description="shown until the condition is cleared and an operator acknowledged it")
+
+
+class AlarmDetail(AlarmInfo):
+    events: list[dict[str, Any]] = Field(description="every published event of this alarm, oldest first")
+
+
+class VehicleDetail(VehicleStatus):
+    latest_estimate: Estimate | None
+    alarms: list[AlarmInfo] = Field(description="latched alarms of the vehicle")
+
+
+class EstimateRow(BaseModel):
+    seq: int
+    t_ns: int
+    vx: float
+    vy: float
+    r: float
+    torque_fault: float
+    steer_fault: float
+    in_domain: bool
+
+
+class EstimateHistory(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "vehicle": "truck-7",
+                    "gain_version": "3f9a1c0b7d2e",
+                    "estimates": [
+                        {
+                            "seq": 12003,
+                            "t_ns": 1_700_000_120_030_000_000,
+                            "vx": 10.4,
+                            "vy": -0.03,
+                            "r": 0.01,
+                            "torque_fault": 29.8,
+                            "steer_fault": 0.001,
+                            "in_domain": True,
+                        }
+                    ],
+                }
+            ]
+        }
+    )
+
+    vehicle: str
+    gain_version: str | None
+    estimates: list[EstimateRow] = Field(description="oldest first")
+
+
+class VehicleAssignment(BaseModel):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"profile": "van"}]})
+
+    profile: str = Field(description="name of an existing profile")
+
+
+class JobInfo(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "job-8d2f00c1a9e3",
+                    "profile": "van",
+                    "kind": "update",
+                    "status": "failed",
+                    "spec": {"bounds": {"vx_min_mps": 5.0}},
+                    "created_t_ns": 1_700_000_000_000_000_000,
+                    "started_t_ns": 1_700_000_000_001_000_000,
+                    "finished_t_ns": 1_700_000_004_000_000_000,
+                    "duration_s": 3.0,
+                    "gain_version": None,
+                    "certificate": None,
+                    "error": "infeasible",
+                    "reason": "The decoupling condition M D = 0 leaves delta_f unobservable at r = 0.00 rad/s ...",
+                    "superseded_by": None,
+                }
+            ]
+        }
+    )
+
+    id: str
+    profile: str
+    kind: Literal["initial", "create", "update", "resynthesis"]
+    status: Literal["queued", "running", "succeeded", "failed", "superseded", "interrupted"]
+    spec: dict[str, Any] = Field(description="the profile spec the job designs for, as given")
+    created_t_ns: int
+    started_t_ns: int | None
+    finished_t_ns: int | None
+    duration_s: float | None
+    gain_version: str | None = Field(description="the version activated by a succeeded job")
+    certificate: dict[str, Any] | None = Field(description="certificate summary of the new gains")
+    error: str | None = Field(description="infeasible, unverified, bad_parameters, solver_failed, ...")
+    reason: str | None = Field(description="why the design failed, in words")
+    superseded_by: str | None
+
+
+class ProfileInfo(BaseModel):
+    name: str
+    spec: ProfileSpec
+    active_version: str | None
+    gain_versions: list[str] = Field(description="every stored gain version, oldest first")
+    vehicles: int
+    pending_job: str | None = Field(description="id of a queued or running synthesis job")
+
+
+class ProfileChange(BaseModel):
+    """Answer of PUT /profiles/{name}: the profile, and the job if gains must be designed."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"profile": "van", "job": "job-8d2f00c1a9e3", "applied": False}]}
+    )
+
+    profile: str
+    job: str | None = Field(description="the synthesis job to poll at GET /jobs/{id}; null if applied at once")
+    applied: bool = Field(description="true when only thresholds or limits changed and they apply already")
+
+
+class GainsInfo(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "format": "agv-fe-gains/1",
+                    "profile": "default",
+                    "version": "3f9a1c0b7d2e",
+                    "params": {"mass_kg": 1481.0},
+                    "bounds": {"vx_min_mps": 5.0, "vx_max_mps": 30.0},
+                    "options": {"design": "paper", "fault_order": 3},
+                    "certificate": {"verified": True, "decay_rate": 0.9412, "spectral_radius_max": 0.9397},
+                    "matrices": None,
+                }
+            ]
+        }
+    )
+
+    format: str = Field(
+        description="gains document format; with ?matrices=true the answer loads with "
+        "synth.gains.ObserverGains.from_dict"
+    )
+    profile: str
+    version: str
+    params: dict[str, Any]
+    bounds: dict[str, Any]
+    options: dict[str, Any]
+    certificate: dict[str, Any] = Field(
+        description="certificate: decay rate, spectral radius, solver, timings (per-LMI lists with ?matrices=true)"
+    )
+    matrices: dict[str, Any] | None = Field(description="N, L, M, E, P, R, T when ?matrices=true")
+
+
+class Acknowledgement(BaseModel):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"by": "operator-ana", "note": "seen"}]})
+
+    by: str | None = Field(None, max_length=100, description="who acknowledges (free text)")
+    note: str | None = Field(None, max_length=500)

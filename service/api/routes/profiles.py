@@ -1,0 +1,123 @@
+"""Profiles, their gains, and resynthesis."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, HTTPException, Path, Query, Response, status
+
+from service.api.deps import Operator, ServiceDep
+from service.api.models import GainsInfo, ProfileChange, ProfileInfo
+from service.app import Service
+from service.fleet import ProfileBank
+from service.profiles import PROFILE_NAME_PATTERN, ProfileSpec
+
+router = APIRouter(prefix="/profiles", tags=["profiles"])
+
+ProfileName = Annotated[str, Path(description="profile name", pattern=PROFILE_NAME_PATTERN)]
+AUTH: dict[int | str, dict[str, Any]] = {401: {"description": "missing or invalid token"}}
+
+
+def _bank(service: Service, name: str) -> ProfileBank:
+    bank = service.engine.banks.get(name)
+    if bank is None:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND,
+            detail=f"no profile named {name!r}; known: {', '.join(sorted(service.engine.banks))}",
+        )
+    return bank
+
+
+def _info(service: Service, bank: ProfileBank) -> ProfileInfo:
+    pending = service.jobs.pending_for(bank.name)
+    return ProfileInfo(
+        name=bank.name,
+        spec=bank.spec,
+        active_version=bank.version,
+        gain_versions=[v for v, _ in service.db.gain_versions(bank.name)],
+        vehicles=int(bank.used.sum()),
+        pending_job=None if pending is None else pending.id,
+    )
+
+
+@router.get("", response_model=list[ProfileInfo], summary="every profile")
+async def list_profiles(service: ServiceDep) -> list[ProfileInfo]:
+    return [_info(service, bank) for bank in service.engine.banks.values()]
+
+
+@router.get("/{name}", response_model=ProfileInfo, responses={404: {"description": "no such profile"}})
+async def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
+    return _info(service, _bank(service, name))
+
+
+@router.put(
+    "/{name}",
+    response_model=ProfileChange,
+    status_code=status.HTTP_202_ACCEPTED,
+    responses={**AUTH, 200: {"model": ProfileChange, "description": "only thresholds or limits changed: applied"}},
+    summary="create or change a profile; new parameters, bounds or design options start a synthesis job",
+)
+async def put_profile(
+    service: ServiceDep, name: ProfileName, spec: ProfileSpec, _operator: Operator, response: Response
+) -> ProfileChange:
+    job = service.put_profile(name, spec)
+    if job is None:
+        response.status_code = status.HTTP_200_OK
+        return ProfileChange(profile=name, job=None, applied=True)
+    response.headers["Location"] = f"/jobs/{job.id}"
+    return ProfileChange(profile=name, job=job.id, applied=False)
+
+
+@router.post(
+    "/{name}/synthesis",
+    response_model=ProfileChange,
+    status_code=status.HTTP_202_ACCEPTED,
+    responses={**AUTH, 404: {"description": "no such profile"}},
+    summary="design the profile's gains again (for example after a change of the default design)",
+)
+async def resynthesise(
+    service: ServiceDep, name: ProfileName, _operator: Operator, response: Response
+) -> ProfileChange:
+    _bank(service, name)
+    job = service.resynthesise(name)
+    response.headers["Location"] = f"/jobs/{job.id}"
+    return ProfileChange(profile=name, job=job.id, applied=False)
+
+
+@router.get(
+    "/{name}/gains",
+    response_model=GainsInfo,
+    responses={404: {"description": "no such profile, or no active gains yet"}},
+    summary="the active gains: certificate summary, matrices on request",
+)
+async def get_gains(
+    service: ServiceDep,
+    name: ProfileName,
+    matrices: Annotated[bool, Query(description="include N, L, M, E, P, R, T")] = False,
+    version: Annotated[str | None, Query(description="a stored version instead of the active one")] = None,
+) -> GainsInfo:
+    bank = _bank(service, name)
+    wanted = version or bank.version
+    if wanted is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail=f"profile {name!r} has no active gains yet")
+    if bank.gains is not None and wanted == bank.version:
+        doc = bank.gains.to_dict(matrices=matrices)
+    else:
+        stored = service.db.gains(name, wanted)
+        if stored is None:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, detail=f"profile {name!r} has no gain version {wanted!r}")
+        doc = stored if matrices else {k: v for k, v in stored.items() if k != "matrices"}
+    certificate = dict(doc["certificate"])
+    if not matrices:
+        certificate.pop("lmi_min_eigenvalues", None)
+        certificate.pop("P_min_eigenvalues", None)
+    return GainsInfo(
+        format=doc["format"],
+        profile=name,
+        version=doc["version"],
+        params=doc["params"],
+        bounds=doc["bounds"],
+        options=doc["options"],
+        certificate=certificate,
+        matrices=doc.get("matrices") if matrices else None,
+    )

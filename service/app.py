@@ -1,0 +1,309 @@
+"""Wiring: settings -> storage, fleet engine, job queue, Zenoh transport, ingest loop, FastAPI app.
+
+:class:`Service` owns every part and runs on one asyncio loop: the ingest
+loop drains the Zenoh channels, steps the fleet and publishes; REST handlers
+read and change the fleet between two ticks, so a gain activation is atomic
+for every vehicle of a profile without locks. Heavy work stays off the loop:
+LMI designs in worker processes, gain re-verification in a thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import secrets
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager, suppress
+from typing import Any
+
+from fastapi import FastAPI
+
+from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine
+from service.jobs import Job, JobKind, SynthesisJobs
+from service.metrics import ServiceMetrics
+from service.profiles import DEFAULT_PROFILE_NAME, ProfileSpec, load_profiles_file
+from service.protocol import all_buckets, shard_buckets
+from service.settings import Settings
+from service.storage import Storage
+from service.transport import Transport
+from synth.gains import ObserverGains
+from synth.observer import RuntimeGains
+
+log = logging.getLogger("agv_fe.service")
+
+
+class ServiceError(Exception):
+    """The service cannot start; the text says what to fix."""
+
+
+def load_or_create_token(settings: Settings) -> str:
+    """The API token: from settings, else DATA_DIR/api-token, created (mode 0600) on first start."""
+    if settings.auth.token is not None:
+        return settings.auth.token.get_secret_value()
+    path = settings.data_dir / "api-token"
+    if path.exists():
+        return path.read_text().strip()
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    token = secrets.token_urlsafe(32)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(token + "\n")
+    log.warning("no auth token configured: generated one in %s", path)
+    return token
+
+
+class Service:
+    """Every running part of one replica."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.replica_id = settings.shard.name
+        self.buckets = (
+            all_buckets()
+            if settings.shard.replicas == 1
+            else shard_buckets(settings.shard.index, settings.shard.replicas)
+        )
+        ingest = settings.ingest
+        self.events = EventBus()
+        self.engine = FleetEngine(
+            EngineConfig(
+                unknown_vehicles=ingest.unknown_vehicles,
+                default_profile=ingest.default_profile,
+                long_gap_s=ingest.long_gap_s,
+                estimate_every_n=ingest.estimate_every_n,
+                history_samples=ingest.history_samples,
+                prefix=settings.zenoh.prefix,
+            ),
+            events=self.events,
+        )
+        self.metrics = ServiceMetrics()
+        self.storage: Storage | None = None
+        self.transport: Transport | None = None
+        self.jobs = SynthesisJobs(settings.synthesis_workers, self._activate_job, self._persist_job)
+        self.token = ""
+        self.started_mono = time.monotonic()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._running = False
+        self.transport_up = False
+
+    # ------------------------------------------------------------------ life cycle
+
+    async def start(self) -> None:
+        self.token = load_or_create_token(self.settings)
+        self.storage = Storage(self.settings.database_path)
+        await self._load_state()
+        self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id)
+        await asyncio.to_thread(self.transport.open)
+        self.transport_up = True
+        self._running = True
+        loop = asyncio.get_running_loop()
+        self._tasks = [
+            loop.create_task(self._ingest_loop(), name="ingest"),
+            loop.create_task(self._housekeeping_loop(), name="housekeeping"),
+        ]
+        log.info(
+            "replica %s serving buckets %s on zenoh %s %s",
+            self.replica_id,
+            ",".join(self.buckets),
+            self.settings.zenoh.mode,
+            self.settings.zenoh.endpoint,
+        )
+
+    async def stop(self) -> None:
+        self._running = False
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with suppress(asyncio.CancelledError):
+                await task
+        self._tasks = []
+        await self.jobs.close()
+        if self.transport is not None:
+            await asyncio.to_thread(self.transport.close)
+            self.transport = None
+            self.transport_up = False
+        if self.storage is not None:
+            self.storage.close()
+            self.storage = None
+
+    async def _load_state(self) -> None:
+        """Profiles, gains, vehicles and latched alarms from the database; seed profiles on first start."""
+        storage = self.db
+        stored = storage.profiles()
+        if not stored:
+            initial = (
+                load_profiles_file(self.settings.profiles_file)
+                if self.settings.profiles_file is not None
+                else {DEFAULT_PROFILE_NAME: ProfileSpec()}
+            )
+            now = time.time_ns()
+            for name, spec in initial.items():
+                storage.put_profile(name, spec.stored(), now)
+            stored = storage.profiles()
+        for interrupted in (j for j in storage.jobs(limit=1000) if j["status"] in ("queued", "running")):
+            job = Job.from_dict(interrupted)
+            job.status, job.error, job.reason = "interrupted", "restart", "the service restarted during the design"
+            storage.put_job(job.to_dict())
+        for profile in stored:
+            spec = ProfileSpec.model_validate(profile.spec)
+            self.engine.add_profile(profile.name, spec)
+            gains_doc = storage.gains(profile.name, profile.active_version) if profile.active_version else None
+            if gains_doc is not None:
+                try:
+                    gains = await asyncio.to_thread(ObserverGains.from_dict, gains_doc)
+                except Exception as exc:
+                    log.error(
+                        "stored gains %s of %s are unusable (%s): resynthesising",
+                        profile.active_version,
+                        profile.name,
+                        exc,
+                    )
+                else:
+                    self.engine.activate(profile.name, gains, RuntimeGains.from_gains(gains))
+                    continue
+            self.jobs.submit(profile.name, spec, "initial")
+        for vehicle_id, profile_name, registered in storage.vehicles():
+            if profile_name in self.engine.banks:
+                self.engine.register(vehicle_id, profile_name, registered)
+        self.engine.alarms.load([AlarmRecord.from_dict(r) for r in storage.latched_alarms()])
+
+    @property
+    def db(self) -> Storage:
+        if self.storage is None:
+            raise ServiceError("the service is not started")
+        return self.storage
+
+    def _require_transport(self) -> Transport:
+        if self.transport is None:
+            raise ServiceError("the transport is not open")
+        return self.transport
+
+    @property
+    def ready(self) -> bool:
+        return self.transport_up and self.engine.ready
+
+    # ------------------------------------------------------------------ loops
+
+    async def _ingest_loop(self) -> None:
+        ingest = self.settings.ingest
+        transport = self._require_transport()
+        engine, metrics = self.engine, self.metrics
+        while self._running:
+            batch = transport.drain(ingest.max_batch)
+            if not batch:
+                await asyncio.sleep(ingest.poll_interval_s)
+                continue
+            started = time.perf_counter()
+            result = engine.process(batch)
+            if result.new_vehicles:
+                self.db.put_vehicles((v.id, v.profile, v.registered_t_ns) for v in result.new_vehicles)
+            if result.alarms:
+                self.commit_alarms(result.alarms)
+            if result.estimates:
+                transport.publish_estimates(result.estimates)
+                metrics.estimates_out += len(result.estimates)
+            metrics.tick_seconds.observe(time.perf_counter() - started)
+            metrics.tick_batch.observe(len(batch))
+            metrics.last_batch = len(batch)
+            if len(batch) >= ingest.max_batch:
+                metrics.full_batches += 1
+            await asyncio.sleep(0)  # let HTTP requests in between two ticks
+
+    async def _housekeeping_loop(self) -> None:
+        transport = self._require_transport()
+        while self._running:
+            await asyncio.sleep(self.settings.ingest.housekeeping_interval_s)
+            changes: list[AlarmChange] = []
+            for vehicle_id, alive in transport.drain_liveliness():
+                changes.extend(self.engine.liveliness(vehicle_id, alive))
+            changes.extend(self.engine.housekeeping())
+            if changes:
+                self.commit_alarms(changes)
+
+    def commit_alarms(self, changes: list[AlarmChange]) -> None:
+        """Store alarm changes (one transaction), then publish them."""
+        self.db.record_alarm_changes((c.record.to_dict(), c.event.model_dump()) for c in changes)
+        if self.transport is not None:
+            for change in changes:
+                self.transport.publish_alarm(change.record.vehicle, change.event.encode())
+        self.metrics.alarms_out += len(changes)
+
+    # ------------------------------------------------------------------ profiles and jobs
+
+    def put_profile(self, name: str, spec: ProfileSpec) -> Job | None:
+        """Create or change a profile. A change of the design inputs starts a job; otherwise it applies at once."""
+        bank = self.engine.banks.get(name)
+        if bank is None:
+            self.db.put_profile(name, spec.stored(), time.time_ns())
+            self.engine.add_profile(name, spec)
+            return self.jobs.submit(name, spec, "create")
+        if bank.gains is not None and _same_design(bank.gains, spec):
+            self.db.put_profile(name, spec.stored(), time.time_ns())
+            self.engine.update_profile_spec(name, spec)
+            return None
+        return self.jobs.submit(name, spec, "update")
+
+    def resynthesise(self, name: str, kind: JobKind = "resynthesis") -> Job:
+        bank = self.engine._bank(name)
+        return self.jobs.submit(name, bank.spec, kind)
+
+    async def _activate_job(self, job: Job, spec: ProfileSpec, gains: ObserverGains) -> None:
+        runtime = await asyncio.to_thread(RuntimeGains.from_gains, gains)
+        # persist first: what is active is always in the database
+        self.db.activate_gains(job.profile, spec.stored(), gains.to_dict(), time.time_ns())
+        self.engine.update_profile_spec(job.profile, spec)
+        self.engine.activate(job.profile, gains, runtime)
+        log.info("profile %s: gains %s active (job %s)", job.profile, gains.version, job.id)
+
+    def _persist_job(self, job: Job) -> None:
+        if self.storage is not None:
+            self.storage.put_job(job.to_dict())
+        if job.status in ("succeeded", "failed") and job.duration_s is not None:
+            self.metrics.synthesis_seconds.observe(job.duration_s)
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "replica": self.replica_id,
+            "buckets": self.buckets,
+            "uptime_s": round(time.monotonic() - self.started_mono, 3),
+        }
+
+
+def _same_design(gains: ObserverGains, spec: ProfileSpec) -> bool:
+    inputs = spec.design_inputs()
+    return (
+        gains.params.model_dump(mode="json") == inputs["params"]
+        and gains.bounds.model_dump(mode="json") == inputs["bounds"]
+        and gains.options.model_dump(mode="json") == inputs["options"]
+    )
+
+
+def create_app(settings: Settings) -> FastAPI:
+    """The FastAPI application; the lifespan starts and stops the :class:`Service`."""
+    from service.api import build_router
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        service = Service(settings)
+        app.state.service = service
+        try:
+            await service.start()
+            yield
+        finally:
+            await service.stop()
+
+    app = FastAPI(
+        title="AGV fault estimator",
+        version="0.1.0",
+        summary="Real-time actuator fault estimation for a fleet of ground vehicles, with certified observers.",
+        description=(
+            "Measurements arrive over Zenoh (see docs/protocol.md); this API reports vehicles, estimates and alarms, "
+            "and manages vehicle profiles and their certified observer gains. Mutating endpoints need "
+            "`Authorization: Bearer TOKEN`."
+        ),
+        lifespan=lifespan,
+    )
+    app.include_router(build_router(settings))
+    return app

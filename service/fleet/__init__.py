@@ -1,0 +1,35 @@
+"""The fleet state: observer banks per profile, alarms and the event hook; no transport, no web, no storage."""
+
+from service.fleet.alarms import AlarmBook, AlarmChange, AlarmRecord, LevelDetector, UnknownAlarm
+from service.fleet.bank import ProfileBank
+from service.fleet.engine import (
+    REJECT_REASONS,
+    EngineConfig,
+    FleetEngine,
+    FleetError,
+    TickResult,
+    UnknownProfile,
+    UnknownVehicle,
+    Vehicle,
+)
+from service.fleet.events import EventBus, FleetEvent, Subscription
+
+__all__ = [
+    "REJECT_REASONS",
+    "AlarmBook",
+    "AlarmChange",
+    "AlarmRecord",
+    "EngineConfig",
+    "EventBus",
+    "FleetEngine",
+    "FleetError",
+    "FleetEvent",
+    "LevelDetector",
+    "ProfileBank",
+    "Subscription",
+    "TickResult",
+    "UnknownAlarm",
+    "UnknownProfile",
+    "UnknownVehicle",
+    "Vehicle",
+]

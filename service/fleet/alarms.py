@@ -1,0 +1,285 @@
+"""Alarms: a vectorised level detector with persistence and hysteresis, and the alarm book.
+
+:class:`LevelDetector` turns a stream of values per vehicle into a level
+(0 OK, 1 WARN, 2 FAULT) for a whole batch at once. :class:`AlarmBook` keeps
+the alarm records: raised when a condition starts, latched until it is both
+cleared and acknowledged, each change an :class:`service.protocol.Alarm` event.
+"""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from service.protocol import Alarm, AlarmKind, AlarmState, Level
+
+OK, WARN, FAULT = 0, 1, 2
+LEVEL_NAMES: tuple[Level, Level, Level] = ("OK", "WARN", "FAULT")
+RecordState = Literal["raised", "cleared"]
+_NOT_HOLDING = np.iinfo(np.int64).min
+_LEVEL_RANK: dict[str, int] = {"OK": 0, "WARN": 1, "FAULT": 2, "STALE": 3}
+
+
+def level_rank(level: str) -> int:
+    return _LEVEL_RANK[level]
+
+
+class LevelDetector:
+    """Two-level threshold detector with persistence and hysteresis, one row per vehicle slot.
+
+    A value |x| >= ``warn`` (``fault``) held for ``raise_after_ns`` of sample
+    time raises the level to WARN (FAULT). A raised level L drops by one when
+    |x| < ``hysteresis`` x threshold_L has held for ``clear_after_ns``. All
+    updates are vectorised over the rows of one batch; a row appears at most
+    once per call.
+    """
+
+    def __init__(
+        self,
+        capacity: int,
+        warn: float,
+        fault: float,
+        hysteresis: float,
+        raise_after_ns: int,
+        clear_after_ns: int,
+    ) -> None:
+        self.warn, self.fault, self.hysteresis = warn, fault, hysteresis
+        self.raise_after_ns, self.clear_after_ns = raise_after_ns, clear_after_ns
+        self.level = np.zeros(capacity, dtype=np.int8)
+        # since when each condition has held without a break [ns], or _NOT_HOLDING
+        self._above = np.full((2, capacity), _NOT_HOLDING, dtype=np.int64)  # |x| >= warn, |x| >= fault
+        self._below = np.full((2, capacity), _NOT_HOLDING, dtype=np.int64)  # |x| < h warn, |x| < h fault
+
+    def configure(self, warn: float, fault: float, hysteresis: float, raise_after_ns: int, clear_after_ns: int) -> None:
+        self.warn, self.fault, self.hysteresis = warn, fault, hysteresis
+        self.raise_after_ns, self.clear_after_ns = raise_after_ns, clear_after_ns
+
+    def grow(self, capacity: int) -> None:
+        extra = capacity - self.level.shape[0]
+        if extra <= 0:
+            return
+        self.level = np.concatenate([self.level, np.zeros(extra, dtype=np.int8)])
+        pad = np.full((2, extra), _NOT_HOLDING, dtype=np.int64)
+        self._above = np.concatenate([self._above, pad], axis=1)
+        self._below = np.concatenate([self._below, pad.copy()], axis=1)
+
+    def reset(self, rows: np.ndarray, keep_level: bool = False) -> None:
+        """Forget the timing of ``rows`` (after an observer restart); optionally the level too."""
+        self._above[:, rows] = _NOT_HOLDING
+        self._below[:, rows] = _NOT_HOLDING
+        if not keep_level:
+            self.level[rows] = OK
+
+    def update(self, rows: np.ndarray, values: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+        """Feed |values| at sample times ``t_ns`` for ``rows``; return the indices (into rows) whose level changed."""
+        magnitude = np.abs(values)
+        thresholds = np.array([self.warn, self.fault])[:, None]
+        above = magnitude[None, :] >= thresholds
+        below = magnitude[None, :] < self.hysteresis * thresholds
+        since_above = self._above[:, rows]
+        since_below = self._below[:, rows]
+        since_above = np.where(above, np.where(since_above == _NOT_HOLDING, t_ns, since_above), _NOT_HOLDING)
+        since_below = np.where(below, np.where(since_below == _NOT_HOLDING, t_ns, since_below), _NOT_HOLDING)
+        self._above[:, rows] = since_above
+        self._below[:, rows] = since_below
+        held_above = (since_above != _NOT_HOLDING) & (t_ns - since_above >= self.raise_after_ns)
+        held_below = (since_below != _NOT_HOLDING) & (t_ns - since_below >= self.clear_after_ns)
+        old = self.level[rows]
+        new = old.copy()
+        # escalate to the highest level whose condition has persisted
+        up = np.where(held_above[1], FAULT, np.where(held_above[0], WARN, OK))
+        new = np.maximum(new, up).astype(np.int8)
+        # de-escalate one level at a time while the hysteresis band has been left long enough
+        drop_fault = (new == FAULT) & held_below[1] & ~held_above[1]
+        new[drop_fault] = WARN
+        drop_warn = (new == WARN) & held_below[0] & ~held_above[0]
+        new[drop_warn] = OK
+        self.level[rows] = new
+        return np.flatnonzero(new != old)
+
+
+@dataclass
+class AlarmRecord:
+    """One alarm: latched from when it is raised until it is both cleared and acknowledged."""
+
+    id: str
+    vehicle: str
+    profile: str
+    kind: AlarmKind
+    level: Level
+    peak_level: Level
+    state: RecordState = "raised"
+    acknowledged: bool = False
+    raised_t_ns: int = 0
+    cleared_t_ns: int | None = None
+    acknowledged_t_ns: int | None = None
+    acknowledged_by: str | None = None
+    value: float | None = None
+    threshold: float | None = None
+    message: str = ""
+    occurrences: int = 1
+    updated_t_ns: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def closed(self) -> bool:
+        """No longer latched: the condition is gone and an operator acknowledged it."""
+        return self.state == "cleared" and self.acknowledged
+
+    def event(self, state: AlarmState, t_ns: int) -> Alarm:
+        return Alarm(
+            vehicle=self.vehicle,
+            id=self.id,
+            kind=self.kind,
+            level=self.level,
+            state=state,
+            value=self.value,
+            threshold=self.threshold,
+            t_ns=t_ns,
+            message=self.message,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "vehicle": self.vehicle,
+            "profile": self.profile,
+            "kind": self.kind,
+            "level": self.level,
+            "peak_level": self.peak_level,
+            "state": self.state,
+            "acknowledged": self.acknowledged,
+            "raised_t_ns": self.raised_t_ns,
+            "cleared_t_ns": self.cleared_t_ns,
+            "acknowledged_t_ns": self.acknowledged_t_ns,
+            "acknowledged_by": self.acknowledged_by,
+            "value": self.value,
+            "threshold": self.threshold,
+            "message": self.message,
+            "occurrences": self.occurrences,
+            "updated_t_ns": self.updated_t_ns,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> AlarmRecord:
+        keys = cls.__dataclass_fields__.keys() - {"extra"}
+        return cls(**{k: data[k] for k in keys if k in data})
+
+
+@dataclass(frozen=True)
+class AlarmChange:
+    """A change of one record and the event it publishes."""
+
+    record: AlarmRecord
+    event: Alarm
+
+
+class UnknownAlarm(KeyError):
+    """No latched alarm has this id."""
+
+
+class AlarmBook:
+    """The latched alarms, at most one per (vehicle, kind)."""
+
+    def __init__(self) -> None:
+        self._by_key: dict[tuple[str, str], AlarmRecord] = {}
+        self._by_id: dict[str, AlarmRecord] = {}
+
+    def load(self, records: list[AlarmRecord]) -> None:
+        """Restore latched alarms after a restart."""
+        for record in records:
+            if not record.closed:
+                self._by_key[(record.vehicle, record.kind)] = record
+                self._by_id[record.id] = record
+
+    def latched(self) -> list[AlarmRecord]:
+        return list(self._by_id.values())
+
+    def for_vehicle(self, vehicle: str) -> list[AlarmRecord]:
+        return [r for r in self._by_id.values() if r.vehicle == vehicle]
+
+    def get(self, alarm_id: str) -> AlarmRecord | None:
+        return self._by_id.get(alarm_id)
+
+    def current(self, vehicle: str, kind: AlarmKind) -> AlarmRecord | None:
+        return self._by_key.get((vehicle, kind))
+
+    def raise_level(
+        self,
+        vehicle: str,
+        profile: str,
+        kind: AlarmKind,
+        level: Level,
+        t_ns: int,
+        value: float | None,
+        threshold: float | None,
+        message: str,
+    ) -> AlarmChange | None:
+        """The condition of (vehicle, kind) holds at ``level``: raise, escalate, re-raise or change level."""
+        record = self._by_key.get((vehicle, kind))
+        if record is None:
+            record = AlarmRecord(
+                id=f"al-{uuid.uuid4().hex[:12]}",
+                vehicle=vehicle,
+                profile=profile,
+                kind=kind,
+                level=level,
+                peak_level=level,
+                raised_t_ns=t_ns,
+            )
+            self._by_key[(vehicle, kind)] = record
+            self._by_id[record.id] = record
+        elif record.state == "raised" and record.level == level:
+            return None
+        else:
+            if record.state == "cleared":
+                record.occurrences += 1
+                record.cleared_t_ns = None
+            if level_rank(level) > level_rank(record.level) and record.acknowledged:
+                # an escalation needs a new acknowledgement
+                record.acknowledged = False
+                record.acknowledged_t_ns = None
+                record.acknowledged_by = None
+            record.state = "raised"
+            record.level = level
+            if level_rank(level) > level_rank(record.peak_level):
+                record.peak_level = level
+        record.value, record.threshold, record.message = value, threshold, message
+        record.updated_t_ns = t_ns
+        return AlarmChange(record, record.event("raised", t_ns))
+
+    def clear(self, vehicle: str, kind: AlarmKind, t_ns: int, message: str = "") -> AlarmChange | None:
+        """The condition of (vehicle, kind) is gone; the record stays latched until acknowledged."""
+        record = self._by_key.get((vehicle, kind))
+        if record is None or record.state == "cleared":
+            return None
+        record.state = "cleared"
+        record.cleared_t_ns = t_ns
+        record.updated_t_ns = t_ns
+        if message:
+            record.message = message
+        change = AlarmChange(record, record.event("cleared", t_ns))
+        self._forget_if_closed(record)
+        return change
+
+    def acknowledge(self, alarm_id: str, t_ns: int, by: str | None = None) -> AlarmChange:
+        """An operator saw it. Idempotent; raise :class:`UnknownAlarm` if no latched alarm has this id."""
+        record = self._by_id.get(alarm_id)
+        if record is None:
+            raise UnknownAlarm(alarm_id)
+        if not record.acknowledged:
+            record.acknowledged = True
+            record.acknowledged_t_ns = t_ns
+            record.acknowledged_by = by
+            record.updated_t_ns = t_ns
+        change = AlarmChange(record, record.event("acknowledged", t_ns))
+        self._forget_if_closed(record)
+        return change
+
+    def _forget_if_closed(self, record: AlarmRecord) -> None:
+        if record.closed:
+            self._by_key.pop((record.vehicle, record.kind), None)
+            self._by_id.pop(record.id, None)

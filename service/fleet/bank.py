@@ -1,0 +1,245 @@
+"""The observer bank of one profile: every vehicle's observer state in one array, stepped together.
+
+Each vehicle of the profile owns a row (slot) of the arrays. One call of
+:meth:`ProfileBank.step` advances any subset of rows by one sample with the
+vectorised :func:`synth.observer.observer_step`, records the estimates in a
+per-row ring buffer and feeds the alarm detectors. Gains are swapped with
+:meth:`ProfileBank.activate`, which re-starts every row from its last
+estimate at its next sample.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.fleet.alarms import LevelDetector
+from service.profiles import ProfileSpec
+from synth.gains import ObserverGains
+from synth.model import FloatArray
+from synth.observer import RuntimeGains, initial_observer_state, observer_step
+
+#: Columns of the estimate rows kept per sample: v_x, v_y, r [m/s, m/s, rad/s], T_f [N m], delta_f [rad].
+ESTIMATE_COLUMNS = ("vx", "vy", "r", "torque_fault", "steer_fault")
+_N_EST = len(ESTIMATE_COLUMNS)
+_INITIAL_CAPACITY = 64
+
+
+@dataclass(frozen=True)
+class StepOutput:
+    """Result of one batched step, rows in the order of the call.
+
+    x5 : (k, 5) estimates; in_domain, vy_in_bounds, finite : (k,) bool;
+    restarted : (k,) bool, the row's observer was (re)initialised at this sample.
+    """
+
+    x5: FloatArray
+    in_domain: np.ndarray
+    vy_in_bounds: np.ndarray
+    finite: np.ndarray
+    restarted: np.ndarray
+
+
+def _s_to_ns(seconds: float) -> int:
+    return round(seconds * 1e9)
+
+
+class ProfileBank:
+    """Observer states, last estimates, estimate history and alarm detectors of one profile's vehicles."""
+
+    def __init__(self, name: str, spec: ProfileSpec, history_samples: int) -> None:
+        self.name = name
+        self.spec = spec
+        self.gains: ObserverGains | None = None
+        self.runtime: RuntimeGains | None = None
+        self.history_samples = history_samples
+        cap = _INITIAL_CAPACITY
+        self.capacity = cap
+        self.free: list[int] = list(range(cap - 1, -1, -1))
+        self.used = np.zeros(cap, dtype=bool)
+        self.z = np.zeros((cap, 0))
+        self.needs_init = np.ones(cap, dtype=bool)
+        self.warm = np.full((cap, _N_EST), np.nan)
+        self.started_t_ns = np.zeros(cap, dtype=np.int64)
+        self.last_x5 = np.full((cap, _N_EST), np.nan)
+        self.last_in_domain = np.zeros(cap, dtype=bool)
+        self.last_seq = np.full(cap, -1, dtype=np.int64)
+        self.last_t_ns = np.zeros(cap, dtype=np.int64)
+        self.hist_x5 = np.zeros((cap, history_samples, _N_EST))
+        self.hist_in_domain = np.zeros((cap, history_samples), dtype=bool)
+        self.hist_seq = np.zeros((cap, history_samples), dtype=np.int64)
+        self.hist_t_ns = np.zeros((cap, history_samples), dtype=np.int64)
+        self.hist_count = np.zeros(cap, dtype=np.int64)
+        a = spec.alarms
+        self.torque = LevelDetector(
+            cap,
+            a.torque_warn_nm,
+            a.torque_fault_nm,
+            a.hysteresis,
+            _s_to_ns(a.raise_after_s),
+            _s_to_ns(a.clear_after_s),
+        )
+        self.steer = LevelDetector(
+            cap,
+            a.steer_warn_rad,
+            a.steer_fault_rad,
+            a.hysteresis,
+            _s_to_ns(a.raise_after_s),
+            _s_to_ns(a.clear_after_s),
+        )
+        # out of domain as a one-level detector on a 0/1 signal
+        self.domain = LevelDetector(cap, 0.5, np.inf, 1.0, _s_to_ns(a.out_of_domain_after_s), _s_to_ns(a.clear_after_s))
+
+    # ------------------------------------------------------------------ configuration
+
+    @property
+    def version(self) -> str | None:
+        return None if self.gains is None else self.gains.version
+
+    @property
+    def ready(self) -> bool:
+        return self.runtime is not None
+
+    def set_spec(self, spec: ProfileSpec) -> None:
+        """New thresholds and limits (the gains are set by :meth:`activate`)."""
+        self.spec = spec
+        a = spec.alarms
+        raise_ns, clear_ns = _s_to_ns(a.raise_after_s), _s_to_ns(a.clear_after_s)
+        self.torque.configure(a.torque_warn_nm, a.torque_fault_nm, a.hysteresis, raise_ns, clear_ns)
+        self.steer.configure(a.steer_warn_rad, a.steer_fault_rad, a.hysteresis, raise_ns, clear_ns)
+        self.domain.configure(0.5, np.inf, 1.0, _s_to_ns(a.out_of_domain_after_s), clear_ns)
+
+    def activate(self, gains: ObserverGains, runtime: RuntimeGains | None = None) -> None:
+        """Swap in new gains for every row at once.
+
+        Each row re-starts at its next sample from its last estimate of the
+        state and the faults (higher fault derivatives zero), so the estimate
+        is continuous across the swap even when the fault order changes.
+        """
+        runtime = runtime or RuntimeGains.from_gains(gains)
+        self.gains, self.runtime = gains, runtime
+        self.z = np.zeros((self.capacity, runtime.n))
+        self.warm = self.last_x5.copy()
+        self.needs_init[:] = True
+
+    # ------------------------------------------------------------------ slots
+
+    def allocate(self) -> int:
+        if not self.free:
+            self._grow(2 * self.capacity)
+        slot = self.free.pop()
+        self.used[slot] = True
+        self._clear_row(slot)
+        return slot
+
+    def release(self, slot: int) -> None:
+        self.used[slot] = False
+        self._clear_row(slot)
+        self.free.append(slot)
+
+    def restart(self, slot: int) -> None:
+        """Re-initialise the row's observer from its next measurement (cold start)."""
+        self.needs_init[slot] = True
+        self.warm[slot] = np.nan
+
+    def _clear_row(self, slot: int) -> None:
+        self.needs_init[slot] = True
+        self.warm[slot] = np.nan
+        self.last_x5[slot] = np.nan
+        self.last_in_domain[slot] = False
+        self.last_seq[slot] = -1
+        self.last_t_ns[slot] = 0
+        self.hist_count[slot] = 0
+        rows = np.array([slot])
+        for detector in (self.torque, self.steer, self.domain):
+            detector.reset(rows)
+
+    def _grow(self, capacity: int) -> None:
+        extra = capacity - self.capacity
+
+        def pad(a: np.ndarray, fill: float | int | bool) -> np.ndarray:
+            block = np.full((extra, *a.shape[1:]), fill, dtype=a.dtype)
+            return np.concatenate([a, block])
+
+        self.used = pad(self.used, False)
+        self.z = pad(self.z, 0.0)
+        self.needs_init = pad(self.needs_init, True)
+        self.warm = pad(self.warm, np.nan)
+        self.started_t_ns = pad(self.started_t_ns, 0)
+        self.last_x5 = pad(self.last_x5, np.nan)
+        self.last_in_domain = pad(self.last_in_domain, False)
+        self.last_seq = pad(self.last_seq, -1)
+        self.last_t_ns = pad(self.last_t_ns, 0)
+        self.hist_x5 = pad(self.hist_x5, 0.0)
+        self.hist_in_domain = pad(self.hist_in_domain, False)
+        self.hist_seq = pad(self.hist_seq, 0)
+        self.hist_t_ns = pad(self.hist_t_ns, 0)
+        self.hist_count = pad(self.hist_count, 0)
+        for detector in (self.torque, self.steer, self.domain):
+            detector.grow(capacity)
+        self.free.extend(range(capacity - 1, self.capacity - 1, -1))
+        self.capacity = capacity
+
+    # ------------------------------------------------------------------ the step
+
+    def step(self, slots: np.ndarray, y: FloatArray, u: FloatArray, seq: np.ndarray, t_ns: np.ndarray) -> StepOutput:
+        """Advance ``slots`` (distinct) by one sample: y (k, 2) = [v_x, r], u (k, 2) = [T_d, delta_d], finite."""
+        rt = self.runtime
+        if rt is None:
+            raise RuntimeError(f"profile {self.name!r} has no active gains")
+        restarted = self.needs_init[slots]
+        if restarted.any():
+            rows = slots[restarted]
+            warm = self.warm[rows]
+            has_warm = ~np.isnan(warm).any(axis=1)
+            x0 = np.zeros((len(rows), 3 + 2))
+            x0[:, 0] = y[restarted, 0]
+            x0[:, 2] = y[restarted, 1]
+            x0[has_warm] = warm[has_warm]
+            self.z[rows] = initial_observer_state(rt, y[restarted], x0)
+            self.needs_init[rows] = False
+            self.warm[rows] = np.nan
+            self.started_t_ns[rows] = t_ns[restarted]
+            for detector in (self.torque, self.steer, self.domain):
+                detector.reset(rows, keep_level=True)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            z_next, res = observer_step(rt, self.z[slots], y, u)
+        x5 = res.x_hat[:, :_N_EST]
+        finite: np.ndarray = np.asarray(np.isfinite(x5).all(axis=1) & np.isfinite(z_next).all(axis=1))
+        self.z[slots] = z_next
+        if not finite.all():
+            bad = slots[~finite]
+            self.needs_init[bad] = True
+            self.warm[bad] = np.nan
+        good = slots[finite]
+        self.last_x5[good] = x5[finite]
+        self.last_in_domain[good] = res.in_domain[finite]
+        self.last_seq[good] = seq[finite]
+        self.last_t_ns[good] = t_ns[finite]
+        pos = self.hist_count[good] % self.history_samples
+        self.hist_x5[good, pos] = x5[finite]
+        self.hist_in_domain[good, pos] = res.in_domain[finite]
+        self.hist_seq[good, pos] = seq[finite]
+        self.hist_t_ns[good, pos] = t_ns[finite]
+        self.hist_count[good] += 1
+        return StepOutput(
+            x5=x5, in_domain=res.in_domain, vy_in_bounds=res.vy_in_bounds, finite=finite, restarted=restarted
+        )
+
+    def history(self, slot: int, limit: int) -> list[tuple[int, int, bool, list[float]]]:
+        """The last ``limit`` estimates of a row, oldest first: (seq, t_ns, in_domain, x5)."""
+        count = int(self.hist_count[slot])
+        n = min(count, self.history_samples, limit)
+        out = []
+        for k in range(count - n, count):
+            pos = k % self.history_samples
+            out.append(
+                (
+                    int(self.hist_seq[slot, pos]),
+                    int(self.hist_t_ns[slot, pos]),
+                    bool(self.hist_in_domain[slot, pos]),
+                    self.hist_x5[slot, pos].tolist(),
+                )
+            )
+        return out

@@ -1,0 +1,699 @@
+"""The fleet engine: raw measurements in, estimates and alarm changes out.
+
+Independent of Zenoh, FastAPI and SQLite: :meth:`FleetEngine.process` takes
+the (key expression, payload) pairs that arrived since the last tick and
+returns what to publish and store. Per tick, the samples of each profile are
+stepped together, one round per sample index, so a vehicle whose samples
+queued up is still stepped in sequence order.
+
+What a real stream does, and what happens to it:
+
+==================  ==================================================================
+malformed           bad key, bad size, magic, version or id bytes: rejected, counted
+id_mismatch         the payload's vehicle id differs from the key's: rejected, counted
+unknown_vehicle     no such vehicle and ``unknown_vehicles = reject``: rejected, counted
+duplicate           seq equal to the last one: dropped, counted
+out_of_order        seq below the last one: dropped, counted
+non_finite          NaN or infinite value: rejected, counted, observer untouched
+out_of_range        outside the profile's plausibility limits: rejected, counted
+no_gains            the profile has no active gains yet: rejected, counted
+gap                 seq jumped: missing samples counted; a gap longer than
+                    ``long_gap_s`` re-initialises the observer at the new sample
+==================  ==================================================================
+
+A rejected sample never reaches the observer; the vehicle's state is as if
+the sample had been lost.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange
+from service.fleet.bank import ProfileBank
+from service.fleet.events import EventBus, FleetEvent
+from service.profiles import ProfileSpec
+from service.protocol import (
+    FLAG_SEQUENCE_RESTART,
+    MAGIC,
+    MEASUREMENT_HEADER_SIZE,
+    PROTOCOL_VERSION,
+    AlarmKind,
+    Estimate,
+    Level,
+    Measurement,
+    ProtocolError,
+    bucket_of,
+    encode_estimate,
+    parse_vehicle_key,
+    unpack_measurement_header,
+    vehicle_key,
+)
+from synth.gains import ObserverGains
+from synth.observer import RuntimeGains
+
+RejectReason = Literal[
+    "malformed", "id_mismatch", "unknown_vehicle", "duplicate", "out_of_order", "non_finite", "out_of_range", "no_gains"
+]
+REJECT_REASONS: tuple[RejectReason, ...] = (
+    "malformed",
+    "id_mismatch",
+    "unknown_vehicle",
+    "duplicate",
+    "out_of_order",
+    "non_finite",
+    "out_of_range",
+    "no_gains",
+)
+#: Rejects that count towards a vehicle's rejected-input burst alarm (duplicates and late samples do not).
+BURST_REASONS = frozenset({"malformed", "id_mismatch", "non_finite", "out_of_range"})
+
+
+def _classify(payload: bytes, vehicle_id: str) -> RejectReason:
+    """Why a payload of the wrong size was refused: another vehicle's valid measurement, or garbage."""
+    try:
+        claimed = Measurement.decode(payload).vehicle_id
+    except ProtocolError:
+        return "malformed"
+    return "id_mismatch" if claimed != vehicle_id else "malformed"
+
+
+class FleetError(Exception):
+    """A request the fleet cannot carry out; the text says why."""
+
+
+class UnknownVehicle(FleetError, KeyError):
+    pass
+
+
+class UnknownProfile(FleetError, KeyError):
+    pass
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """The ingest settings the engine needs (a plain copy of :class:`service.settings.IngestSettings`)."""
+
+    unknown_vehicles: Literal["register", "reject"] = "register"
+    default_profile: str = "default"
+    long_gap_s: float = 0.5
+    estimate_every_n: int = 1
+    history_samples: int = 500
+    prefix: str = "agv"
+
+
+class Vehicle:
+    """What the engine knows of one vehicle; its observer state lives in its profile's bank."""
+
+    __slots__ = (
+        "alive",
+        "bank",
+        "counters",
+        "id",
+        "id_bytes",
+        "last_seen_mono",
+        "last_seen_ns",
+        "last_seq",
+        "meas_key",
+        "payload_len",
+        "pending",
+        "publish_phase",
+        "registered_t_ns",
+        "reject_times",
+        "rejected",
+        "slot",
+        "stale",
+    )
+
+    def __init__(self, vehicle_id: str, bank: ProfileBank, slot: int, prefix: str, registered_t_ns: int) -> None:
+        self.id = vehicle_id
+        self.bank = bank
+        self.slot = slot
+        self.meas_key = vehicle_key(vehicle_id, "meas", prefix)
+        self.id_bytes = vehicle_id.encode()
+        self.payload_len = MEASUREMENT_HEADER_SIZE + len(self.id_bytes)
+        self.last_seq = -1
+        self.last_seen_mono: float | None = None
+        self.last_seen_ns: int | None = None
+        self.registered_t_ns = registered_t_ns
+        self.counters = {"accepted": 0, "estimates": 0, "published": 0, "missing": 0, "gaps": 0, "restarts": 0}
+        self.rejected: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
+        self.pending = 0
+        self.publish_phase = 0
+        self.reject_times: deque[float] = deque()
+        self.stale = False
+        self.alive: bool | None = None
+
+    @property
+    def profile(self) -> str:
+        return self.bank.name
+
+
+@dataclass
+class TickResult:
+    """What one tick produced: estimates to publish, alarm changes to store then publish, new vehicles to store."""
+
+    estimates: list[tuple[str, bytes]] = field(default_factory=list)
+    alarms: list[AlarmChange] = field(default_factory=list)
+    new_vehicles: list[Vehicle] = field(default_factory=list)
+    received: int = 0
+    accepted: int = 0
+
+
+class _Rows:
+    """Samples of one profile collected during a tick, in arrival order."""
+
+    __slots__ = ("restart", "rounds", "seq", "t_ns", "values", "vehicles")
+
+    def __init__(self) -> None:
+        self.vehicles: list[Vehicle] = []
+        self.rounds: list[int] = []
+        self.seq: list[int] = []
+        self.t_ns: list[int] = []
+        self.values: list[tuple[float, float, float, float]] = []
+        self.restart: list[bool] = []
+
+
+class FleetEngine:
+    """Vehicles, profiles with their observer banks, and the alarm book."""
+
+    def __init__(
+        self,
+        config: EngineConfig,
+        *,
+        events: EventBus | None = None,
+        clock_ns: Callable[[], int] = time.time_ns,
+        monotonic: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.config = config
+        self.events = events or EventBus()
+        self.alarms = AlarmBook()
+        self.banks: dict[str, ProfileBank] = {}
+        self.vehicles: dict[str, Vehicle] = {}
+        self._by_key: dict[str, Vehicle] = {}
+        self._presence: dict[str, bool] = {}  # liveliness of vehicles not registered yet
+        self._clock_ns = clock_ns
+        self._monotonic = monotonic
+        self.started_mono = monotonic()
+        self.stats: dict[str, int] = {"received": 0, "accepted": 0, "estimates": 0, "published": 0}
+        self.stats.update({"missing": 0, "gaps": 0, "restarts": 0, "numerical_restarts": 0})
+        self.rejected: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
+
+    # ------------------------------------------------------------------ profiles and vehicles
+
+    def add_profile(self, name: str, spec: ProfileSpec) -> ProfileBank:
+        if name in self.banks:
+            raise FleetError(f"profile {name!r} exists")
+        bank = ProfileBank(name, spec, self.config.history_samples)
+        self.banks[name] = bank
+        return bank
+
+    def update_profile_spec(self, name: str, spec: ProfileSpec) -> None:
+        self._bank(name).set_spec(spec)
+
+    def activate(self, name: str, gains: ObserverGains, runtime: RuntimeGains | None = None) -> None:
+        """Make ``gains`` the active gains of every vehicle of profile ``name``, atomically between ticks."""
+        self._bank(name).activate(gains, runtime)
+
+    @property
+    def ready(self) -> bool:
+        return bool(self.banks) and all(b.ready for b in self.banks.values())
+
+    def _bank(self, name: str) -> ProfileBank:
+        try:
+            return self.banks[name]
+        except KeyError:
+            raise UnknownProfile(f"no profile named {name!r}; known: {', '.join(sorted(self.banks))}") from None
+
+    def register(self, vehicle_id: str, profile: str, registered_t_ns: int | None = None) -> Vehicle:
+        """Add a vehicle (or move it to ``profile``); its observer starts at its next measurement."""
+        bank = self._bank(profile)
+        existing = self.vehicles.get(vehicle_id)
+        if existing is not None:
+            if existing.bank is bank:
+                return existing
+            existing.bank.release(existing.slot)
+            existing.bank = bank
+            existing.slot = bank.allocate()
+            return existing
+        vehicle = Vehicle(
+            vehicle_id,
+            bank,
+            bank.allocate(),
+            self.config.prefix,
+            self._clock_ns() if registered_t_ns is None else registered_t_ns,
+        )
+        vehicle.alive = self._presence.pop(vehicle_id, None)
+        self.vehicles[vehicle_id] = vehicle
+        self._by_key[vehicle.meas_key] = vehicle
+        if self.events.wants("vehicle"):
+            self.events.publish(FleetEvent("vehicle", vehicle_id, {"event": "registered", "profile": profile}))
+        return vehicle
+
+    def vehicle(self, vehicle_id: str) -> Vehicle:
+        try:
+            return self.vehicles[vehicle_id]
+        except KeyError:
+            raise UnknownVehicle(f"no vehicle {vehicle_id!r}") from None
+
+    def level_of(self, vehicle: Vehicle) -> Level:
+        if vehicle.stale:
+            return "STALE"
+        bank, slot = vehicle.bank, vehicle.slot
+        rank = max(int(bank.torque.level[slot]), int(bank.steer.level[slot]), int(bank.domain.level[slot]))
+        return LEVEL_NAMES[rank]
+
+    # ------------------------------------------------------------------ ingest
+
+    def process(self, batch: Iterable[tuple[str, bytes]]) -> TickResult:
+        """Validate, step and alarm on one tick's measurements (any order, any mix of vehicles)."""
+        result = TickResult()
+        now_mono = self._monotonic()
+        now_ns = self._clock_ns()
+        per_bank: dict[str, _Rows] = {}
+        touched: list[Vehicle] = []
+        received = 0
+        unpack = unpack_measurement_header
+        for key, payload in batch:
+            received += 1
+            vehicle = self._by_key.get(key)
+            if vehicle is None:
+                vehicle = self._resolve(key, payload, result, now_mono)
+                if vehicle is None:
+                    continue
+            if len(payload) != vehicle.payload_len:
+                self._reject(vehicle, _classify(payload, vehicle.id), now_mono, result)
+                continue
+            magic, version, flags, _, seq, t_ns, vx, r, torque, steer, _ = unpack(payload)
+            if magic != MAGIC or version != PROTOCOL_VERSION:
+                self._reject(vehicle, "malformed", now_mono, result)
+                continue
+            if payload[MEASUREMENT_HEADER_SIZE:] != vehicle.id_bytes:
+                self._reject(vehicle, "id_mismatch", now_mono, result)
+                continue
+            last = vehicle.last_seq
+            restart = False
+            if seq <= last:
+                if flags & FLAG_SEQUENCE_RESTART and seq != last:
+                    restart = True
+                elif seq == last:
+                    self._reject(vehicle, "duplicate", now_mono, result)
+                    continue
+                else:
+                    self._reject(vehicle, "out_of_order", now_mono, result)
+                    continue
+            elif last >= 0 and seq > last + 1:
+                missing = seq - last - 1
+                vehicle.counters["missing"] += missing
+                vehicle.counters["gaps"] += 1
+                self.stats["missing"] += missing
+                self.stats["gaps"] += 1
+                if missing * vehicle.bank.spec.params.sample_period_s >= self.config.long_gap_s:
+                    restart = True
+            vehicle.last_seq = seq
+            vehicle.last_seen_mono = now_mono
+            vehicle.last_seen_ns = now_ns
+            if vehicle.stale:
+                self._unstale(vehicle, now_ns, result)
+            if vehicle.bank.runtime is None:
+                self._reject(vehicle, "no_gains", now_mono, result)
+                continue
+            rows = per_bank.get(vehicle.bank.name)
+            if rows is None:
+                rows = per_bank[vehicle.bank.name] = _Rows()
+            rnd = vehicle.pending
+            if rnd == 0:
+                touched.append(vehicle)
+            vehicle.pending = rnd + 1
+            rows.vehicles.append(vehicle)
+            rows.rounds.append(rnd)
+            rows.seq.append(seq)
+            rows.t_ns.append(t_ns)
+            rows.values.append((vx, r, torque, steer))
+            rows.restart.append(restart)
+        for vehicle in touched:
+            vehicle.pending = 0
+        self.stats["received"] += received
+        result.received = received
+        for name, rows in per_bank.items():
+            self._step_bank(self.banks[name], rows, now_mono, now_ns, result)
+        return result
+
+    def _resolve(self, key: str, payload: bytes, result: TickResult, now_mono: float) -> Vehicle | None:
+        """The slow path for a key not seen before: parse, check, register or reject."""
+        try:
+            vehicle_id, kind = parse_vehicle_key(key)
+            if kind != "meas":
+                raise ProtocolError(f"{key!r} is not a measurement key")
+            if key.split("/")[0] != self.config.prefix or key.split("/")[2] != bucket_of(vehicle_id):
+                raise ProtocolError(f"{key!r} has the wrong prefix or bucket for {vehicle_id!r}")
+        except ProtocolError:
+            self._reject(None, "malformed", now_mono, result)
+            return None
+        vehicle = self.vehicles.get(vehicle_id)
+        if vehicle is not None:
+            return vehicle
+        try:
+            claimed = Measurement.decode(payload).vehicle_id
+        except ProtocolError:
+            self._reject(None, "malformed", now_mono, result)
+            return None
+        if claimed != vehicle_id:
+            self._reject(None, "id_mismatch", now_mono, result)
+            return None
+        if self.config.unknown_vehicles == "reject" or self.config.default_profile not in self.banks:
+            self._reject(None, "unknown_vehicle", now_mono, result)
+            return None
+        vehicle = self.register(vehicle_id, self.config.default_profile)
+        result.new_vehicles.append(vehicle)
+        return vehicle
+
+    def _reject(self, vehicle: Vehicle | None, reason: RejectReason, now_mono: float, result: TickResult) -> None:
+        self.rejected[reason] += 1
+        if vehicle is None:
+            return
+        vehicle.rejected[reason] += 1
+        if reason not in BURST_REASONS:
+            return
+        alarms = vehicle.bank.spec.alarms
+        times = vehicle.reject_times
+        times.append(now_mono)
+        while times and now_mono - times[0] > alarms.reject_burst_window_s:
+            times.popleft()
+        if len(times) >= alarms.reject_burst_count:
+            change = self.alarms.raise_level(
+                vehicle.id,
+                vehicle.profile,
+                "rejected_inputs",
+                "WARN",
+                self._clock_ns(),
+                float(len(times)),
+                float(alarms.reject_burst_count),
+                f"{len(times)} rejected measurements within {alarms.reject_burst_window_s:g} s (last: {reason})",
+            )
+            self._emit(change, result)
+
+    def _step_bank(self, bank: ProfileBank, rows: _Rows, now_mono: float, now_ns: int, result: TickResult) -> None:
+        values = np.array(rows.values, dtype=float)
+        slots = np.fromiter((v.slot for v in rows.vehicles), dtype=np.int64, count=len(rows.vehicles))
+        rounds = np.array(rows.rounds, dtype=np.int64)
+        seq = np.array(rows.seq, dtype=np.int64)
+        t_ns = np.array(rows.t_ns, dtype=np.int64)
+        restart = np.array(rows.restart, dtype=bool)
+        limits = bank.spec.limits
+        finite = np.isfinite(values).all(axis=1)
+        with np.errstate(invalid="ignore"):
+            in_range = (
+                (values[:, 0] >= limits.vx_min_mps)
+                & (values[:, 0] <= limits.vx_max_mps)
+                & (np.abs(values[:, 1]) <= limits.r_abs_max_radps)
+                & (np.abs(values[:, 2]) <= limits.torque_abs_max_nm)
+                & (np.abs(values[:, 3]) <= limits.steer_abs_max_rad)
+            )
+        ok = finite & in_range
+        for i in np.flatnonzero(~ok):
+            self._reject(rows.vehicles[i], "non_finite" if not finite[i] else "out_of_range", now_mono, result)
+        for rnd in range(int(rounds.max()) + 1 if len(rounds) else 0):
+            idx = np.flatnonzero(ok & (rounds == rnd))
+            if len(idx) == 0:
+                continue
+            s = slots[idx]
+            again = idx[restart[idx]]
+            if len(again):
+                for i in again:
+                    bank.restart(int(slots[i]))
+                    rows.vehicles[i].counters["restarts"] += 1
+                self.stats["restarts"] += len(again)
+            out = bank.step(s, values[idx][:, [0, 1]], values[idx][:, [2, 3]], seq[idx], t_ns[idx])
+            self._after_step(bank, rows, idx, s, out.x5, out.in_domain, out.vy_in_bounds, out.finite, seq, t_ns, result)
+        result.accepted += int(ok.sum())
+        self.stats["accepted"] += int(ok.sum())
+
+    def _after_step(
+        self,
+        bank: ProfileBank,
+        rows: _Rows,
+        idx: np.ndarray,
+        slots: np.ndarray,
+        x5: np.ndarray,
+        in_domain: np.ndarray,
+        vy_in_bounds: np.ndarray,
+        finite: np.ndarray,
+        seq: np.ndarray,
+        t_ns: np.ndarray,
+        result: TickResult,
+    ) -> None:
+        t = t_ns[idx]
+        if not finite.all():
+            self.stats["numerical_restarts"] += int((~finite).sum())
+        # alarms: fault channels after the warm-up, domain always
+        alarms = bank.spec.alarms
+        warm = finite & (t - bank.started_t_ns[slots] >= round(alarms.warmup_s * 1e9))
+        w = np.flatnonzero(warm)
+        changed: set[int] = set()
+        if len(w):
+            changed.update(w[bank.torque.update(slots[w], x5[w, 3], t[w])].tolist())
+            changed.update(w[bank.steer.update(slots[w], x5[w, 4], t[w])].tolist())
+        f = np.flatnonzero(finite)
+        outside = (~in_domain[f] | ~vy_in_bounds[f]).astype(float)
+        changed.update(f[bank.domain.update(slots[f], outside, t[f])].tolist())
+        for j in sorted(changed):
+            self._alarm_transitions(bank, rows.vehicles[idx[j]], int(t[j]), x5[j], result)
+        # estimates
+        level = np.maximum(np.maximum(bank.torque.level[slots], bank.steer.level[slots]), bank.domain.level[slots])
+        every_n = self.config.estimate_every_n
+        version = bank.version or ""
+        rows_x = x5.tolist()
+        seq_l = seq[idx].tolist()
+        t_l = t.tolist()
+        dom_l = in_domain.tolist()
+        lvl_l = level.tolist()
+        fin_l = finite.tolist()
+        want_events = self.events.wants("estimate")
+        n_est = 0
+        for j, i in enumerate(idx.tolist()):
+            if not fin_l[j]:
+                continue
+            vehicle = rows.vehicles[i]
+            vehicle.counters["accepted"] += 1
+            vehicle.counters["estimates"] += 1
+            n_est += 1
+            phase = vehicle.publish_phase
+            vehicle.publish_phase = phase + 1 if phase + 1 < every_n else 0
+            if phase:
+                continue
+            vx, vy, r, tf, df = rows_x[j]
+            name = "STALE" if vehicle.stale else LEVEL_NAMES[lvl_l[j]]
+            result.estimates.append(
+                (vehicle.id, encode_estimate(vehicle.id, seq_l[j], t_l[j], vx, vy, r, tf, df, dom_l[j], version, name))
+            )
+            vehicle.counters["published"] += 1
+            if want_events:
+                self.events.publish(
+                    FleetEvent(
+                        "estimate",
+                        vehicle.id,
+                        Estimate.model_construct(
+                            vehicle=vehicle.id,
+                            seq=seq_l[j],
+                            t_ns=t_l[j],
+                            vx=vx,
+                            vy=vy,
+                            r=r,
+                            torque_fault=tf,
+                            steer_fault=df,
+                            in_domain=dom_l[j],
+                            gain_version=version,
+                            level=name,
+                            v=1,
+                        ),
+                    )
+                )
+        for j in np.flatnonzero(~finite).tolist():
+            rows.vehicles[idx[j]].counters["accepted"] += 1
+        self.stats["estimates"] += n_est
+
+    def _alarm_transitions(
+        self, bank: ProfileBank, vehicle: Vehicle, t_ns: int, x5: np.ndarray, result: TickResult
+    ) -> None:
+        """Bring the vehicle's alarm records in line with its detector levels."""
+        a = bank.spec.alarms
+        slot = vehicle.slot
+        channels: list[tuple[AlarmKind, int, float, float, float, str]] = [
+            ("torque_fault", int(bank.torque.level[slot]), float(x5[3]), a.torque_warn_nm, a.torque_fault_nm, "N m"),
+            ("steer_fault", int(bank.steer.level[slot]), float(x5[4]), a.steer_warn_rad, a.steer_fault_rad, "rad"),
+        ]
+        for kind, level, value, warn, fault, unit in channels:
+            self._sync_alarm(vehicle, kind, level, value, warn, fault, unit, t_ns, result)
+        domain_level = int(bank.domain.level[slot])
+        current = self.alarms.current(vehicle.id, "out_of_domain")
+        if domain_level >= WARN and (current is None or current.state != "raised"):
+            change = self.alarms.raise_level(
+                vehicle.id,
+                vehicle.profile,
+                "out_of_domain",
+                "WARN",
+                t_ns,
+                float(x5[0]),
+                None,
+                f"premise or estimated v_y outside the design bounds for {a.out_of_domain_after_s:g} s "
+                f"(v_x = {x5[0]:.2f} m/s, v_y = {x5[1]:.2f} m/s, r = {x5[2]:.3f} rad/s)",
+            )
+            self._emit(change, result)
+        elif domain_level == OK and current is not None:
+            self._emit(self.alarms.clear(vehicle.id, "out_of_domain", t_ns), result)
+
+    def _sync_alarm(
+        self,
+        vehicle: Vehicle,
+        kind: AlarmKind,
+        level: int,
+        value: float,
+        warn: float,
+        fault: float,
+        unit: str,
+        t_ns: int,
+        result: TickResult,
+    ) -> None:
+        current = self.alarms.current(vehicle.id, kind)
+        a = vehicle.bank.spec.alarms
+        if level == OK:
+            if current is not None:
+                self._emit(self.alarms.clear(vehicle.id, kind, t_ns), result)
+            return
+        threshold = fault if level == FAULT else warn
+        name = LEVEL_NAMES[level]
+        change = self.alarms.raise_level(
+            vehicle.id,
+            vehicle.profile,
+            kind,
+            name,
+            t_ns,
+            value,
+            threshold,
+            f"|{'T_f' if kind == 'torque_fault' else 'delta_f'}| >= {threshold:g} {unit} for {a.raise_after_s:g} s",
+        )
+        self._emit(change, result)
+
+    def _emit(self, change: AlarmChange | None, result: TickResult | list[AlarmChange]) -> None:
+        if change is None:
+            return
+        if isinstance(result, TickResult):
+            result.alarms.append(change)
+        else:
+            result.append(change)
+        if self.events.wants("alarm"):
+            self.events.publish(FleetEvent("alarm", change.record.vehicle, change.event))
+
+    # ------------------------------------------------------------------ staleness, liveliness, bursts
+
+    def _unstale(self, vehicle: Vehicle, now_ns: int, result: TickResult) -> None:
+        vehicle.stale = False
+        self._emit(self.alarms.clear(vehicle.id, "stale", now_ns, "measurements resumed"), result)
+        if self.events.wants("vehicle"):
+            self.events.publish(FleetEvent("vehicle", vehicle.id, {"event": "resumed"}))
+
+    def _make_stale(self, vehicle: Vehicle, now_ns: int, why: str, changes: list[AlarmChange]) -> None:
+        vehicle.stale = True
+        vehicle.bank.restart(vehicle.slot)
+        change = self.alarms.raise_level(vehicle.id, vehicle.profile, "stale", "STALE", now_ns, None, None, why)
+        self._emit(change, changes)
+        if self.events.wants("vehicle"):
+            self.events.publish(FleetEvent("vehicle", vehicle.id, {"event": "stale", "reason": why}))
+
+    def housekeeping(self) -> list[AlarmChange]:
+        """Periodic checks: vehicles gone quiet become STALE; reject bursts that ended clear."""
+        now_mono = self._monotonic()
+        now_ns = self._clock_ns()
+        changes: list[AlarmChange] = []
+        for vehicle in self.vehicles.values():
+            a = vehicle.bank.spec.alarms
+            seen = vehicle.last_seen_mono if vehicle.last_seen_mono is not None else self.started_mono
+            if not vehicle.stale and now_mono - seen > a.stale_after_s:
+                self._make_stale(vehicle, now_ns, f"no measurement for {now_mono - seen:.1f} s", changes)
+            times = vehicle.reject_times
+            while times and now_mono - times[0] > a.reject_burst_window_s:
+                times.popleft()
+            if not times:
+                current = self.alarms.current(vehicle.id, "rejected_inputs")
+                if current is not None and current.state == "raised":
+                    self._emit(self.alarms.clear(vehicle.id, "rejected_inputs", now_ns), changes)
+        return changes
+
+    def liveliness(self, vehicle_id: str, alive: bool) -> list[AlarmChange]:
+        """A vehicle's liveliness token appeared or disappeared: a lost token makes it STALE at once."""
+        changes: list[AlarmChange] = []
+        vehicle = self.vehicles.get(vehicle_id)
+        if vehicle is None:
+            self._presence[vehicle_id] = alive
+            return changes
+        vehicle.alive = alive
+        if not alive and not vehicle.stale:
+            self._make_stale(vehicle, self._clock_ns(), "liveliness token lost", changes)
+        return changes
+
+    def acknowledge(self, alarm_id: str, by: str | None = None) -> AlarmChange:
+        change = self.alarms.acknowledge(alarm_id, self._clock_ns(), by)
+        if self.events.wants("alarm"):
+            self.events.publish(FleetEvent("alarm", change.record.vehicle, change.event))
+        return change
+
+    # ------------------------------------------------------------------ views
+
+    def vehicle_status(self, vehicle: Vehicle) -> dict[str, Any]:
+        now_mono = self._monotonic()
+        return {
+            "id": vehicle.id,
+            "profile": vehicle.profile,
+            "level": self.level_of(vehicle),
+            "stale": vehicle.stale,
+            "alive": vehicle.alive,
+            "last_seq": vehicle.last_seq if vehicle.last_seq >= 0 else None,
+            "last_seen_ns": vehicle.last_seen_ns,
+            "seconds_since_seen": None
+            if vehicle.last_seen_mono is None
+            else round(now_mono - vehicle.last_seen_mono, 3),
+            "gain_version": vehicle.bank.version,
+            "counters": dict(vehicle.counters),
+            "rejected": dict(vehicle.rejected),
+        }
+
+    def latest_estimate(self, vehicle: Vehicle) -> Estimate | None:
+        bank, slot = vehicle.bank, vehicle.slot
+        if bank.last_seq[slot] < 0:
+            return None
+        x = bank.last_x5[slot].tolist()
+        return Estimate(
+            vehicle=vehicle.id,
+            seq=int(bank.last_seq[slot]),
+            t_ns=int(bank.last_t_ns[slot]),
+            vx=x[0],
+            vy=x[1],
+            r=x[2],
+            torque_fault=x[3],
+            steer_fault=x[4],
+            in_domain=bool(bank.last_in_domain[slot]),
+            gain_version=bank.version or "",
+            level=self.level_of(vehicle),
+        )
+
+    def estimate_history(self, vehicle: Vehicle, limit: int) -> list[dict[str, Any]]:
+        return [
+            {
+                "seq": seq,
+                "t_ns": t_ns,
+                "vx": x[0],
+                "vy": x[1],
+                "r": x[2],
+                "torque_fault": x[3],
+                "steer_fault": x[4],
+                "in_domain": dom,
+            }
+            for seq, t_ns, dom, x in vehicle.bank.history(vehicle.slot, limit)
+        ]

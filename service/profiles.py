@@ -1,0 +1,161 @@
+"""Vehicle profiles: what one vehicle type needs to be observed and alarmed on.
+
+A profile bundles the vehicle parameters (Table 1), the operating bounds
+(eq. 13), the observer design options, the alarm thresholds and the
+plausibility limits of the inputs. Design options are kept as the user gave
+them (``exclude_unset``), so a change of the default design reaches profiles
+that did not choose one.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Annotated, Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from synth.options import DesignOptions
+from synth.params import OperatingBounds, VehicleParams
+
+PROFILE_NAME_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
+DEFAULT_PROFILE_NAME = "default"
+
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+
+class AlarmThresholds(BaseModel):
+    """Alarm rules of a profile: fault thresholds with persistence and hysteresis, and the other conditions.
+
+    A fault level is raised when |estimate| >= its threshold for ``raise_after_s``
+    of vehicle time, and drops when |estimate| < ``hysteresis`` x threshold for
+    ``clear_after_s``. Fault alarms are not evaluated during ``warmup_s`` after
+    an observer (re)starts, while its estimate converges.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    torque_warn_nm: Positive = Field(50.0, description="|T_f| raising WARN [N m]")
+    torque_fault_nm: Positive = Field(100.0, description="|T_f| raising FAULT [N m]")
+    steer_warn_rad: Positive = Field(0.05, description="|delta_f| raising WARN [rad]")
+    steer_fault_rad: Positive = Field(0.1, description="|delta_f| raising FAULT [rad]")
+    hysteresis: Annotated[float, Field(gt=0, le=1)] = Field(
+        0.8, description="a level holds until the value falls below hysteresis x its threshold [-]"
+    )
+    raise_after_s: NonNegative = Field(0.5, description="how long a condition must hold before it raises [s]")
+    clear_after_s: NonNegative = Field(1.0, description="how long a condition must be gone before it clears [s]")
+    warmup_s: NonNegative = Field(3.0, description="no fault alarms this long after an observer (re)starts [s]")
+    out_of_domain_after_s: NonNegative = Field(
+        0.5, description="premise or estimated v_y outside the design bounds this long raises WARN [s]"
+    )
+    stale_after_s: Positive = Field(1.0, description="no measurement this long makes the vehicle STALE [s]")
+    reject_burst_count: Annotated[int, Field(ge=1)] = Field(
+        10, description="this many rejected measurements within the window raise WARN"
+    )
+    reject_burst_window_s: Positive = Field(1.0, description="window of the rejected-input count [s]")
+
+    @model_validator(mode="after")
+    def _warn_below_fault(self) -> AlarmThresholds:
+        for channel, unit in (("torque", "nm"), ("steer", "rad")):
+            warn, fault = getattr(self, f"{channel}_warn_{unit}"), getattr(self, f"{channel}_fault_{unit}")
+            if not warn < fault:
+                raise ValueError(f"{channel}_warn_{unit} must be below {channel}_fault_{unit}, got {warn} >= {fault}")
+        return self
+
+
+class InputLimits(BaseModel):
+    """Plausibility limits of a measurement; values outside are rejected as ``out_of_range``.
+
+    They are wider than the design bounds: a plausible sample outside the
+    design box is observed and flagged out of domain, an implausible one
+    (a broken sensor, a unit error) never reaches the observer.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    vx_min_mps: Annotated[float, Field(ge=0, allow_inf_nan=False)] = Field(0.0, description="lowest v_x [m/s]")
+    vx_max_mps: Positive = Field(100.0, description="highest v_x [m/s]")
+    r_abs_max_radps: Positive = Field(5.0, description="highest |r| [rad/s]")
+    torque_abs_max_nm: Positive = Field(20_000.0, description="highest |T_d| [N m]")
+    steer_abs_max_rad: Positive = Field(1.0, description="highest |delta_d| [rad]")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> InputLimits:
+        if not self.vx_min_mps < self.vx_max_mps:
+            raise ValueError(f"vx_min_mps must be below vx_max_mps, got {self.vx_min_mps} >= {self.vx_max_mps}")
+        return self
+
+
+class ProfileSpec(BaseModel):
+    """Everything that defines a vehicle type: the body of ``PUT /profiles/{name}``."""
+
+    model_config = ConfigDict(
+        frozen=True,
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {
+                    "description": "delivery van, heavier than the paper's car",
+                    "params": {"mass_kg": 2100.0, "yaw_inertia_kgm2": 2600.0},
+                    "bounds": {"vx_min_mps": 5.0, "vx_max_mps": 25.0},
+                    "design": {"fault_order": 1},
+                    "alarms": {"torque_warn_nm": 80.0, "torque_fault_nm": 160.0},
+                }
+            ]
+        },
+    )
+
+    description: str = Field("", max_length=500)
+    params: VehicleParams = Field(default_factory=VehicleParams, description="vehicle parameters (Table 1)")
+    bounds: OperatingBounds = Field(default_factory=OperatingBounds, description="operating box (eq. 13)")
+    design: DesignOptions = Field(
+        default_factory=DesignOptions, description="observer design options; unset fields follow the defaults"
+    )
+    alarms: AlarmThresholds = Field(default_factory=AlarmThresholds)
+    limits: InputLimits = Field(default_factory=InputLimits)
+
+    def stored(self) -> dict[str, Any]:
+        """The JSON kept in the database: only what was set, so defaults keep propagating."""
+        return self.model_dump(mode="json", exclude_unset=True)
+
+    def design_inputs(self) -> dict[str, Any]:
+        """What the gains depend on, fully resolved: params, bounds and options."""
+        return {
+            "params": self.params.model_dump(mode="json"),
+            "bounds": self.bounds.model_dump(mode="json"),
+            "options": self.design.model_dump(mode="json"),
+        }
+
+
+class ProfileFileError(ValueError):
+    """An initial-profiles file that cannot be used; the text names the file and the field."""
+
+
+def load_profiles_file(path: Path) -> dict[str, ProfileSpec]:
+    """Read ``{"profiles": {NAME: ProfileSpec, ...}}`` from a JSON or YAML file."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ProfileFileError(f"{path}: cannot read: {exc.strerror}") from exc
+    try:
+        data = yaml.safe_load(text) if path.suffix in (".yaml", ".yml") else json.loads(text)
+    except (yaml.YAMLError, json.JSONDecodeError) as exc:
+        kind = "YAML" if path.suffix in (".yaml", ".yml") else "JSON"
+        raise ProfileFileError(f"{path}: not valid {kind}: {exc}") from exc
+    if not isinstance(data, dict) or not isinstance(data.get("profiles"), dict) or not data["profiles"]:
+        raise ProfileFileError(f'{path}: expected an object {{"profiles": {{NAME: PROFILE, ...}}}} with one or more')
+    profiles: dict[str, ProfileSpec] = {}
+    for name, body in data["profiles"].items():
+        if not re.match(PROFILE_NAME_PATTERN, str(name)):
+            raise ProfileFileError(f"{path}: invalid profile name {name!r}: use 1-64 of A-Z a-z 0-9 _ . -")
+        try:
+            profiles[str(name)] = ProfileSpec.model_validate(body)
+        except ValidationError as exc:
+            problems = "; ".join(
+                f"profiles.{name}.{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors()
+            )
+            raise ProfileFileError(f"{path}: {problems}") from exc
+    return profiles

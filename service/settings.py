@@ -1,0 +1,129 @@
+"""The service's configuration: one :class:`Settings`, built at start-up and passed down.
+
+Every field can be set by an environment variable with the prefix
+``AGV_FE_``; nested sections use ``__``, for example ``AGV_FE_HTTP__PORT=9000``
+or ``AGV_FE_ZENOH__MODE=client``. The ``agv-fe serve`` flags override them.
+README.md ("Service") lists every setting with its default.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from service.protocol import DEFAULT_PREFIX, N_BUCKETS, check_vehicle_id
+
+_ENDPOINT = re.compile(r"^(tcp|udp|quic|tls)/[^:/\s]+:\d{1,5}$")
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class HttpSettings(_Section):
+    host: str = Field("127.0.0.1", description="address uvicorn binds to")
+    port: Annotated[int, Field(ge=0, le=65535)] = Field(8080, description="HTTP port (0 picks a free one)")
+
+
+class AuthSettings(_Section):
+    token: SecretStr | None = Field(
+        None,
+        description="bearer token required by mutating endpoints; when unset, a random token is created in "
+        "DATA_DIR/api-token (mode 0600) and reused",
+    )
+    open_reads: bool = Field(True, description="GET endpoints answer without a token")
+
+
+class ZenohSettings(_Section):
+    mode: Literal["router", "client"] = Field(
+        "router", description="'router': the service is the Zenoh router (listens); 'client': it connects to one"
+    )
+    endpoint: str = Field(
+        "tcp/127.0.0.1:7447", description="where the in-process router listens, or the router a client connects to"
+    )
+    prefix: str = Field(DEFAULT_PREFIX, description="first chunk of every key expression")
+    connect_timeout_ms: int = Field(
+        10_000, ge=-1, description="client mode: how long open() waits for the router (-1: forever)"
+    )
+    channel_capacity: Annotated[int, Field(ge=16)] = Field(
+        65_536, description="measurements buffered between the Zenoh receive thread and the ingest loop"
+    )
+    estimate_congestion: Literal["drop", "block"] = Field(
+        "drop",
+        description="congestion control of estimate puts: 'drop' never lets a slow estimate subscriber stall "
+        "ingest; alarms always use 'block'",
+    )
+
+    @field_validator("endpoint")
+    @classmethod
+    def _endpoint_form(cls, value: str) -> str:
+        if not _ENDPOINT.match(value):
+            raise ValueError(f"expected PROTOCOL/HOST:PORT such as tcp/127.0.0.1:7447, got {value!r}")
+        return value
+
+
+class IngestSettings(_Section):
+    unknown_vehicles: Literal["register", "reject"] = Field(
+        "register",
+        description="a measurement from an unregistered vehicle registers it (default profile) or is rejected",
+    )
+    default_profile: str = Field("default", description="profile of auto-registered vehicles")
+    long_gap_s: Annotated[float, Field(gt=0)] = Field(
+        0.5, description="a sequence gap longer than this re-initialises the vehicle's observer [s]"
+    )
+    estimate_every_n: Annotated[int, Field(ge=1)] = Field(
+        1, description="publish every Nth estimate of a vehicle (1: every sample); all samples are still observed"
+    )
+    history_samples: Annotated[int, Field(ge=1, le=100_000)] = Field(
+        500, description="estimates kept per vehicle for GET /vehicles/{id}/estimates"
+    )
+    poll_interval_s: Annotated[float, Field(gt=0, le=0.1)] = Field(
+        0.001, description="how long the ingest loop sleeps when no measurement is waiting [s]"
+    )
+    max_batch: Annotated[int, Field(ge=1)] = Field(20_000, description="measurements processed per tick at most")
+    housekeeping_interval_s: Annotated[float, Field(gt=0)] = Field(
+        0.25, description="period of the stale-vehicle and reject-burst checks [s]"
+    )
+
+
+class ShardSettings(_Section):
+    replicas: Annotated[int, Field(ge=1, le=N_BUCKETS)] = Field(1, description="number of replicas sharing the fleet")
+    index: Annotated[int, Field(ge=0)] = Field(0, description="this replica's index, 0..replicas-1")
+    replica_id: str | None = Field(None, description="name in the liveliness key (default: replica-INDEX)")
+
+    @model_validator(mode="after")
+    def _index_in_range(self) -> ShardSettings:
+        if self.index >= self.replicas:
+            raise ValueError(f"shard index {self.index} must be below replicas = {self.replicas}")
+        if self.replica_id is not None:
+            check_vehicle_id(self.replica_id)
+        return self
+
+    @property
+    def name(self) -> str:
+        return self.replica_id or f"replica-{self.index}"
+
+
+class Settings(BaseSettings):
+    """Everything `agv-fe serve` can be told."""
+
+    model_config = SettingsConfigDict(env_prefix="AGV_FE_", env_nested_delimiter="__", extra="forbid", frozen=True)
+
+    data_dir: Path = Field(Path("data"), description="SQLite database and generated API token live here")
+    profiles_file: Path | None = Field(
+        None, description="JSON or YAML file of initial profiles, used when the database has none"
+    )
+    synthesis_workers: Annotated[int, Field(ge=1, le=8)] = Field(1, description="processes running LMI designs")
+    http: HttpSettings = HttpSettings()
+    auth: AuthSettings = AuthSettings()
+    zenoh: ZenohSettings = ZenohSettings()
+    ingest: IngestSettings = IngestSettings()
+    shard: ShardSettings = ShardSettings()
+
+    @property
+    def database_path(self) -> Path:
+        return self.data_dir / "service.sqlite3"

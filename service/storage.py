@@ -1,0 +1,238 @@
+"""Persistence in one SQLite file (stdlib sqlite3, WAL journal, synchronous=FULL).
+
+Profiles, gain versions with their certificates, the vehicle registry,
+alarms with their event history, and synthesis jobs. Every write is one
+transaction committed before the caller answers or publishes, so nothing the
+service acknowledged is lost on a crash. All calls come from the thread that
+owns the asyncio loop; the connection is not shared.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS profiles (
+    name TEXT PRIMARY KEY,
+    spec TEXT NOT NULL,
+    active_version TEXT,
+    created_t_ns INTEGER NOT NULL,
+    updated_t_ns INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS gain_versions (
+    profile TEXT NOT NULL,
+    version TEXT NOT NULL,
+    created_t_ns INTEGER NOT NULL,
+    gains TEXT NOT NULL,
+    PRIMARY KEY (profile, version)
+);
+CREATE TABLE IF NOT EXISTS vehicles (
+    id TEXT PRIMARY KEY,
+    profile TEXT NOT NULL,
+    registered_t_ns INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS alarms (
+    id TEXT PRIMARY KEY,
+    vehicle TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    latched INTEGER NOT NULL,
+    updated_t_ns INTEGER NOT NULL,
+    record TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS alarms_latched ON alarms (latched, vehicle);
+CREATE TABLE IF NOT EXISTS alarm_events (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    alarm_id TEXT NOT NULL,
+    t_ns INTEGER NOT NULL,
+    event TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS alarm_events_by_alarm ON alarm_events (alarm_id, seq);
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    profile TEXT NOT NULL,
+    created_t_ns INTEGER NOT NULL,
+    record TEXT NOT NULL
+);
+"""
+
+
+class StorageError(Exception):
+    """The database cannot be opened or has an unexpected schema."""
+
+
+@dataclass(frozen=True)
+class StoredProfile:
+    name: str
+    spec: dict[str, Any]
+    active_version: str | None
+    created_t_ns: int
+    updated_t_ns: int
+
+
+class Storage:
+    """The service's SQLite database."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            self._db.executescript(_SCHEMA)
+        except (OSError, sqlite3.Error) as exc:
+            raise StorageError(f"{path}: cannot open the database: {exc}") from exc
+        found = self._db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+        if found is None:
+            self._db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+        elif int(found[0]) != SCHEMA_VERSION:
+            raise StorageError(f"{path}: schema version {found[0]}, this service reads {SCHEMA_VERSION}")
+
+    def close(self) -> None:
+        self._db.close()
+
+    @contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        """BEGIN IMMEDIATE ... COMMIT (ROLLBACK on error): one durable unit of work."""
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            yield self._db
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    # ------------------------------------------------------------------ profiles and gains
+
+    def profiles(self) -> list[StoredProfile]:
+        rows = self._db.execute(
+            "SELECT name, spec, active_version, created_t_ns, updated_t_ns FROM profiles ORDER BY name"
+        ).fetchall()
+        return [StoredProfile(r[0], json.loads(r[1]), r[2], r[3], r[4]) for r in rows]
+
+    def put_profile(self, name: str, spec: dict[str, Any], t_ns: int, active_version: str | None = None) -> None:
+        """Create or update a profile's spec (and, if given, its active version)."""
+        with self.transaction() as db:
+            db.execute(
+                "INSERT INTO profiles (name, spec, active_version, created_t_ns, updated_t_ns) VALUES (?, ?, ?, ?, ?) "
+                "ON CONFLICT(name) DO UPDATE SET spec = excluded.spec, updated_t_ns = excluded.updated_t_ns, "
+                "active_version = COALESCE(excluded.active_version, profiles.active_version)",
+                (name, json.dumps(spec), active_version, t_ns, t_ns),
+            )
+
+    def activate_gains(self, name: str, spec: dict[str, Any], gains: dict[str, Any], t_ns: int) -> None:
+        """Store a gain version and make it the profile's active one, with the spec it was designed for."""
+        version = gains["version"]
+        with self.transaction() as db:
+            db.execute(
+                "INSERT OR IGNORE INTO gain_versions (profile, version, created_t_ns, gains) VALUES (?, ?, ?, ?)",
+                (name, version, t_ns, json.dumps(gains)),
+            )
+            db.execute(
+                "INSERT INTO profiles (name, spec, active_version, created_t_ns, updated_t_ns) VALUES (?, ?, ?, ?, ?) "
+                "ON CONFLICT(name) DO UPDATE SET spec = excluded.spec, active_version = excluded.active_version, "
+                "updated_t_ns = excluded.updated_t_ns",
+                (name, json.dumps(spec), version, t_ns, t_ns),
+            )
+
+    def gains(self, profile: str, version: str) -> dict[str, Any] | None:
+        row = self._db.execute(
+            "SELECT gains FROM gain_versions WHERE profile = ? AND version = ?", (profile, version)
+        ).fetchone()
+        return None if row is None else dict(json.loads(row[0]))
+
+    def gain_versions(self, profile: str) -> list[tuple[str, int]]:
+        rows = self._db.execute(
+            "SELECT version, created_t_ns FROM gain_versions WHERE profile = ? ORDER BY created_t_ns", (profile,)
+        ).fetchall()
+        return [(r[0], r[1]) for r in rows]
+
+    # ------------------------------------------------------------------ vehicles
+
+    def vehicles(self) -> list[tuple[str, str, int]]:
+        return [tuple(r) for r in self._db.execute("SELECT id, profile, registered_t_ns FROM vehicles ORDER BY id")]
+
+    def put_vehicles(self, rows: Iterable[tuple[str, str, int]]) -> None:
+        with self.transaction() as db:
+            db.executemany(
+                "INSERT INTO vehicles (id, profile, registered_t_ns) VALUES (?, ?, ?) "
+                "ON CONFLICT(id) DO UPDATE SET profile = excluded.profile",
+                list(rows),
+            )
+
+    # ------------------------------------------------------------------ alarms
+
+    def record_alarm_changes(self, changes: Iterable[tuple[dict[str, Any], dict[str, Any]]]) -> None:
+        """Upsert alarm records and append their events, in one transaction: (record dict, event dict) pairs."""
+        with self.transaction() as db:
+            for record, event in changes:
+                latched = not (record["state"] == "cleared" and record["acknowledged"])
+                db.execute(
+                    "INSERT INTO alarms (id, vehicle, kind, latched, updated_t_ns, record) VALUES (?, ?, ?, ?, ?, ?) "
+                    "ON CONFLICT(id) DO UPDATE SET latched = excluded.latched, updated_t_ns = excluded.updated_t_ns, "
+                    "record = excluded.record",
+                    (
+                        record["id"],
+                        record["vehicle"],
+                        record["kind"],
+                        int(latched),
+                        record["updated_t_ns"],
+                        json.dumps(record),
+                    ),
+                )
+                db.execute(
+                    "INSERT INTO alarm_events (alarm_id, t_ns, event) VALUES (?, ?, ?)",
+                    (record["id"], event["t_ns"], json.dumps(event)),
+                )
+
+    def latched_alarms(self) -> list[dict[str, Any]]:
+        rows = self._db.execute("SELECT record FROM alarms WHERE latched = 1 ORDER BY updated_t_ns").fetchall()
+        return [dict(json.loads(r[0])) for r in rows]
+
+    def alarms(self, vehicle: str | None = None, limit: int = 100) -> list[dict[str, Any]]:
+        """Latched and closed alarms, newest first."""
+        if vehicle is None:
+            rows = self._db.execute("SELECT record FROM alarms ORDER BY updated_t_ns DESC LIMIT ?", (limit,))
+        else:
+            rows = self._db.execute(
+                "SELECT record FROM alarms WHERE vehicle = ? ORDER BY updated_t_ns DESC LIMIT ?", (vehicle, limit)
+            )
+        return [dict(json.loads(r[0])) for r in rows.fetchall()]
+
+    def alarm(self, alarm_id: str) -> dict[str, Any] | None:
+        row = self._db.execute("SELECT record FROM alarms WHERE id = ?", (alarm_id,)).fetchone()
+        return None if row is None else dict(json.loads(row[0]))
+
+    def alarm_events(self, alarm_id: str) -> list[dict[str, Any]]:
+        rows = self._db.execute(
+            "SELECT event FROM alarm_events WHERE alarm_id = ? ORDER BY seq", (alarm_id,)
+        ).fetchall()
+        return [dict(json.loads(r[0])) for r in rows]
+
+    # ------------------------------------------------------------------ jobs
+
+    def put_job(self, record: dict[str, Any]) -> None:
+        with self.transaction() as db:
+            db.execute(
+                "INSERT INTO jobs (id, profile, created_t_ns, record) VALUES (?, ?, ?, ?) "
+                "ON CONFLICT(id) DO UPDATE SET record = excluded.record",
+                (record["id"], record["profile"], record["created_t_ns"], json.dumps(record)),
+            )
+
+    def job(self, job_id: str) -> dict[str, Any] | None:
+        row = self._db.execute("SELECT record FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return None if row is None else dict(json.loads(row[0]))
+
+    def jobs(self, limit: int = 100) -> list[dict[str, Any]]:
+        rows = self._db.execute("SELECT record FROM jobs ORDER BY created_t_ns DESC LIMIT ?", (limit,)).fetchall()
+        return [dict(json.loads(r[0])) for r in rows]

@@ -1,0 +1,171 @@
+"""Zenoh transport: the only module of the service that imports zenoh.
+
+The service session is a router listening on one explicit endpoint (the
+embedded default) or a client of a router. Multicast scouting is off and
+only the given endpoint is used. Measurements arrive in bounded
+``FifoChannel`` handlers, one per shard bucket, that the ingest loop drains:
+no Python code runs in a Zenoh callback, and when the loop falls behind the
+channel fills and back-pressure reaches the publishers instead of samples
+being dropped.
+
+Congestion control, chosen per stream: alarms ``BLOCK`` at
+``INTERACTIVE_HIGH`` priority (they must not be lost); estimates ``DROP`` by
+default so that a slow estimate subscriber can never stall ingest (setting
+``zenoh.estimate_congestion``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from typing import Any
+
+import zenoh
+
+from service.protocol import (
+    all_buckets,
+    bucket_selector,
+    fleet_selector,
+    parse_vehicle_key,
+    service_liveliness_key,
+    vehicle_key,
+)
+from service.settings import ZenohSettings
+
+
+class TransportError(Exception):
+    """The Zenoh session could not be opened or used; the text names the endpoint."""
+
+
+def zenoh_config(mode: str, endpoint: str, connect_timeout_ms: int = 10_000) -> zenoh.Config:
+    """A session config on one explicit endpoint: routers listen on it, clients and peers connect to it."""
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("scouting/gossip/enabled", "false")
+    if mode == "router":
+        config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    else:
+        config.insert_json5("listen/endpoints", "[]")
+        config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        config.insert_json5("connect/timeout_ms", json.dumps(connect_timeout_ms))
+    return config
+
+
+def open_session(mode: str, endpoint: str, connect_timeout_ms: int = 10_000) -> zenoh.Session:
+    """Open a session (see :func:`zenoh_config`); raise :class:`TransportError` naming the endpoint."""
+    try:
+        return zenoh.open(zenoh_config(mode, endpoint, connect_timeout_ms))
+    except zenoh.ZError as exc:
+        verb = "listen on" if mode == "router" else "connect to"
+        raise TransportError(f"zenoh {mode}: cannot {verb} {endpoint}: {exc}") from exc
+
+
+class Transport:
+    """The service's Zenoh session: measurement and liveliness subscriptions, estimate and alarm publication."""
+
+    def __init__(self, settings: ZenohSettings, buckets: list[str], replica_id: str) -> None:
+        self.settings = settings
+        self.prefix = settings.prefix
+        self.buckets = buckets
+        self.replica_id = replica_id
+        self._session: zenoh.Session | None = None
+        self._meas: list[Any] = []
+        self._alive: list[Any] = []
+        self._token: Any = None
+        self._estimate_pubs: dict[str, Any] = {}
+        self._alarm_pubs: dict[str, Any] = {}
+        self._estimate_cc = (
+            zenoh.CongestionControl.BLOCK if settings.estimate_congestion == "block" else zenoh.CongestionControl.DROP
+        )
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            raise TransportError("the transport is not open")
+        return self._session
+
+    def selectors(self, kind: str) -> list[str]:
+        """Key expressions of this replica's share of the fleet for ``kind`` (one per bucket, or one for all)."""
+        if sorted(self.buckets) == all_buckets():
+            return [fleet_selector(kind, self.prefix)]  # type: ignore[arg-type]
+        return [bucket_selector(b, kind, self.prefix) for b in self.buckets]  # type: ignore[arg-type]
+
+    def open(self) -> None:
+        s = self.settings
+        self._session = open_session(s.mode, s.endpoint, s.connect_timeout_ms)
+        try:
+            session = self._session
+            meas = self.selectors("meas")
+            capacity = max(16, s.channel_capacity // len(meas))
+            self._meas = [session.declare_subscriber(k, zenoh.handlers.FifoChannel(capacity)) for k in meas]
+            self._alive = [
+                session.liveliness().declare_subscriber(k, zenoh.handlers.FifoChannel(4096), history=True)
+                for k in self.selectors("alive")
+            ]
+            self._token = session.liveliness().declare_token(service_liveliness_key(self.replica_id, self.prefix))
+        except zenoh.ZError as exc:
+            self.close()
+            raise TransportError(f"zenoh: cannot declare the service's subscriptions: {exc}") from exc
+
+    def drain(self, max_samples: int) -> list[tuple[str, bytes]]:
+        """Measurements waiting in the channels, (key expression, payload), at most ``max_samples``."""
+        out: list[tuple[str, bytes]] = []
+        append = out.append
+        for sub in self._meas:
+            try_recv = sub.try_recv
+            while len(out) < max_samples:
+                sample = try_recv()
+                if sample is None:
+                    break
+                append((str(sample.key_expr), sample.payload.to_bytes()))
+        return out
+
+    def drain_liveliness(self) -> list[tuple[str, bool]]:
+        """Vehicle liveliness changes since the last call: (vehicle id, alive)."""
+        out: list[tuple[str, bool]] = []
+        for sub in self._alive:
+            while (sample := sub.try_recv()) is not None:
+                try:
+                    vehicle_id, _ = parse_vehicle_key(str(sample.key_expr))
+                except ValueError:
+                    continue
+                out.append((vehicle_id, sample.kind == zenoh.SampleKind.PUT))
+        return out
+
+    def publish_estimates(self, items: list[tuple[str, bytes]]) -> None:
+        pubs = self._estimate_pubs
+        for vehicle_id, payload in items:
+            pub = pubs.get(vehicle_id)
+            if pub is None:
+                pub = pubs[vehicle_id] = self.session.declare_publisher(
+                    vehicle_key(vehicle_id, "estimate", self.prefix),
+                    congestion_control=self._estimate_cc,
+                    encoding=zenoh.Encoding.APPLICATION_JSON,
+                )
+            pub.put(payload)
+
+    def publish_alarm(self, vehicle_id: str, payload: bytes) -> None:
+        pub = self._alarm_pubs.get(vehicle_id)
+        if pub is None:
+            pub = self._alarm_pubs[vehicle_id] = self.session.declare_publisher(
+                vehicle_key(vehicle_id, "alarm", self.prefix),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=zenoh.Priority.INTERACTIVE_HIGH,
+                encoding=zenoh.Encoding.APPLICATION_JSON,
+            )
+        pub.put(payload)
+
+    def close(self) -> None:
+        """Undeclare everything and close the session (an unclosed session can hang the process at exit)."""
+        for entity in [*self._meas, *self._alive, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()
+        if self._token is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self._token.undeclare()
+        self._meas, self._alive, self._token = [], [], None
+        self._estimate_pubs, self._alarm_pubs = {}, {}
+        if self._session is not None:
+            self._session.close()  # type: ignore[no-untyped-call]
+            self._session = None

@@ -1,0 +1,78 @@
+"""The level detector (persistence, hysteresis) and the alarm book (latching, acknowledgement)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.fleet.alarms import FAULT, OK, WARN, AlarmBook, LevelDetector, UnknownAlarm
+
+MS = 1_000_000
+
+
+def feed(detector: LevelDetector, values: list[float], period_ms: int = 10) -> list[int]:
+    levels = []
+    for k, v in enumerate(values):
+        detector.update(np.array([0]), np.array([v]), np.array([k * period_ms * MS]))
+        levels.append(int(detector.level[0]))
+    return levels
+
+
+def detector() -> LevelDetector:
+    return LevelDetector(1, warn=10.0, fault=20.0, hysteresis=0.8, raise_after_ns=50 * MS, clear_after_ns=100 * MS)
+
+
+def test_a_short_spike_does_not_raise():
+    assert max(feed(detector(), [0.0] * 5 + [30.0] * 5 + [0.0] * 20)) == OK
+
+
+def test_persistence_then_escalation():
+    levels = feed(detector(), [12.0] * 10 + [25.0] * 10)
+    assert levels[4] == OK and levels[5] == WARN  # 50 ms after the first sample above 10
+    assert levels[14] == WARN and levels[15] == FAULT
+
+
+def test_hysteresis_band_holds_the_level_and_clearing_needs_time():
+    d = detector()
+    feed(d, [25.0] * 10)
+    assert d.level[0] == FAULT
+    # 17 is below the fault threshold but inside the band (> 0.8 x 20): FAULT holds
+    d2 = detector()
+    levels = feed(d2, [25.0] * 10 + [17.0] * 30)
+    assert set(levels[10:]) == {FAULT}
+    # below 16 for 100 ms drops to WARN, below 8 for 100 ms drops to OK
+    d3 = detector()
+    levels = feed(d3, [25.0] * 10 + [12.0] * 15 + [1.0] * 15)
+    assert levels[10 + 9] == FAULT and levels[10 + 10] == WARN
+    assert levels[25 + 9] == WARN and levels[25 + 10] == OK
+
+
+def test_rows_are_independent():
+    d = LevelDetector(3, 10.0, 20.0, 0.8, 0, 0)
+    changed = d.update(np.array([0, 2]), np.array([25.0, 12.0]), np.array([0, 0]))
+    assert changed.tolist() == [0, 1] and d.level.tolist() == [FAULT, OK, WARN]
+
+
+def test_alarm_latches_until_cleared_and_acknowledged():
+    book = AlarmBook()
+    raised = book.raise_level("v", "p", "torque_fault", "WARN", 1, 12.0, 10.0, "m")
+    assert raised is not None and raised.event.state == "raised"
+    assert book.raise_level("v", "p", "torque_fault", "WARN", 2, 12.0, 10.0, "m") is None  # no news
+    escalated = book.raise_level("v", "p", "torque_fault", "FAULT", 3, 22.0, 20.0, "m")
+    assert escalated.record.id == raised.record.id and escalated.record.peak_level == "FAULT"
+    book.acknowledge(raised.record.id, 4, "op")
+    assert book.get(raised.record.id) is not None  # acknowledged but the condition holds: still latched
+    cleared = book.clear("v", "torque_fault", 5)
+    assert cleared.event.state == "cleared" and book.get(raised.record.id) is None
+    again = book.raise_level("v", "p", "torque_fault", "WARN", 6, 12.0, 10.0, "m")
+    assert again.record.id != raised.record.id  # a new occurrence is a new alarm
+    with pytest.raises(UnknownAlarm):
+        book.acknowledge("al-nope", 7)
+
+
+def test_a_cleared_unacknowledged_alarm_is_re_raised_with_the_same_id():
+    book = AlarmBook()
+    first = book.raise_level("v", "p", "out_of_domain", "WARN", 1, None, None, "")
+    book.clear("v", "out_of_domain", 2)
+    again = book.raise_level("v", "p", "out_of_domain", "WARN", 3, None, None, "")
+    assert again.record.id == first.record.id and again.record.occurrences == 2

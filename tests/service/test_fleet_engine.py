@@ -1,0 +1,273 @@
+"""The fleet engine without transport or web: validation, sequencing, batching, alarms, staleness, events."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+
+from edge_client.library import paper_1
+from service.fleet import EngineConfig, FleetEngine
+from service.fleet.engine import REJECT_REASONS
+from service.profiles import ProfileSpec
+from service.protocol import FLAG_SEQUENCE_RESTART, Estimate, Measurement, vehicle_key
+from synth.observer import FuzzyObserver
+from tests.service.helpers import FAST_DESIGN, PERIOD_NS, T0_NS, as_array, constant_measurement, plant_measurements
+from tests.tolerances import BATCH_EQUALITY_ATOL
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.mono = 1000.0
+
+    def ns(self) -> int:
+        return int(self.mono * 1e9)
+
+    def monotonic(self) -> float:
+        return self.mono
+
+
+def make_engine(gains, clock=None, alarms=None, **config) -> FleetEngine:
+    clock = clock or FakeClock()
+    engine = FleetEngine(EngineConfig(**config), clock_ns=clock.ns, monotonic=clock.monotonic)
+    spec = ProfileSpec.model_validate({"design": FAST_DESIGN, "alarms": alarms or {}})
+    engine.add_profile("default", spec)
+    engine.activate("default", gains)
+    return engine
+
+
+def pairs(measurements: list[Measurement]) -> list[tuple[str, bytes]]:
+    return [(vehicle_key(m.vehicle_id, "meas"), m.encode()) for m in measurements]
+
+
+def decoded(result) -> list[Estimate]:
+    return [Estimate.decode(p) for _, p in result.estimates]
+
+
+def test_estimates_equal_the_offline_observer_whatever_the_batching(fast_gains):
+    """Samples queued several per tick are stepped in order: same result as one sample per tick and as synth."""
+    ids = ["a", "b", "c"]
+    samples = plant_measurements(ids, 60)
+    one_by_one = make_engine(fast_gains)
+    streamed = [e for row in samples for e in decoded(one_by_one.process(pairs(row)))]
+    batched = make_engine(fast_gains)
+    burst = [m for row in samples for m in row]
+    all_at_once = decoded(batched.process(pairs(burst[:100]))) + decoded(batched.process(pairs(burst[100:])))
+    key = lambda e: (e.vehicle, e.seq)  # noqa: E731
+    a, b = sorted(streamed, key=key), sorted(all_at_once, key=key)
+    assert [key(e) for e in a] == [key(e) for e in b] and len(a) == 3 * 60
+    np.testing.assert_allclose(as_array(a), as_array(b), atol=BATCH_EQUALITY_ATOL)
+    obs = FuzzyObserver(fast_gains, np.array([[s.vx_mps, s.r_radps] for s in samples[0]]))
+    for row in samples:
+        res = obs.step([[m.vx_mps, m.r_radps] for m in row], [[m.torque_nm, m.steer_rad] for m in row])
+    last = {e.vehicle: e for e in streamed if e.seq == 59}
+    got = np.array([[last[v].vx, last[v].vy, last[v].r, last[v].torque_fault, last[v].steer_fault] for v in ids])
+    np.testing.assert_allclose(got, res.x_hat[:, :5], atol=BATCH_EQUALITY_ATOL)
+
+
+BAD = {
+    "non_finite": lambda seq: constant_measurement("v", seq, vx=math.nan),
+    "non_finite_inf": lambda seq: constant_measurement("v", seq, torque=math.inf),
+    "out_of_range": lambda seq: constant_measurement("v", seq, vx=250.0),
+    "out_of_range_negative": lambda seq: constant_measurement("v", seq, vx=-3.0),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_values_are_rejected_counted_and_leave_the_state_intact(fast_gains, case):
+    reason = case.rsplit("_", 1)[0] if case.endswith(("_inf", "_negative")) else case
+    good = [constant_measurement("v", k) for k in range(20)]
+    clean = make_engine(fast_gains)
+    clean.process(pairs(good[:10]))
+    clean_after = decoded(clean.process(pairs(good[10:])))
+    dirty = make_engine(fast_gains)
+    dirty.process(pairs(good[:10]))
+    bad = BAD[case](1000)
+    result = dirty.process(pairs([bad]))
+    assert result.estimates == [] and result.accepted == 0
+    assert dirty.rejected[reason] == 1 and dirty.vehicles["v"].rejected[reason] == 1
+    # a later good sample (seq continues after the bad one) sees exactly the state the clean engine has
+    dirty.vehicles["v"].last_seq = 9
+    dirty_after = decoded(dirty.process(pairs(good[10:])))
+    assert dirty_after == clean_after
+
+
+def test_malformed_id_mismatch_and_unknown_vehicles(fast_gains):
+    engine = make_engine(fast_gains, unknown_vehicles="reject")
+    engine.register("v", "default")
+    good = constant_measurement("v", 0).encode()
+    key = vehicle_key("v", "meas")
+    batch = [
+        (key, good[:30]),  # truncated
+        (key, b"XXXX" + good[4:]),  # bad magic
+        (key, good[:4] + bytes([7]) + good[5:]),  # unknown version
+        ("agv/v1/b00/not a key/meas", good),  # bad key
+        (vehicle_key("w", "meas").replace(vehicle_key("w", "meas").split("/")[2], "b0f"), good),  # wrong bucket
+        (key, constant_measurement("w", 1).encode()),  # id mismatch, same length
+        (vehicle_key("x", "meas"), constant_measurement("x", 0).encode()),  # unknown vehicle, policy reject
+        (key, Measurement("other", 1, 0, 10.0, 0.0, 0.0, 0.0).encode()),  # id mismatch, other length
+        (key, good),
+    ]
+    result = engine.process(batch)
+    assert result.accepted == 1 and len(result.estimates) == 1
+    assert engine.rejected["malformed"] == 5
+    assert engine.rejected["unknown_vehicle"] == 1
+    assert engine.rejected["id_mismatch"] == 2
+    assert engine.vehicles["v"].rejected["malformed"] == 3 and engine.vehicles["v"].rejected["id_mismatch"] == 2
+    assert set(engine.vehicles) == {"v"}
+
+
+def test_unknown_vehicles_are_registered_with_the_default_profile(fast_gains):
+    engine = make_engine(fast_gains)
+    result = engine.process(pairs([constant_measurement("new-1", 0)]))
+    assert [v.id for v in result.new_vehicles] == ["new-1"] and engine.vehicles["new-1"].profile == "default"
+    assert len(result.estimates) == 1
+
+
+def test_duplicates_out_of_order_gaps_and_restarts(fast_gains):
+    engine = make_engine(fast_gains, long_gap_s=0.5)
+    m = lambda k: constant_measurement("v", k)  # noqa: E731
+    engine.process(pairs([m(0), m(1), m(2)]))
+    result = engine.process(pairs([m(2), m(1), m(3), m(3), m(6)]))
+    assert [e.seq for e in decoded(result)] == [3, 6]
+    v = engine.vehicles["v"]
+    assert v.rejected["duplicate"] == 2 and v.rejected["out_of_order"] == 1
+    assert v.counters["missing"] == 2 and v.counters["gaps"] == 1 and v.counters["restarts"] == 0
+    engine.process(pairs([m(7)]))
+    assert engine.banks["default"].started_t_ns[v.slot] == T0_NS  # observer running since seq 0
+    engine.process(pairs([m(7 + 51)]))  # 50 missing samples = 0.5 s: re-initialise
+    assert v.counters["restarts"] == 1 and engine.stats["restarts"] == 1
+    assert engine.banks["default"].started_t_ns[v.slot] == T0_NS + 58 * PERIOD_NS
+    # a vehicle that restarts its sequence says so with the flag
+    restarted = Measurement("v", 0, T0_NS, 10.0, 0.0, 60.0, 0.0, flags=FLAG_SEQUENCE_RESTART)
+    assert [e.seq for e in decoded(engine.process(pairs([restarted])))] == [0]
+    assert engine.vehicles["v"].counters["restarts"] == 2
+
+
+def test_every_reject_reason_is_counted_by_name(fast_gains):
+    engine = make_engine(fast_gains)
+    assert set(engine.rejected) == set(REJECT_REASONS)
+    assert set(engine.register("v", "default").rejected) == set(REJECT_REASONS)
+
+
+def test_no_gains_yet_rejects_without_crashing(fast_gains):
+    engine = FleetEngine(EngineConfig())
+    engine.add_profile("default", ProfileSpec())
+    result = engine.process(pairs([constant_measurement("v", 0)]))
+    assert result.estimates == [] and engine.rejected["no_gains"] == 1 and not engine.ready
+    engine.activate("default", fast_gains)
+    assert engine.ready and len(engine.process(pairs([constant_measurement("v", 1)])).estimates) == 1
+
+
+FAULT_ALARMS = {
+    "torque_warn_nm": 10.0,
+    "torque_fault_nm": 20.0,
+    "raise_after_s": 0.2,
+    "clear_after_s": 0.5,
+    "warmup_s": 1.0,
+    "out_of_domain_after_s": 0.2,
+}
+
+
+def run_scenario(engine, scenario, n_samples, vehicle="v"):
+    changes = []
+    for row in plant_measurements([vehicle], n_samples, scenario=scenario):
+        changes.extend(engine.process(pairs(row)).alarms)
+    return changes
+
+
+def test_a_torque_fault_raises_warn_then_fault_and_a_healthy_vehicle_stays_quiet(fast_gains):
+    faulty = make_engine(fast_gains, alarms=FAULT_ALARMS)
+    changes = run_scenario(faulty, paper_1(), 900)  # 30 N m torque bias from t = 5 s
+    torque = [c.event for c in changes if c.event.kind == "torque_fault"]
+    assert torque[0].state == "raised" and torque[-1].level == "FAULT"
+    assert len({a.id for a in torque}) == 1 and all(a.state == "raised" for a in torque)
+    raised_at = (torque[0].t_ns - T0_NS) / 1e9
+    assert 5.0 < raised_at < 7.0, raised_at
+    assert faulty.level_of(faulty.vehicles["v"]) == "FAULT"
+
+    healthy = make_engine(fast_gains, alarms=FAULT_ALARMS)
+    assert run_scenario(healthy, paper_1().model_copy(update={"faults": ()}), 900) == []
+    assert healthy.level_of(healthy.vehicles["v"]) == "OK"
+
+
+def test_out_of_domain_needs_persistence_and_clears_with_hysteresis_time(fast_gains):
+    # a jump of v_x reads as a huge torque fault to the observer; only the domain alarm matters here
+    quiet_faults = {"torque_warn_nm": 1e9, "torque_fault_nm": 2e9, "steer_warn_rad": 1e3, "steer_fault_rad": 2e3}
+    engine = make_engine(fast_gains, alarms={**FAULT_ALARMS, **quiet_faults})
+    seq = iter(range(10_000))
+    feed = lambda vx, n: [engine.process(pairs([constant_measurement("v", next(seq), vx=vx)])) for _ in range(n)]  # noqa: E731
+    feed(10.0, 10)
+    short = feed(40.0, 15)  # 0.15 s above v_x,max = 30 m/s: not long enough
+    assert not any(r.alarms for r in short)
+    feed(10.0, 5)
+    long = [c.event for r in feed(40.0, 30) for c in r.alarms]
+    assert [(a.kind, a.state, a.level) for a in long] == [("out_of_domain", "raised", "WARN")]
+    back = [c.event for r in feed(10.0, 80) for c in r.alarms]
+    assert [(a.kind, a.state) for a in back] == [("out_of_domain", "cleared")]
+    assert engine.alarms.current("v", "out_of_domain").state == "cleared"  # latched until acknowledged
+    change = engine.acknowledge(long[0].id, by="op")
+    assert change.event.state == "acknowledged" and engine.alarms.current("v", "out_of_domain") is None
+
+
+def test_stale_by_timeout_and_by_liveliness_then_resume(fast_gains):
+    clock = FakeClock()
+    engine = make_engine(fast_gains, clock=clock, alarms={"stale_after_s": 1.0})
+    engine.process(pairs([constant_measurement("v", 0), constant_measurement("w", 0)]))
+    clock.mono += 0.5
+    assert engine.housekeeping() == []
+    clock.mono += 0.6
+    stale = engine.housekeeping()
+    assert sorted((c.event.vehicle, c.event.level) for c in stale) == [("v", "STALE"), ("w", "STALE")]
+    result = engine.process(pairs([constant_measurement("v", 1)]))
+    assert [(c.event.kind, c.event.state) for c in result.alarms] == [("stale", "cleared")]
+    assert engine.level_of(engine.vehicles["v"]) == "OK"
+    lost = engine.liveliness("v", alive=False)
+    assert [(c.event.kind, c.event.state) for c in lost] == [("stale", "raised")]
+
+
+def test_a_burst_of_rejected_inputs_raises_and_clears(fast_gains):
+    clock = FakeClock()
+    engine = make_engine(fast_gains, clock=clock, alarms={"reject_burst_count": 5, "reject_burst_window_s": 1.0})
+    engine.process(pairs([constant_measurement("v", 0)]))
+    result = engine.process(pairs([constant_measurement("v", k, vx=math.nan) for k in range(1, 6)]))
+    assert [(c.event.kind, c.event.state) for c in result.alarms] == [("rejected_inputs", "raised")]
+    clock.mono += 2.0
+    engine.process(pairs([constant_measurement("v", 6)]))
+    assert [(c.event.kind, c.event.state) for c in engine.housekeeping()] == [("rejected_inputs", "cleared")]
+
+
+def test_estimate_every_n_publishes_a_subset_but_observes_every_sample(fast_gains):
+    engine = make_engine(fast_gains, estimate_every_n=4)
+    published = []
+    for k in range(12):
+        published += decoded(engine.process(pairs([constant_measurement("v", k)])))
+    assert [e.seq for e in published] == [0, 4, 8]
+    assert engine.vehicles["v"].counters["estimates"] == 12
+
+
+def test_gain_activation_continues_from_the_last_estimate(fast_gains):
+    engine = make_engine(fast_gains)
+    samples = plant_measurements(["v"], 200)
+    for row in samples[:150]:
+        engine.process(pairs(row))
+    before = engine.latest_estimate(engine.vehicles["v"])
+    engine.activate("default", fast_gains)
+    after = decoded(engine.process(pairs(samples[150])))[0]
+    assert after.seq == 150
+    assert abs(after.vx - before.vx) < 0.05 and abs(after.steer_fault - before.steer_fault) < 0.01
+
+
+def test_events_reach_subscribers(fast_gains):
+    async def scenario():
+        engine = make_engine(fast_gains)
+        with engine.events.subscribe(kinds=("estimate", "vehicle")) as sub:
+            engine.process(pairs([constant_measurement("v", 0)]))
+            events = [await asyncio.wait_for(sub.get(), 1.0), await asyncio.wait_for(sub.get(), 1.0)]
+        return events, engine.events.has_subscribers
+
+    events, still_subscribed = asyncio.run(scenario())
+    assert [e.kind for e in events] == ["vehicle", "estimate"] and events[1].data.seq == 0
+    assert not still_subscribed

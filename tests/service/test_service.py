@@ -1,0 +1,218 @@
+"""The real service: uvicorn on a free port, Zenoh on loopback, SQLite in tmp_path.
+
+Assertions are on counts, order and equality, never on speed: the machine is shared.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from edge_client.library import paper_1
+from service.protocol import Measurement, vehicle_key
+from synth.gains import ObserverGains
+from synth.observer import FuzzyObserver
+from tests.service.helpers import (
+    FAST_DESIGN,
+    as_array,
+    constant_measurement,
+    make_settings,
+    plant_measurements,
+    probe,
+    running,
+    wait_for,
+)
+from tests.tolerances import BATCH_EQUALITY_ATOL
+
+pytestmark = pytest.mark.network
+
+ALARMS = {
+    "torque_warn_nm": 10.0,
+    "torque_fault_nm": 20.0,
+    "raise_after_s": 0.2,
+    "clear_after_s": 0.5,
+    "warmup_s": 1.0,
+    "stale_after_s": 2.0,
+}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("svc")
+    settings = make_settings(tmp, {"default": {"design": FAST_DESIGN, "alarms": ALARMS}})
+    with running(settings) as srv:
+        yield srv
+
+
+@pytest.fixture
+def zprobe(server):
+    with probe(server.settings.zenoh.endpoint) as p:
+        yield p
+
+
+def test_measurements_in_estimates_out(server, zprobe):
+    ids = ["e2e-a", "e2e-b"]
+    samples = plant_measurements(ids, 300)
+    for row in samples:
+        for m in row:
+            zprobe.put(m)
+    wait_for(lambda: all(len(zprobe.estimates_of(v)) >= 300 for v in ids), what="600 estimates")
+    gains_doc = server.get("/profiles/default/gains", params={"matrices": "true"}).json()
+    gains = ObserverGains.from_dict(gains_doc)  # the answer is a loadable gains document
+    observer = FuzzyObserver(gains, np.array([[m.vx_mps, m.r_radps] for m in samples[0]]))
+    expected = [
+        observer.step([[m.vx_mps, m.r_radps] for m in row], [[m.torque_nm, m.steer_rad] for m in row]).x_hat[:, :5]
+        for row in samples
+    ]
+    for i, vid in enumerate(ids):
+        got = zprobe.estimates_of(vid)
+        assert [e.seq for e in got] == list(range(300))  # every sample answered, in order
+        assert {e.gain_version for e in got} == {gains_doc["version"]}
+        np.testing.assert_allclose(as_array(got), np.array([x[i] for x in expected]), atol=BATCH_EQUALITY_ATOL)
+    detail = server.vehicle("e2e-a")
+    assert detail["latest_estimate"]["seq"] == 299 and detail["counters"]["accepted"] == 300
+    history = server.get("/vehicles/e2e-a/estimates", params={"limit": 50}).json()["estimates"]
+    assert [h["seq"] for h in history] == list(range(250, 300))
+
+
+def test_every_bad_input_class_is_rejected_counted_and_leaves_the_state_intact(server, zprobe):
+    good = plant_measurements(["bad-1"], 100)
+    ref = plant_measurements(["ref-1"], 100)
+    for k in range(50):
+        zprobe.put(good[k][0])
+        zprobe.put(ref[k][0])
+    key = vehicle_key("bad-1", "meas")
+    last = good[49][0]
+    bad = [
+        ("duplicate", key, last.encode()),
+        ("out_of_order", key, good[10][0].encode()),
+        ("malformed", key, last.encode()[:40]),
+        ("malformed", key, b"XXXX" + last.encode()[4:]),
+        ("id_mismatch", key, Measurement("ref-1", 50, 0, 10.0, 0.0, 0.0, 0.0).encode()),
+        ("non_finite", key, Measurement("bad-1", 50, 0, math.nan, 0.0, 0.0, 0.0).encode()),
+        ("out_of_range", key, Measurement("bad-1", 51, 0, 10.0, 9.0, 0.0, 0.0).encode()),
+        ("malformed", "agv/v1/b00/bad-1/meas" if "b00" not in key else "agv/v1/b01/bad-1/meas", last.encode()),
+    ]
+    for _, k, payload in bad:
+        zprobe.put_raw(k, payload)
+    for k in range(52, 100):  # the two rejected samples took seq 50 and 51
+        zprobe.put(good[k][0])
+    for k in range(50, 100):
+        zprobe.put(ref[k][0])
+    wait_for(
+        lambda: len(zprobe.estimates_of("bad-1")) >= 98 and len(zprobe.estimates_of("ref-1")) >= 100, what="estimates"
+    )
+    status = server.vehicle("bad-1")
+    expected = {"malformed": 2, "id_mismatch": 1, "non_finite": 1, "out_of_range": 1, "duplicate": 1, "out_of_order": 1}
+    assert {k: v for k, v in status["rejected"].items() if v} == expected
+    assert status["counters"]["missing"] == 0 and status["counters"]["restarts"] == 0
+    metrics = server.get("/metrics").text
+    for reason in expected:
+        assert f'agv_fe_measurements_rejected_total{{reason="{reason}"}}' in metrics
+    # both vehicles saw the same good samples up to 49; then bad-1 lost 50 and 51 to rejection
+    bad_est = {e.seq: e for e in zprobe.estimates_of("bad-1")}
+    ref_est = {e.seq: e for e in zprobe.estimates_of("ref-1")}
+    for k in range(50):
+        np.testing.assert_allclose(as_array([bad_est[k]]), as_array([ref_est[k]]), atol=BATCH_EQUALITY_ATOL)
+    assert sorted(bad_est) == [*range(50), *range(52, 100)]
+    assert all(math.isfinite(e.torque_fault) for e in bad_est.values())
+    # after the gap the estimate converges back to the reference's
+    assert abs(bad_est[99].steer_fault - ref_est[99].steer_fault) < 0.01
+
+
+def test_alarm_raised_published_stored_latched_and_acknowledged(server, zprobe):
+    for row in plant_measurements(["faulty-1"], 900, scenario=paper_1()):  # 30 N m torque bias from 5 s
+        zprobe.put(row[0])
+    wait_for(lambda: len(zprobe.estimates_of("faulty-1")) >= 900, what="estimates")
+    raised = wait_for(
+        lambda: [a for a in zprobe.collect().alarms if a.vehicle == "faulty-1" and a.kind == "torque_fault"],
+        what="torque alarm on Zenoh",
+    )
+    alarm_id = raised[0].id
+    assert raised[0].state == "raised" and raised[-1].level == "FAULT"
+    assert zprobe.estimates_of("faulty-1")[-1].level == "FAULT"
+    listed = {a["id"]: a for a in server.get("/alarms").json()}
+    assert listed[alarm_id]["latched"] and not listed[alarm_id]["acknowledged"]
+    denied = server.http.post(f"/alarms/{alarm_id}/ack")
+    assert denied.status_code == 401 and denied.headers["www-authenticate"].startswith("Bearer")
+    wrong = server.http.post(f"/alarms/{alarm_id}/ack", headers={"Authorization": "Bearer nope"})
+    assert wrong.status_code == 401
+    ok = server.http.post(f"/alarms/{alarm_id}/ack", headers=server.auth, json={"by": "test"})
+    assert ok.status_code == 200 and ok.json()["acknowledged"] and ok.json()["latched"]  # condition still holds
+    wait_for(lambda: any(a.id == alarm_id and a.state == "acknowledged" for a in zprobe.collect().alarms), what="ack")
+    events = server.get(f"/alarms/{alarm_id}").json()["events"]
+    assert events[0]["state"] == "raised" and events[-1]["state"] == "acknowledged"
+    assert server.http.post("/alarms/al-unknown/ack", headers=server.auth).status_code == 404
+
+
+def test_stale_by_lost_liveliness_and_by_timeout(server, zprobe):
+    token = zprobe.session.liveliness().declare_token(vehicle_key("live-1", "alive"))
+    for k in range(20):
+        zprobe.put(constant_measurement("live-1", k))
+        zprobe.put(constant_measurement("quiet-1", k))
+    wait_for(lambda: server.get("/vehicles/live-1").json().get("alive") is True, what="liveliness seen")
+    token.undeclare()
+    lost = wait_for(
+        lambda: [a for a in zprobe.collect().alarms if a.vehicle == "live-1" and a.kind == "stale"], what="stale"
+    )
+    assert lost[0].level == "STALE" and "liveliness" in lost[0].message
+    quiet = wait_for(
+        lambda: [a for a in zprobe.collect().alarms if a.vehicle == "quiet-1" and a.kind == "stale"], what="timeout"
+    )
+    assert "no measurement" in quiet[0].message and server.vehicle("quiet-1")["level"] == "STALE"
+    zprobe.put(constant_measurement("quiet-1", 20))
+    wait_for(
+        lambda: any(a.vehicle == "quiet-1" and a.state == "cleared" for a in zprobe.collect().alarms), what="resumed"
+    )
+
+
+def test_rest_errors_say_what_is_wrong(server):
+    r = server.get("/vehicles/nobody")
+    assert r.status_code == 404 and "nobody" in r.json()["detail"]
+    assert server.get("/profiles/nothing").status_code == 404
+    assert server.get("/jobs/job-none").status_code == 404
+    assert server.get("/alarms/al-none").status_code == 404
+    r = server.http.put("/profiles/van", json={"params": {"mass_kg": -3}}, headers=server.auth)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][-2:] == ["params", "mass_kg"]
+    r = server.http.put("/profiles/van", json={"alarms": {"torque_warn_nm": 500}}, headers=server.auth)
+    assert r.status_code == 422 and "torque_warn_nm" in r.text
+    r = server.http.put("/profiles/van", json={})
+    assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+    assert server.http.post("/profiles/default/synthesis").status_code == 401
+    assert server.http.put("/vehicles/x", json={"profile": "default"}).status_code == 401
+    r = server.http.put("/vehicles/x", json={"profile": "nope"}, headers=server.auth)
+    assert r.status_code == 404 and "nope" in r.json()["detail"]
+    assert server.get("/health").json()["status"] == "ok"
+
+
+def test_openapi_documents_every_route_with_examples(server):
+    spec = server.get("/openapi.json").json()
+    paths = set(spec["paths"])
+    for path in (
+        "/vehicles/{vehicle_id}/estimates",
+        "/alarms/{alarm_id}/ack",
+        "/profiles/{name}/gains",
+        "/jobs/{job_id}",
+    ):
+        assert path in paths
+    schemas = spec["components"]["schemas"]
+    for name in ("ProfileSpec", "Estimate", "VehicleStatus", "AlarmInfo", "JobInfo", "GainsInfo"):
+        assert schemas[name].get("examples"), name
+    assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
+
+
+def test_unknown_vehicles_are_rejected_when_the_setting_says_so(tmp_path):
+    settings = make_settings(tmp_path, ingest={"unknown_vehicles": "reject"})
+    with running(settings) as srv, probe(settings.zenoh.endpoint) as p:
+        r = srv.http.put("/vehicles/known-1", json={"profile": "default"}, headers=srv.auth)
+        assert r.status_code == 200
+        for k in range(10):
+            p.put(constant_measurement("stranger-1", k))
+            p.put(constant_measurement("known-1", k))
+        wait_for(lambda: len(p.estimates_of("known-1")) >= 10, what="estimates")
+        line = 'agv_fe_measurements_rejected_total{reason="unknown_vehicle"} 10'
+        wait_for(lambda: line in srv.get("/metrics").text, what="10 unknown-vehicle rejects")
+        assert srv.get("/vehicles/stranger-1").status_code == 404
+        assert p.estimates_of("stranger-1") == []

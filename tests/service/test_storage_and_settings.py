@@ -1,0 +1,110 @@
+"""SQLite storage (a real file) and the settings (environment variables, nested with __)."""
+
+from __future__ import annotations
+
+import sqlite3
+
+import pytest
+from pydantic import ValidationError
+
+from service.profiles import ProfileFileError, ProfileSpec, load_profiles_file
+from service.settings import Settings
+from service.storage import Storage
+
+
+def test_storage_round_trip_in_wal_mode(tmp_path):
+    path = tmp_path / "db.sqlite3"
+    db = Storage(path)
+    db.put_profile("van", ProfileSpec.model_validate({"design": {"fault_order": 1}}).stored(), 1)
+    db.activate_gains("van", {"design": {"fault_order": 1}}, {"version": "abc", "certificate": {}}, 2)
+    db.put_vehicles([("v1", "van", 3)])
+    record = {
+        "id": "al-1",
+        "vehicle": "v1",
+        "kind": "stale",
+        "state": "raised",
+        "acknowledged": False,
+        "updated_t_ns": 4,
+    }
+    db.record_alarm_changes([(record, {"t_ns": 4, "state": "raised"})])
+    db.close()
+    assert sqlite3.connect(path).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    again = Storage(path)
+    (profile,) = again.profiles()
+    assert profile.name == "van" and profile.active_version == "abc" and profile.spec == {"design": {"fault_order": 1}}
+    assert again.gains("van", "abc") == {"version": "abc", "certificate": {}}
+    assert again.vehicles() == [("v1", "van", 3)]
+    assert [a["id"] for a in again.latched_alarms()] == ["al-1"]
+    acked = {**record, "state": "cleared", "acknowledged": True, "updated_t_ns": 5}
+    again.record_alarm_changes([(acked, {"t_ns": 5, "state": "acknowledged"})])
+    assert again.latched_alarms() == [] and len(again.alarm_events("al-1")) == 2
+
+
+def test_profile_spec_keeps_only_what_was_set_so_defaults_propagate():
+    spec = ProfileSpec.model_validate({"design": {"fault_order": 2}, "alarms": {"torque_warn_nm": 40}})
+    assert spec.stored() == {"design": {"fault_order": 2}, "alarms": {"torque_warn_nm": 40.0}}
+    assert ProfileSpec.model_validate(spec.stored()).design.design == ProfileSpec().design.design
+
+
+def test_profile_spec_names_the_bad_field():
+    with pytest.raises(ValidationError, match="torque_warn_nm must be below torque_fault_nm"):
+        ProfileSpec.model_validate({"alarms": {"torque_warn_nm": 300}})
+
+
+def test_profiles_file_errors_name_the_profile_and_field(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text("profiles:\n  van:\n    params:\n      mass_kg: -1\n")
+    with pytest.raises(ProfileFileError, match=r"profiles\.van\.params\.mass_kg"):
+        load_profiles_file(path)
+    path.write_text("profiles:\n  van:\n    design:\n      fault_order: 1\n")
+    assert load_profiles_file(path)["van"].design.fault_order == 1
+
+
+def test_settings_from_nested_environment_variables(monkeypatch, tmp_path):
+    monkeypatch.setenv("AGV_FE_HTTP__PORT", "9123")
+    monkeypatch.setenv("AGV_FE_ZENOH__MODE", "client")
+    monkeypatch.setenv("AGV_FE_ZENOH__ENDPOINT", "tcp/127.0.0.1:7999")
+    monkeypatch.setenv("AGV_FE_INGEST__ESTIMATE_EVERY_N", "5")
+    monkeypatch.setenv("AGV_FE_AUTH__TOKEN", "s3cret")
+    monkeypatch.setenv("AGV_FE_DATA_DIR", str(tmp_path))
+    s = Settings()
+    assert (s.http.port, s.zenoh.mode, s.zenoh.endpoint, s.ingest.estimate_every_n) == (
+        9123,
+        "client",
+        "tcp/127.0.0.1:7999",
+        5,
+    )
+    assert s.auth.token is not None and s.auth.token.get_secret_value() == "s3cret" and "s3cret" not in repr(s)
+    monkeypatch.setenv("AGV_FE_ZENOH__ENDPOINT", "127.0.0.1:7447")
+    with pytest.raises(ValidationError, match="endpoint"):
+        Settings()
+
+
+def test_serve_flags_override_the_environment(monkeypatch, tmp_path):
+    from agv_fe.cli import build_parser
+    from agv_fe.commands.serve import build_settings
+
+    monkeypatch.setenv("AGV_FE_HTTP__PORT", "9123")
+    monkeypatch.setenv("AGV_FE_AUTH__TOKEN", "s3cret")
+    args = build_parser().parse_args(
+        [
+            "serve",
+            "--http-port",
+            "8111",
+            "--zenoh-endpoint",
+            "tcp/127.0.0.1:7555",
+            "--data-dir",
+            str(tmp_path),
+            "--shard",
+            "1/2",
+        ]
+    )
+    s = build_settings(args)
+    assert (s.http.port, s.zenoh.endpoint, s.data_dir, s.shard.index, s.shard.replicas) == (
+        8111,
+        "tcp/127.0.0.1:7555",
+        tmp_path,
+        1,
+        2,
+    )
+    assert s.auth.token.get_secret_value() == "s3cret"
