@@ -12,6 +12,7 @@ COMMANDS = {
     "synth": "agv_fe.commands.synth",
     "simulate": "agv_fe.commands.simulate",
     "replay": "agv_fe.commands.replay",
+    "fleet": "agv_fe.commands.fleet",
     "demo": "agv_fe.commands.demo",
     "bench": "agv_fe.commands.bench",
 }
