@@ -13,6 +13,7 @@ COMMANDS = {
     "simulate": "agv_fe.commands.simulate",
     "replay": "agv_fe.commands.replay",
     "fleet": "agv_fe.commands.fleet",
+    "dashboard": "agv_fe.commands.dashboard",
     "demo": "agv_fe.commands.demo",
     "bench": "agv_fe.commands.bench",
 }
