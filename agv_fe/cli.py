@@ -14,6 +14,7 @@ COMMANDS = {
     "replay": "agv_fe.commands.replay",
     "fleet": "agv_fe.commands.fleet",
     "dashboard": "agv_fe.commands.dashboard",
+    "publish-csv": "agv_fe.commands.publish_csv",
     "demo": "agv_fe.commands.demo",
     "bench": "agv_fe.commands.bench",
 }

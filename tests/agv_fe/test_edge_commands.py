@@ -35,3 +35,21 @@ def test_fleet_reports_an_unreachable_router_with_its_endpoint():
     )
     assert out.returncode == 2
     assert "tcp/127.0.0.1:9" in out.stderr and "cannot open a zenoh session" in out.stderr
+
+
+def test_publish_csv_names_the_bad_line_before_connecting(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,vx,r,torque,steer\n0.00,10,0,100,0\n0.01,10,0,oops,0\n")
+    out = agv_fe("publish-csv", str(bad), "--vehicle", "v1", "--connect", "tcp/127.0.0.1:9")
+    assert out.returncode == 2
+    assert "line 3" in out.stderr and "torque" in out.stderr
+
+
+def test_publish_csv_rejects_a_bad_vehicle_id(tmp_path):
+    out = agv_fe("publish-csv", str(tmp_path / "x.csv"), "--vehicle", "bad/id")
+    assert out.returncode == 2 and "--vehicle" in out.stderr and "bad/id" in out.stderr
+
+
+def test_dashboard_rejects_a_bad_refresh_rate():
+    out = agv_fe("dashboard", "--refresh", "0.1")
+    assert out.returncode == 2 and "--refresh" in out.stderr
