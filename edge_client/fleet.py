@@ -67,6 +67,9 @@ class TruthTracker:
     def n_samples(self) -> int:
         return self.source.n_samples
 
+    def prepare(self) -> None:
+        self.source.prepare()
+
     def next_tick(self) -> Tick:
         tick = self.source.next_tick()
         if tick.f is not None:

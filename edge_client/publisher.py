@@ -161,7 +161,11 @@ def _count(n: int) -> str:
 
 @dataclass(frozen=True)
 class PublishReport:
-    """The end of a run: pacing, counts, round trip, and every vehicle's record."""
+    """The end of a run: pacing, counts, round trip, and every vehicle's record.
+
+    ``work_ms``: per-tick work, p50 and p99 of the source step ('source_*', the
+    simulation) and of encoding + putting ('publish_*') [ms].
+    """
 
     pacing: PacingStats
     sent: int
@@ -172,6 +176,7 @@ class PublishReport:
     rtt_p50_ms: float
     rtt_p99_ms: float
     rtt_max_ms: float
+    work_ms: dict[str, float]
     link_changes: int
     bad_messages: int
     start_ns: int
@@ -234,6 +239,7 @@ class FleetPublisher:
         self._truth_every = (
             0 if self.options.truth_rate_hz == 0 else max(round(1 / (self.options.truth_rate_hz * period_s)), 1)
         )
+        self._work_ns = np.zeros((200_000, 2), dtype=np.int64)
         self.latency = LatencyHistogram()
         self._interval_latency = LatencyHistogram()
         self.estimates = 0
@@ -327,14 +333,16 @@ class FleetPublisher:
         self.records[i].sent += 1
 
     def _publish_tick(self) -> None:
+        started = self._clock()
         tick = self.source.next_tick()
+        stepped = self._clock()
         k = tick.k
         timestamp_ns = self.start_wall_ns + k * self.period_ns
         flags = FLAG_SEQUENCE_RESTART if k == 0 else 0
         y = tick.y.tolist()
         u = tick.u.tolist()
         active = tick.active.tolist()
-        matched = self.links.matched
+        matched = self.links.matched.tolist()  # a snapshot: zenoh threads may change it meanwhile
         for i, vehicle_id in enumerate(self.ids):
             if not active[i]:
                 continue
@@ -368,6 +376,18 @@ class FleetPublisher:
                         steer_fault=f[i][1],
                     )
                     self.links.put_truth(i, truth.encode())
+        slot = (self.pacer.ticks - 1) % self._work_ns.shape[0]
+        self._work_ns[slot] = (stepped - started, self._clock() - stepped)
+
+    def _work_stats(self) -> dict[str, float]:
+        work = self._work_ns[: min(self.pacer.ticks, self._work_ns.shape[0])] / 1e6
+        if work.size == 0:
+            return {}
+        return {
+            f"{part}_{name}": float(np.percentile(work[:, column], q))
+            for column, part in enumerate(("source", "publish"))
+            for name, q in (("p50", 50), ("p99", 99))
+        }
 
     def _totals(self) -> tuple[int, int, int]:
         sent = sum(r.sent for r in self.records)
@@ -437,6 +457,7 @@ class FleetPublisher:
         drain_s: float,
     ) -> PublishReport:
         progress_ns = round(progress_period_s * 1e9)
+        self.source.prepare()
         self.start_wall_ns = time.time_ns()
         start = self.pacer.start()
         next_progress = start + progress_ns
@@ -473,6 +494,7 @@ class FleetPublisher:
             rtt_p50_ms=self.latency.quantile_ms(0.5),
             rtt_p99_ms=self.latency.quantile_ms(0.99),
             rtt_max_ms=self.latency.max_ns / 1e6,
+            work_ms=self._work_stats(),
             link_changes=self.links.match_changes,
             bad_messages=self.bad_messages,
             start_ns=self.pacer.start_ns or 0,

@@ -51,6 +51,10 @@ class SampleSource(Protocol):
         """Samples the source can produce."""
         ...
 
+    def prepare(self) -> None:
+        """Do any slow set-up before the paced loop starts."""
+        ...
+
     def next_tick(self) -> Tick: ...
 
 
@@ -83,6 +87,10 @@ class SimulatedSource:
     def n_samples(self) -> int:
         return int(self.plant.n_samples.max())
 
+    def prepare(self) -> None:
+        """Compile the first chunk of every scenario (hundreds of ms for hundreds of vehicles)."""
+        self.plant.prepare()
+
     def next_tick(self) -> Tick:
         sample = self.plant.step()
         return Tick(k=sample.k, y=sample.y, u=sample.u, active=sample.active, x=sample.x, f=sample.f)
@@ -108,6 +116,9 @@ class RecordingSource:
     @property
     def n_samples(self) -> int:
         return len(self.recording)
+
+    def prepare(self) -> None:
+        """Nothing to do: the recording is in memory."""
 
     def next_tick(self) -> Tick:
         k = self._k

@@ -10,6 +10,7 @@ from typing import Any
 #: Benchmark name -> module with ``run(out_dir) -> Path``.
 BENCHMARKS = {
     "synthesis": "agv_fe.benchmarks.synthesis",
+    "publisher": "agv_fe.benchmarks.publisher",
 }
 
 
