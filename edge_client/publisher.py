@@ -11,7 +11,8 @@ simulated batch or a recording) and, at each tick k due at t_0 + k s:
    after flushing what was buffered for that vehicle; otherwise it appends it to
    the vehicle's bounded buffer (``buffer_s`` worth of samples). A full buffer
    drops its oldest sample, and that sample counts as **lost**: it was never sent;
-3. every 1/``truth_rate_hz`` s, puts the ground truth (GroundTruth JSON).
+3. puts the ground truth (GroundTruth JSON) of every vehicle once per 1/``truth_rate_hz`` s,
+   a share of the vehicles at each tick.
 
 A liveliness token per vehicle announces it. Estimates and alarms for the
 publisher's vehicles come back on the protocol's keys; they give the round-trip
@@ -360,20 +361,22 @@ class FleetPublisher:
                 buffer.append((k, payload))
             else:
                 self.records[i].lost += 1
-        if self._truth_every and k % self._truth_every == 0 and tick.x is not None and tick.f is not None:
-            x = tick.x.tolist()
-            f = tick.f.tolist()
-            for i, vehicle_id in enumerate(self.ids):
+        if self._truth_every and tick.x is not None and tick.f is not None:
+            # vehicle i's truth goes out when (k + i) % every == 0: each vehicle at the truth rate,
+            # the work spread evenly over the ticks instead of all of it every 10th tick
+            x = tick.x
+            f = tick.f
+            for i in range((-k) % self._truth_every, len(self.ids), self._truth_every):
                 if active[i]:
                     truth = GroundTruth(
-                        vehicle=vehicle_id,
+                        vehicle=self.ids[i],
                         seq=k,
                         t_ns=timestamp_ns,
-                        vx=x[i][0],
-                        vy=x[i][1],
-                        r=x[i][2],
-                        torque_fault=f[i][0],
-                        steer_fault=f[i][1],
+                        vx=float(x[i, 0]),
+                        vy=float(x[i, 1]),
+                        r=float(x[i, 2]),
+                        torque_fault=float(f[i, 0]),
+                        steer_fault=float(f[i, 1]),
                     )
                     self.links.put_truth(i, truth.encode())
         slot = (self.pacer.ticks - 1) % self._work_ns.shape[0]

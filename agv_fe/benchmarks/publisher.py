@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from agv_fe.benchmarks import report_header
 
 SIZES = (50, 100, 200, 400, 800)
@@ -185,19 +187,24 @@ def _report(results: list[SizeResult], run_s: float) -> str:
         )
     kept = [r.vehicles for r in results if r.keeps_up]
     capacity = max(kept) if kept else 0
-    per_vehicle = [(r.source_p50_ms + r.publish_p50_ms) / r.vehicles for r in results if r.vehicles >= 200] or [
-        (r.source_p50_ms + r.publish_p50_ms) / r.vehicles for r in results
-    ]
-    cost_us = 1000 * min(per_vehicle) if per_vehicle else float("nan")
+    sizes = np.array([r.vehicles for r in results], dtype=float)
+    work = np.array([r.source_p50_ms + r.publish_p50_ms for r in results])
+    if len(results) >= 2:
+        per_vehicle_ms, fixed_ms = np.polyfit(sizes, work, 1)
+        fit = (
+            f"A straight line through the median work per tick gives {fixed_ms:.1f} ms fixed plus "
+            f"{1000 * per_vehicle_ms:.1f} us per vehicle, so 80 % of a 10 ms tick holds about "
+            f"{(8.0 - fixed_ms) / per_vehicle_ms:.0f} vehicles when the process has a core to itself. "
+        )
+    else:
+        fit = ""
     lines += [
         "",
         "## Reading",
         "",
         f"**Capacity.** The largest fleet that kept 100 Hz within {RATE_TOLERANCE:.0%} with at most "
-        f"{OVERRUN_TOLERANCE:.0%} overruns in this run: **{capacity} vehicles** in one process. The median work "
-        f"per vehicle and tick is about {cost_us:.0f} us (simulation plus publishing) at the larger sizes, so "
-        f"a 10 ms tick holds roughly {10_000 / cost_us:.0f} vehicles when the process has a core to itself; "
-        "beyond that, run several processes with different --id-prefix.",
+        f"{OVERRUN_TOLERANCE:.0%} overruns in this run: **{capacity} vehicles** in one process. {fit}"
+        "Beyond that, run several processes with different --id-prefix (each opens its own session).",
         "",
         "**Pacing.** Deadlines are absolute (t0 + k * 10 ms on the monotonic clock): a late tick is "
         "caught up, never shifts the schedule, so the rate stays at 100 Hz even when single ticks are late "
