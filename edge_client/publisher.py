@@ -27,6 +27,7 @@ show those: compare ``estimates`` with ``sent``.
 
 from __future__ import annotations
 
+import gc
 import sys
 import threading
 import time
@@ -229,8 +230,9 @@ class FleetPublisher:
         self._index = {vehicle_id: i for i, vehicle_id in enumerate(self.ids)}
         self._buffer_len = max(round(self.options.buffer_s / period_s), 0)
         self._buffers: list[deque[tuple[int, bytes]]] = [deque() for _ in range(nv)]
-        self._ring_seq = np.full((nv, LATENCY_RING), -1, dtype=np.int64)
-        self._ring_ns = np.zeros((nv, LATENCY_RING), dtype=np.int64)
+        # per vehicle, (seq, publish time) of recent samples in a ring: plain lists, cheap to write per put
+        self._ring_seq = [[-1] * LATENCY_RING for _ in range(nv)]
+        self._ring_ns = [[0] * LATENCY_RING for _ in range(nv)]
         onsets = onset_s if onset_s is not None else [None] * nv
         if len(onsets) != nv:
             raise ValueError(f"onset_s has {len(onsets)} entries for {nv} vehicles")
@@ -251,6 +253,7 @@ class FleetPublisher:
         self._rx_lock = threading.Lock()
         self.start_wall_ns = 0
         self.links = VehicleLinks(session, self.ids, self.options.prefix, truth=self._truth_every > 0)
+        self._put_measurement = self.links.measurement_putters()
         self._subscriptions: list[Subscription] = []
         try:
             self._subscriptions.append(
@@ -283,8 +286,8 @@ class FleetPublisher:
             return
         slot = estimate.seq % LATENCY_RING
         with self._rx_lock:
-            if self._ring_seq[i, slot] == estimate.seq:
-                rtt = rx.received_ns - int(self._ring_ns[i, slot])
+            if self._ring_seq[i][slot] == estimate.seq:
+                rtt = rx.received_ns - self._ring_ns[i][slot]
                 self.latency.add(rtt)
                 self._interval_latency.add(rtt)
             record = self.records[i]
@@ -328,9 +331,10 @@ class FleetPublisher:
         return self.pacer.deadline_ns(k)
 
     def _put(self, i: int, seq: int, payload: bytes) -> None:
-        self._ring_seq[i, seq % LATENCY_RING] = seq
-        self._ring_ns[i, seq % LATENCY_RING] = self._clock()
-        self.links.put_measurement(i, payload)
+        slot = seq % LATENCY_RING
+        self._ring_seq[i][slot] = seq
+        self._ring_ns[i][slot] = self._clock()
+        self._put_measurement[i](payload)
         self.records[i].sent += 1
 
     def _publish_tick(self) -> None:
@@ -446,9 +450,13 @@ class FleetPublisher:
         previous_switch = sys.getswitchinterval()
         if self.options.gil_switch_interval_s is not None:
             sys.setswitchinterval(self.options.gil_switch_interval_s)
+        # everything built so far (scenarios, compiled signals, zenoh objects) is long-lived: keep it out
+        # of the collector's full passes, which otherwise stall a big fleet's loop for tens of ms
+        gc.freeze()
         try:
             return self._run(n_ticks, stop, on_progress, progress_period_s, drain_s)
         finally:
+            gc.unfreeze()
             sys.setswitchinterval(previous_switch)
 
     def _run(

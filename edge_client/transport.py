@@ -98,7 +98,13 @@ def open_session(options: TransportOptions) -> zenoh.Session:
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
-        raise TransportError(f"cannot open a zenoh session ({options.describe()}): {_first_line(exc)}") from exc
+        hint = ""
+        if options.mode == "client":
+            hint = (
+                "; is a zenoh router listening there? (for example: docker run -p 7447:7447 eclipse/zenoh, "
+                "or a longer --connect-timeout)"
+            )
+        raise TransportError(f"cannot open a zenoh session ({options.describe()}): {_first_line(exc)}{hint}") from exc
 
 
 def close_session(session: zenoh.Session) -> None:
@@ -254,6 +260,10 @@ class VehicleLinks:
 
     def put_measurement(self, i: int, payload: bytes) -> None:
         self._meas[i].put(payload)
+
+    def measurement_putters(self) -> list[Callable[[bytes], None]]:
+        """``put`` of each vehicle's measurement publisher, for a hot loop that calls them directly."""
+        return [publisher.put for publisher in self._meas]
 
     def put_truth(self, i: int, payload: bytes) -> None:
         if self.truth:
