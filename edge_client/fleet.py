@@ -42,6 +42,7 @@ class FleetConfig:
     mix: str = DEFAULT_MIX
     seed: int = 0
     noise: SensorNoise | None = None
+    gusts: bool = False
     id_prefix: str = "veh"
     transport: TransportOptions = field(default_factory=TransportOptions)
     publisher: PublisherOptions = field(default_factory=PublisherOptions)
@@ -243,6 +244,7 @@ def run_fleet(
             seed=config.seed,
             noise=config.noise,
             id_prefix=config.id_prefix,
+            gusts=config.gusts,
         )
     source = TruthTracker(SimulatedSource([m.vehicle_id for m in members], [m.scenario for m in members]))
     log: TextIO | None = None

@@ -40,6 +40,9 @@ def register(sub: Any) -> None:
         default="none",
         help="sensor noise: 'none' (default), 'realistic' (sigma v_x 0.05 m/s, r 0.005 rad/s) or 'SIGMA_VX,SIGMA_R'",
     )
+    parser.add_argument(
+        "--gusts", action="store_true", help="random lateral wind gusts of 300-800 N on every vehicle (a disturbance)"
+    )
     parser.add_argument("--id-prefix", default="veh", help="vehicle ids are PREFIX-000, PREFIX-001, ...")
     parser.add_argument(
         "--truth-hz", type=float, default=10.0, metavar="HZ", help="ground-truth rate, 0 = off (default 10)"
@@ -85,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
             mix=args.scenario_mix,
             seed=args.seed,
             noise=parse_noise(args.noise),
+            gusts=args.gusts,
             id_prefix=args.id_prefix,
             transport=transport_options(args),
             publisher=PublisherOptions(truth_rate_hz=args.truth_hz, buffer_s=args.buffer, prefix=args.prefix),
@@ -98,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
                 seed=config.seed,
                 noise=config.noise,
                 id_prefix=config.id_prefix,
+                gusts=config.gusts,
             )
         except (MixError, ScenarioError, ValueError) as exc:
             raise CommandError(f"--scenario-mix: {exc}") from exc

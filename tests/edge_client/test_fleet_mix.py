@@ -16,6 +16,7 @@ from edge_client.fleet_mix import (
 )
 from edge_client.plant import PlantSimulator
 from edge_client.scenario import ScenarioError, SensorNoise
+from edge_client.simulation import observer_factory, run
 
 
 def test_parse_mix_normalises_weights():
@@ -108,3 +109,19 @@ def test_scenario_file_mix_cycles_and_names_bad_entries(tmp_path):
         build_fleet(str(bad), 2, 10.0)
     message = str(info.value)
     assert "bad.yaml[1]" in message and "faults.0" in message and "channel" in message
+
+
+def test_random_gusts_leave_healthy_vehicles_below_the_alarm_thresholds(paper_gains_order1):
+    """With --gusts, healthy vehicles meet 300-800 N gusts; the observer's fault estimates stay under the
+    assumed thresholds (a gust is a disturbance, not an actuator fault)."""
+    scenarios = [mix_scenario("healthy", f"v{seed}", 30.0, seed=seed, gusts=True) for seed in range(4)]
+    assert all(s.gusts for s in scenarios)
+    assert all(300 <= abs(g.force_n) <= 800 for s in scenarios for g in s.gusts)
+    # the drive is the same with or without gusts
+    assert scenarios[0].manoeuvres == mix_scenario("healthy", "v0", 30.0, seed=0).manoeuvres
+    result = run(scenarios, observer_factory(paper_gains_order1))
+    assert np.abs(result.wind).max() >= 300
+    settled = result.t >= 2.0
+    peak = np.abs(result.f_hat[settled]).max(axis=(0, 1))
+    assert peak[0] < ASSUMED_ALARM.torque_threshold_nm / 4
+    assert peak[1] < ASSUMED_ALARM.steer_threshold_rad
