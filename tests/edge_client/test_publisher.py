@@ -10,8 +10,9 @@ import pytest
 from edge_client.fleet_mix import DEFAULT_MIX, build_fleet
 from edge_client.publisher import FleetPublisher, PublisherOptions
 from edge_client.sources import SimulatedSource
-from edge_client.transport import ChannelSubscription, Subscription, close_session, open_session
+from edge_client.transport import ChannelSubscription, Subscription, TransportOptions, close_session, open_session
 from service.protocol import FLAG_SEQUENCE_RESTART, GroundTruth, Measurement, fleet_selector, parse_vehicle_key
+from tests.edge_client.conftest import free_port
 
 pytestmark = pytest.mark.network
 
@@ -115,3 +116,26 @@ def test_undeliverable_samples_are_buffered_then_flushed_and_overflow_is_counted
             c.close()
         close_session(session)
         close_session(listener)
+
+
+def test_peer_mode_without_a_router():
+    """A publishing peer listens on an explicit endpoint; a subscribing peer connects to it directly."""
+    port = free_port()
+    publisher_options = TransportOptions(mode="peer", connect=(), listen=(f"tcp/127.0.0.1:{port}",))
+    session = open_session(publisher_options)
+    listener = open_session(TransportOptions(mode="peer", connect=(f"tcp/127.0.0.1:{port}",)))
+    counter = Counter(listener)
+    try:
+        time.sleep(0.3)
+        source = fleet_source(2, 1.0)
+        with FleetPublisher(session, source, PublisherOptions(truth_rate_hz=0.0)) as publisher:
+            report = publisher.run(1.0, drain_s=0.3)
+        assert report.sent == 200 and report.lost == 0
+        with counter.lock:
+            assert {v: [m.seq for m in ms] for v, ms in counter.meas.items()} == {
+                v: list(range(100)) for v in source.vehicle_ids
+            }
+    finally:
+        counter.close()
+        close_session(listener)
+        close_session(session)
