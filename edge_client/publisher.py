@@ -132,16 +132,18 @@ class Progress:
     connected: bool
 
     def line(self) -> str:
-        """One line of at most 80 characters."""
+        """One line of at most 80 characters; the buffer is shown only when it holds samples."""
         if not self.connected:
             link = "DOWN"
         elif self.linked < self.vehicles:
             link = f"{self.linked}/{self.vehicles}"
         else:
             link = "up"
+        elapsed = f"{self.elapsed_s:6.1f}s" if self.elapsed_s < 10_000 else f"{self.elapsed_s:.0f}s"
+        buffered = f" buf {_count(self.buffered)}" if self.buffered else ""
         return (
-            f"{self.elapsed_s:6.1f}s {self.tick_rate_hz:5.1f}Hz sent {_count(self.sent)} lost {_count(self.lost)} "
-            f"buf {_count(self.buffered)} est {_count(self.estimates)} alarms {_count(self.alarms)} link {link} "
+            f"{elapsed} {self.tick_rate_hz:5.1f}Hz sent {_count(self.sent)} lost {_count(self.lost)}{buffered} "
+            f"est {_count(self.estimates)} alarms {_count(self.alarms)} link {link} "
             f"rtt {_ms(self.rtt_p50_ms)}/{_ms(self.rtt_p99_ms)}ms"
         )[:80]
 
@@ -153,12 +155,16 @@ def _ms(value: float) -> str:
 
 
 def _count(n: int) -> str:
-    """A count in at most 5 characters: 9999, 12.3k, 1.23M."""
+    """A count in at most 4 characters: 9999, 12k, 123k, 1.2M, 988M."""
     if n < 10_000:
         return str(n)
-    if n < 1_000_000:
-        return f"{n / 1e3:.1f}k"
-    return f"{n / 1e6:.2f}M"
+    for scale, suffix in ((1e3, "k"), (1e6, "M"), (1e9, "G")):
+        value = n / scale
+        if value < 9.95:
+            return f"{value:.1f}{suffix}"
+        if value < 999.5:
+            return f"{value:.0f}{suffix}"
+    return f"{n / 1e12:.0f}T"
 
 
 @dataclass(frozen=True)

@@ -6,9 +6,7 @@ from edge_client.plant import PlantSimulator
 from edge_client.random_drive import lateral_steady_state_gains, random_drive, steer_budget_rad
 from edge_client.scenario import Manoeuvre, Scenario
 from synth.params import OperatingBounds, VehicleParams
-
-#: Relative agreement of the predicted steady state with a long plant run.
-STEADY_STATE_RTOL = 0.02
+from tests.tolerances import STEADY_STATE_RTOL
 
 
 @pytest.mark.parametrize("speed", [8.0, 20.0])
