@@ -108,7 +108,8 @@ def test_router_restart_during_a_fleet_run(router, estimation_service, tmp_path)
         while time.monotonic() < deadline:
             line = process.stdout.readline()
             lines.append(line)
-            if line.lstrip().startswith("3.0s"):
+            first = line.split(maxsplit=1)[0] if line.strip() else ""
+            if first.endswith("s") and first[:-1].replace(".", "", 1).isdigit() and float(first[:-1]) >= 3.0:
                 break
         else:
             pytest.fail(f"the fleet did not reach 3 s: {''.join(lines)}")
@@ -130,7 +131,7 @@ def test_router_restart_during_a_fleet_run(router, estimation_service, tmp_path)
         # every sample is accounted for: sent, or dropped from the full buffer (lost)
         assert v["sent"] + v["lost"] == n_samples, v
         # an outage of ~1-2 s against a 0.5 s buffer loses samples, and they are counted
-        assert 20 <= v["lost"] <= 300, v
+        assert 20 <= v["lost"] <= 500, v
         # the service kept estimating after the restart, to the end of the run
         assert v["last_estimate_seq"] >= n_samples - 100, v
         if getattr(estimation_service, "answers_every_sample", False):
