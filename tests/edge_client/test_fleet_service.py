@@ -107,6 +107,8 @@ def test_router_restart_during_a_fleet_run(router, estimation_service, tmp_path)
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             line = process.stdout.readline()
+            if not line:  # the fleet ended early
+                pytest.fail(f"the fleet stopped before 3 s: {''.join(lines)}{process.communicate()[1]}")
             lines.append(line)
             first = line.split(maxsplit=1)[0] if line.strip() else ""
             if first.endswith("s") and first[:-1].replace(".", "", 1).isdigit() and float(first[:-1]) >= 3.0:
