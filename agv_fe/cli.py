@@ -14,6 +14,9 @@ COMMANDS = {
     "replay": "agv_fe.commands.replay",
     "compare": "agv_fe.commands.compare",
     "serve": "agv_fe.commands.serve",
+    "fleet": "agv_fe.commands.fleet",
+    "dashboard": "agv_fe.commands.dashboard",
+    "publish-csv": "agv_fe.commands.publish_csv",
     "demo": "agv_fe.commands.demo",
     "bench": "agv_fe.commands.bench",
 }

@@ -8,11 +8,14 @@ and the planar pose over [t_k, t_{k+1}) with the inputs held, in
 ``substeps`` RK4 steps (10 = 1 ms at s = 10 ms).
 
 Scenario signals are compiled in chunks, so a fleet can run for hours with
-bounded memory.
+bounded memory. The next chunk is compiled a few vehicles at a time during
+the second half of the current one (``prefetch``), so a paced loop never
+stalls for a whole fleet's compilation at a chunk boundary.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -71,6 +74,7 @@ class PlantSimulator:
         params: VehicleParams | None = None,
         substeps: int = 10,
         seed: int | None = None,
+        prefetch: bool = True,
     ) -> None:
         if not scenarios:
             raise ValueError("PlantSimulator needs at least one scenario")
@@ -93,8 +97,11 @@ class PlantSimulator:
         self.noise_bias = np.array([[n.vx_bias_mps, n.r_bias_radps] for n in noise])
         self.speed_kp = np.array([s.driver.speed_kp_per_s for s in self.scenarios])
         self.k = 0
+        self.prefetch = prefetch
         self._chunk_start = -1
         self._chunk: dict[str, FloatArray] = {}
+        self._next_start = -1
+        self._next_parts: list[ScenarioSignals] = []
 
     @property
     def n_vehicles(self) -> int:
@@ -108,13 +115,36 @@ class PlantSimulator:
         """The compiled signals of the chunk holding sample k, each stacked to (CHUNK_SAMPLES, nv[, 2])."""
         start = (k // CHUNK_SAMPLES) * CHUNK_SAMPLES
         if start != self._chunk_start:
-            compiled = [s.compile(self.sample_period_s, start, CHUNK_SAMPLES) for s in self.scenarios]
+            parts = self._next_parts if self._next_start == start else []
+            compiled = parts + [
+                s.compile(self.sample_period_s, start, CHUNK_SAMPLES) for s in self.scenarios[len(parts) :]
+            ]
             self._chunk = {
                 name: np.stack([getattr(c, name) for c in compiled], axis=1)
                 for name in ScenarioSignals.__dataclass_fields__
             }
             self._chunk_start = start
+            self._next_start, self._next_parts = -1, []
         return k - start, self._chunk
+
+    def prepare(self) -> None:
+        """Compile the signals of the next sample's chunk now, so the first :meth:`step` does not."""
+        self._signals_at(self.k)
+
+    def _prefetch_next_chunk(self) -> None:
+        """In the second half of a chunk, compile a share of the next chunk's vehicles (done a tick early)."""
+        offset = self.k - self._chunk_start
+        if offset < CHUNK_SAMPLES // 2 or offset >= CHUNK_SAMPLES:
+            return
+        next_start = self._chunk_start + CHUNK_SAMPLES
+        if self._next_start != next_start:
+            self._next_start, self._next_parts = next_start, []
+        todo = self.n_vehicles - len(self._next_parts)
+        if todo <= 0:
+            return
+        ticks_left = max(CHUNK_SAMPLES - offset - 1, 1)
+        for scenario in self.scenarios[len(self._next_parts) :][: math.ceil(todo / ticks_left)]:
+            self._next_parts.append(scenario.compile(self.sample_period_s, next_start, CHUNK_SAMPLES))
 
     def step(self) -> PlantSample:
         """Measure, drive, inject faults at t_k; integrate to t_{k+1}; return the sample at t_k."""
@@ -158,4 +188,6 @@ class PlantSimulator:
         state[:, 0] = np.maximum(state[:, 0], MIN_SPEED_MPS)
         self.state = state
         self.k += 1
+        if self.prefetch:
+            self._prefetch_next_chunk()
         return sample

@@ -165,8 +165,12 @@ class Scenario(_Strict):
         n = count
         t = (start + np.arange(n)) * sample_period_s
         steer = np.zeros(n)
-        for m in self.manoeuvres:
-            steer += m.steer(t)
+        if n:
+            t_first, t_last = float(t[0]), float(t[-1])
+            for m in self.manoeuvres:
+                # only manoeuvres overlapping the window: a long drive has hundreds
+                if m.start_s <= t_last and m.start_s + m.duration_s > t_first:
+                    steer += m.steer(t)
         if self.speed_profile:
             pts_t = np.array([p.t_s for p in self.speed_profile])
             pts_v = np.array([p.speed_mps for p in self.speed_profile])

@@ -12,6 +12,7 @@ BENCHMARKS = {
     "synthesis": "agv_fe.benchmarks.synthesis",
     "accuracy": "agv_fe.benchmarks.accuracy",
     "service_load": "agv_fe.benchmarks.service_load",
+    "publisher": "agv_fe.benchmarks.publisher",
 }
 
 

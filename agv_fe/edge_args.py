@@ -1,0 +1,89 @@
+"""What the edge commands (fleet, dashboard, publish-csv) share: zenoh flags, progress lines, Ctrl-C."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+from agv_fe.common import CommandError
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def add_transport_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("zenoh")
+    group.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"endpoint to connect to, repeatable (default in client mode: {DEFAULT_ENDPOINT})",
+    )
+    group.add_argument("--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on (peer mode)")
+    group.add_argument(
+        "--mode", choices=("client", "peer"), default="client", help="client of a router (default) or peer"
+    )
+    group.add_argument(
+        "--connect-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="how long to wait for the router at start, -1 = for ever (default 10); "
+        "after that, lost connections are retried for ever",
+    )
+    group.add_argument("--prefix", default="agv", help="key-expression prefix of the protocol (default agv)")
+
+
+def transport_options(args: argparse.Namespace) -> Any:
+    """The TransportOptions the flags describe; a CommandError for impossible combinations."""
+    from edge_client.transport import TransportOptions
+
+    connect = tuple(args.connect or ())
+    listen = tuple(args.listen or ())
+    if args.mode == "client" and not connect:
+        connect = (DEFAULT_ENDPOINT,)
+    if args.mode == "peer" and not (connect or listen):
+        raise CommandError("--mode peer needs --connect or --listen: multicast scouting is off")
+    if not math.isfinite(args.connect_timeout) or (args.connect_timeout < 0 and args.connect_timeout != -1):
+        raise CommandError(f"--connect-timeout: expected seconds >= 0 or -1, got {args.connect_timeout}")
+    if not args.prefix or "/" in args.prefix or "*" in args.prefix:
+        raise CommandError(f"--prefix: expected one key chunk without '/' or '*', got {args.prefix!r}")
+    return TransportOptions(
+        mode=args.mode, connect=connect, listen=listen, connect_timeout_s=args.connect_timeout, prefix=args.prefix
+    )
+
+
+@contextlib.contextmanager
+def stop_on_interrupt() -> Iterator[threading.Event]:
+    """An event that Ctrl-C sets instead of raising, so a run can end cleanly and report."""
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        yield stop
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+class ProgressPrinter:
+    """Progress lines: rewritten in place on a terminal, one per line otherwise."""
+
+    def __init__(self) -> None:
+        self.tty = sys.stdout.isatty()
+        self.printed = False
+
+    def __call__(self, progress: Any) -> None:
+        line: str = progress.line()
+        if self.tty:
+            print("\r" + line.ljust(80), end="", flush=True)
+        else:
+            print(line, flush=True)
+        self.printed = True
+
+    def finish(self) -> None:
+        if self.tty and self.printed:
+            print()

@@ -1,0 +1,281 @@
+"""Zenoh for the vehicle side: sessions, per-vehicle publishers, subscriptions.
+
+The only module of ``edge_client`` that imports zenoh; the publisher and the
+dashboard use it through the small classes below, so the simulator, the
+scenarios and the statistics stay transport-free.
+
+Choices (see /work/shared/NOTES-zenoh.md for the measurements behind them):
+
+* explicit endpoints, multicast scouting off, client mode by default;
+* ``connect/timeout_ms``: how long ``open`` waits for the first router (-1 =
+  for ever); once open, a client reconnects by itself after a router restart,
+  with retries every 250 ms growing to 1 s;
+* measurements are published with congestion control BLOCK and priority
+  DATA_HIGH: the observer needs every sample, and the default DROP lost half
+  the messages under overload with no error. If the network cannot keep up the
+  publisher's loop slows down, and that shows as late ticks in its statistics
+  instead of silent loss. Ground truth, for validation only, is DROP and
+  DATA_LOW so it can never hold measurements back;
+* a measurement publisher's *matching status* (is any subscriber reachable
+  for this key?) tells the publisher whether a sample can be delivered: it
+  turns false within milliseconds when the router goes away and true again
+  once the router is back and the service has re-declared its subscription.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import zenoh
+
+from service.protocol import DEFAULT_PREFIX, vehicle_key
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+class TransportError(Exception):
+    """Zenoh could not be configured or reached; the message names the endpoints."""
+
+
+@dataclass(frozen=True)
+class TransportOptions:
+    """How to join the Zenoh network.
+
+    mode : 'client' (through a router) or 'peer'; connect / listen : endpoints such as
+    'tcp/127.0.0.1:7447'; connect_timeout_s : how long opening waits for a connect
+    endpoint, -1 = wait for ever; prefix : key-expression prefix of the protocol.
+    """
+
+    mode: Literal["client", "peer"] = "client"
+    connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)
+    listen: tuple[str, ...] = ()
+    connect_timeout_s: float = 10.0
+    prefix: str = DEFAULT_PREFIX
+
+    def describe(self) -> str:
+        parts: list[str] = [self.mode]
+        if self.connect:
+            parts.append("connect " + ", ".join(self.connect))
+        if self.listen:
+            parts.append("listen " + ", ".join(self.listen))
+        return "; ".join(parts)
+
+
+def zenoh_config(options: TransportOptions) -> zenoh.Config:
+    """A zenoh Config for ``options``; raise TransportError on a malformed endpoint or option."""
+    if options.mode == "client" and not options.connect:
+        raise TransportError("client mode needs at least one connect endpoint, e.g. tcp/127.0.0.1:7447")
+    if options.mode == "peer" and not (options.connect or options.listen):
+        raise TransportError("peer mode needs a connect or a listen endpoint (multicast scouting is off)")
+    timeout_ms = -1 if options.connect_timeout_s < 0 else round(options.connect_timeout_s * 1000)
+    config = zenoh.Config()
+    settings: list[tuple[str, Any]] = [
+        ("mode", options.mode),
+        ("connect/endpoints", list(options.connect)),
+        ("listen/endpoints", list(options.listen)),
+        ("scouting/multicast/enabled", False),
+        ("connect/timeout_ms", timeout_ms),
+        ("connect/retry", {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}),
+    ]
+    for path, value in settings:
+        try:
+            config.insert_json5(path, json.dumps(value))
+        except zenoh.ZError as exc:
+            raise TransportError(f"invalid zenoh setting {path} = {value!r}: {_first_line(exc)}") from exc
+    return config
+
+
+def open_session(options: TransportOptions) -> zenoh.Session:
+    """Open a session; a router that cannot be reached in time is a TransportError naming it."""
+    config = zenoh_config(options)
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        hint = ""
+        if options.mode == "client":
+            hint = (
+                "; is a zenoh router listening there? (for example: docker run -p 7447:7447 eclipse/zenoh, "
+                "or a longer --connect-timeout)"
+            )
+        raise TransportError(f"cannot open a zenoh session ({options.describe()}): {_first_line(exc)}{hint}") from exc
+
+
+def close_session(session: zenoh.Session) -> None:
+    """Close a session explicitly: an unclosed one with subscribers can hang the process at exit."""
+    session.close()  # type: ignore[no-untyped-call]  # the stubs leave close() untyped
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc)
+    return text.split(" at /", 1)[0].splitlines()[0] if text else type(exc).__name__
+
+
+def connected_nodes(session: zenoh.Session) -> int:
+    """Routers plus peers this session is connected to now."""
+    info = session.info
+    return len(info.routers_zid()) + len(info.peers_zid())
+
+
+@dataclass(frozen=True)
+class Received:
+    """A received sample: its key, payload, receipt time (time.monotonic_ns) and whether it was a PUT."""
+
+    key: str
+    payload: bytes
+    received_ns: int
+    put: bool = True
+
+
+class Subscription:
+    """A subscriber on one key expression; ``callback`` runs on zenoh's thread for each sample."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str, callback: Callable[[Received], None]) -> None:
+        def on_sample(sample: zenoh.Sample) -> None:
+            now = time.monotonic_ns()
+            callback(Received(str(sample.key_expr), sample.payload.to_bytes(), now))
+
+        self._subscriber: Any = session.declare_subscriber(key_expr, on_sample)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+class ChannelSubscription:
+    """A subscriber whose samples wait in a bounded channel until :meth:`drain`.
+
+    ``ring`` True: when full, the oldest samples are dropped (for streams where
+    only the latest matters); False: a FIFO that makes zenoh wait (for events).
+    ``liveliness`` True subscribes to liveliness tokens instead of samples
+    (``put`` False means the token disappeared), with the tokens present at
+    declaration reported first.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        capacity: int = 10_000,
+        *,
+        ring: bool = False,
+        liveliness: bool = False,
+    ) -> None:
+        handler: Any = zenoh.handlers.RingChannel(capacity) if ring else zenoh.handlers.FifoChannel(capacity)
+        self._subscriber: Any
+        if liveliness:
+            self._subscriber = session.liveliness().declare_subscriber(key_expr, handler, history=True)
+        else:
+            self._subscriber = session.declare_subscriber(key_expr, handler)
+
+    def drain(self, limit: int = 1_000_000) -> list[Received]:
+        """Every sample waiting now (at most ``limit``), oldest first, without blocking."""
+        out: list[Received] = []
+        now = time.monotonic_ns()
+        while len(out) < limit:
+            sample = self._subscriber.handler.try_recv()
+            if sample is None:
+                break
+            out.append(
+                Received(
+                    str(sample.key_expr),
+                    sample.payload.to_bytes(),
+                    now,
+                    put=sample.kind == zenoh.SampleKind.PUT,
+                )
+            )
+        return out
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+@dataclass
+class VehicleLinks:
+    """Per-vehicle publishers (measurements, ground truth), liveliness tokens and matching state.
+
+    ``matched[i]`` is True while some subscriber can receive vehicle i's
+    measurements; zenoh updates it from its own thread through a matching
+    listener per vehicle.
+    """
+
+    session: zenoh.Session
+    vehicle_ids: Sequence[str]
+    prefix: str = DEFAULT_PREFIX
+    truth: bool = True
+    matched: np.ndarray = field(init=False)
+    _meas: list[Any] = field(init=False, default_factory=list)
+    _truth: list[Any] = field(init=False, default_factory=list)
+    _tokens: list[Any] = field(init=False, default_factory=list)
+    _listeners: list[Any] = field(init=False, default_factory=list)
+    _lock: threading.Lock = field(init=False, default_factory=threading.Lock)
+    match_changes: int = field(init=False, default=0)
+
+    def __post_init__(self) -> None:
+        self.matched = np.zeros(len(self.vehicle_ids), dtype=bool)
+        try:
+            for i, vehicle_id in enumerate(self.vehicle_ids):
+                # typed Any: the stubs say matching_status is a bool, it is a MatchingStatus
+                publisher: Any = self.session.declare_publisher(
+                    vehicle_key(vehicle_id, "meas", self.prefix),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.DATA_HIGH,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
+                self._meas.append(publisher)
+                self._listeners.append(
+                    publisher.declare_matching_listener(
+                        zenoh.handlers.Callback(self._matching_callback(i), indirect=False)
+                    )
+                )
+                self.matched[i] = publisher.matching_status.matching
+                if self.truth:
+                    self._truth.append(
+                        self.session.declare_publisher(
+                            vehicle_key(vehicle_id, "truth", self.prefix),
+                            congestion_control=zenoh.CongestionControl.DROP,
+                            priority=zenoh.Priority.DATA_LOW,
+                        )
+                    )
+                self._tokens.append(
+                    self.session.liveliness().declare_token(vehicle_key(vehicle_id, "alive", self.prefix))
+                )
+        except BaseException:
+            self.close()
+            raise
+
+    def _matching_callback(self, i: int) -> Callable[[zenoh.MatchingStatus], None]:
+        def on_change(status: zenoh.MatchingStatus) -> None:
+            with self._lock:
+                if bool(self.matched[i]) != status.matching:
+                    self.match_changes += 1
+                self.matched[i] = status.matching
+
+        return on_change
+
+    def put_measurement(self, i: int, payload: bytes) -> None:
+        self._meas[i].put(payload)
+
+    def measurement_putters(self) -> list[Callable[[bytes], None]]:
+        """``put`` of each vehicle's measurement publisher, for a hot loop that calls them directly."""
+        return [publisher.put for publisher in self._meas]
+
+    def put_truth(self, i: int, payload: bytes) -> None:
+        if self.truth:
+            self._truth[i].put(payload)
+
+    def close(self) -> None:
+        """Undeclare everything (tokens last, so the vehicles disappear after their last sample)."""
+        for item in (*self._listeners, *self._meas, *self._truth, *self._tokens):
+            # the session may already be closed: then there is nothing left to release
+            with contextlib.suppress(zenoh.ZError):
+                item.undeclare()
+        self._listeners.clear()
+        self._meas.clear()
+        self._truth.clear()
+        self._tokens.clear()

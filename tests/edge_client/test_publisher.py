@@ -1,0 +1,139 @@
+"""The publisher on real zenoh sessions through a router process on 127.0.0.1."""
+
+import threading
+import time
+from collections import defaultdict
+
+import numpy as np
+import pytest
+
+from edge_client.fleet_mix import DEFAULT_MIX, build_fleet
+from edge_client.publisher import FleetPublisher, PublisherOptions
+from edge_client.sources import SimulatedSource
+from edge_client.transport import ChannelSubscription, Subscription, TransportOptions, close_session, open_session
+from service.protocol import FLAG_SEQUENCE_RESTART, GroundTruth, Measurement, fleet_selector, parse_vehicle_key
+from tests.edge_client.conftest import free_port
+from tests.tolerances import PUBLISH_OVERRUN_FRACTION, PUBLISH_RATE_RTOL
+
+pytestmark = pytest.mark.network
+
+
+class Counter:
+    """Decodes every measurement and ground truth it receives, per vehicle."""
+
+    def __init__(self, session):
+        self.meas = defaultdict(list)
+        self.truth = defaultdict(list)
+        self.lock = threading.Lock()
+        self.subs = [
+            Subscription(session, fleet_selector("meas"), self.on_meas),
+            Subscription(session, fleet_selector("truth"), self.on_truth),
+        ]
+
+    def on_meas(self, rx):
+        m = Measurement.decode(rx.payload)
+        with self.lock:
+            self.meas[m.vehicle_id].append(m)
+
+    def on_truth(self, rx):
+        t = GroundTruth.decode(rx.payload)
+        with self.lock:
+            self.truth[t.vehicle].append(t)
+
+    def close(self):
+        for sub in self.subs:
+            sub.close()
+
+
+def fleet_source(n, duration_s, seed=0):
+    members = build_fleet(DEFAULT_MIX, n, duration_s, seed=seed)
+    return SimulatedSource([m.vehicle_id for m in members], [m.scenario for m in members])
+
+
+def test_50_vehicles_at_100_hz_for_10_s(router):
+    """One process, one session, 50 vehicles: 100 Hz within 1 % measured as samples / elapsed; nothing lost."""
+    listener = open_session(router.client())
+    counter = Counter(listener)
+    alive = ChannelSubscription(listener, fleet_selector("alive"), 1000, liveliness=True)
+    session = open_session(router.client())
+    try:
+        source = fleet_source(50, 10.0)
+        time.sleep(0.3)
+        with FleetPublisher(session, source, PublisherOptions(truth_rate_hz=10.0)) as publisher:
+            report = publisher.run(10.0, drain_s=0.5)
+            tokens = {parse_vehicle_key(rx.key)[0] for rx in alive.drain() if rx.put}
+        print(
+            f"\n50 vehicles: {report.sample_rate_hz:.3f} Hz over {report.elapsed_s:.3f} s, "
+            f"lateness p50 {report.pacing.lateness_p50_ms:.3f} ms p99 {report.pacing.lateness_p99_ms:.3f} ms, "
+            f"late {report.pacing.late}, overruns {report.pacing.overruns}"
+        )
+        assert report.sample_rate_hz == pytest.approx(100.0, rel=PUBLISH_RATE_RTOL)
+        assert report.pacing.ticks == 1000 and report.sent == 50 * 1000
+        assert report.pacing.overruns <= PUBLISH_OVERRUN_FRACTION * report.pacing.ticks
+        assert report.lost == 0 and report.unsent_at_end == 0
+        assert tokens == set(source.vehicle_ids)
+        with counter.lock:
+            assert set(counter.meas) == set(source.vehicle_ids)
+            for messages in counter.meas.values():
+                assert [m.seq for m in messages] == list(range(1000))
+                assert messages[0].flags == FLAG_SEQUENCE_RESTART and messages[1].flags == 0
+                assert set(np.diff([m.timestamp_ns for m in messages])) == {10_000_000}
+            # ground truth decimated to 10 Hz, best effort
+            truth_counts = [len(v) for v in counter.truth.values()]
+            assert len(truth_counts) == 50 and min(truth_counts) >= 95 and max(truth_counts) <= 100
+    finally:
+        counter.close()
+        alive.close()
+        close_session(session)
+        close_session(listener)
+
+
+def test_undeliverable_samples_are_buffered_then_flushed_and_overflow_is_counted(router):
+    """No subscriber for the first second: a 0.5 s buffer keeps the newest 50 samples, the rest are lost."""
+    session = open_session(router.client())
+    listener = open_session(router.client())
+    counter: list[Counter] = []
+    try:
+        source = fleet_source(3, 2.0)
+        options = PublisherOptions(truth_rate_hz=0.0, buffer_s=0.5)
+        with FleetPublisher(session, source, options) as publisher:
+            timer = threading.Timer(1.0, lambda: counter.append(Counter(listener)))
+            timer.start()
+            report = publisher.run(2.0, drain_s=0.5)
+            timer.join()
+        assert report.link_changes >= 3  # each vehicle went from unmatched to matched
+        with counter[0].lock:
+            for record in report.vehicles:
+                seqs = [m.seq for m in counter[0].meas[record.vehicle_id]]
+                # the oldest samples were dropped; what was sent arrived complete and in order
+                assert 40 <= record.lost <= 60
+                assert seqs == list(range(record.lost, 200))
+                assert record.sent == len(seqs)
+    finally:
+        for c in counter:
+            c.close()
+        close_session(session)
+        close_session(listener)
+
+
+def test_peer_mode_without_a_router():
+    """A publishing peer listens on an explicit endpoint; a subscribing peer connects to it directly."""
+    port = free_port()
+    publisher_options = TransportOptions(mode="peer", connect=(), listen=(f"tcp/127.0.0.1:{port}",))
+    session = open_session(publisher_options)
+    listener = open_session(TransportOptions(mode="peer", connect=(f"tcp/127.0.0.1:{port}",)))
+    counter = Counter(listener)
+    try:
+        time.sleep(0.3)
+        source = fleet_source(2, 1.0)
+        with FleetPublisher(session, source, PublisherOptions(truth_rate_hz=0.0)) as publisher:
+            report = publisher.run(1.0, drain_s=0.3)
+        assert report.sent == 200 and report.lost == 0
+        with counter.lock:
+            assert {v: [m.seq for m in ms] for v, ms in counter.meas.items()} == {
+                v: list(range(100)) for v in source.vehicle_ids
+            }
+    finally:
+        counter.close()
+        close_session(listener)
+        close_session(session)
