@@ -38,10 +38,12 @@ class AlarmThresholds(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    torque_warn_nm: Positive = Field(50.0, description="|T_f| raising WARN [N m]")
-    torque_fault_nm: Positive = Field(100.0, description="|T_f| raising FAULT [N m]")
-    steer_warn_rad: Positive = Field(0.05, description="|delta_f| raising WARN [rad]")
-    steer_fault_rad: Positive = Field(0.1, description="|delta_f| raising FAULT [rad]")
+    # Defaults: about 5x the fault-estimate RMSE of the default 'robust' design under realistic
+    # sensor noise (6-9 N m, 0.0005-0.005 rad; docs/benchmarks/accuracy.md) for WARN, twice that for FAULT.
+    torque_warn_nm: Positive = Field(40.0, description="|T_f| raising WARN [N m]")
+    torque_fault_nm: Positive = Field(80.0, description="|T_f| raising FAULT [N m]")
+    steer_warn_rad: Positive = Field(0.01, description="|delta_f| raising WARN [rad]")
+    steer_fault_rad: Positive = Field(0.02, description="|delta_f| raising FAULT [rad]")
     hysteresis: Annotated[float, Field(gt=0, le=1)] = Field(
         0.8, description="a level holds until the value falls below hysteresis x its threshold [-]"
     )

@@ -52,6 +52,7 @@ MEASUREMENT_HEADER_SIZE = _HEADER.size  # 64
 FLAG_SEQUENCE_RESTART = 0x01
 
 VEHICLE_ID_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+BUCKET_PATTERN = re.compile(r"^b[0-9a-f]{2}$")
 
 Kind = Literal["meas", "truth", "estimate", "alarm", "alive"]
 KINDS: tuple[Kind, ...] = ("meas", "truth", "estimate", "alarm", "alive")
@@ -115,7 +116,12 @@ def service_liveliness_selector(prefix: str = DEFAULT_PREFIX) -> str:
 def parse_vehicle_key(key: str) -> tuple[str, Kind]:
     """(vehicle_id, kind) from a vehicle key expression; raise on anything else."""
     parts = key.split("/")
-    if len(parts) != 5 or parts[1] != f"v{PROTOCOL_VERSION}" or parts[4] not in KINDS:
+    if (
+        len(parts) != 5
+        or parts[1] != f"v{PROTOCOL_VERSION}"
+        or not BUCKET_PATTERN.match(parts[2])  # e.g. the service replicas' 'service/<id>/alive'
+        or parts[4] not in KINDS
+    ):
         raise ProtocolError(f"not a vehicle key of protocol v{PROTOCOL_VERSION}: {key!r}")
     vehicle_id = check_vehicle_id(parts[3])
     return vehicle_id, parts[4]

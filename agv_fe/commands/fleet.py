@@ -37,8 +37,8 @@ def register(sub: Any) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the drives, faults and noise (default 0)")
     parser.add_argument(
         "--noise",
-        default="none",
-        help="sensor noise: 'none' (default), 'realistic' (sigma v_x 0.05 m/s, r 0.005 rad/s) or 'SIGMA_VX,SIGMA_R'",
+        default="realistic",
+        help="sensor noise: 'realistic' (default: sigma v_x 0.05 m/s, r 0.005 rad/s), 'none' or 'SIGMA_VX,SIGMA_R'",
     )
     parser.add_argument(
         "--gusts", action="store_true", help="random lateral wind gusts of 300-800 N on every vehicle (a disturbance)"

