@@ -1,8 +1,10 @@
 """TEST-ONLY: a zenoh router in its own process, killable to test reconnection.
 
-Usage: python tests/edge_client/zenoh_router.py PORT. Listens on
+Usage: python tests/edge_client/zenoh_router.py PORT [CONFIG.json5]. Listens on
 tcp/127.0.0.1:PORT with multicast scouting off, prints "ready" once open, and
-closes its session on SIGTERM (SIGKILL simulates a crash).
+closes its session on SIGTERM (SIGKILL simulates a crash). With a config file
+(e.g. deploy/zenoh/router.json5, the compose router's), it starts from that
+file and only the listen endpoint is replaced.
 """
 
 from __future__ import annotations
@@ -15,8 +17,8 @@ import threading
 import zenoh
 
 
-def main(port: int) -> None:
-    config = zenoh.Config()
+def main(port: int, config_file: str | None = None) -> None:
+    config = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
     config.insert_json5("mode", json.dumps("router"))
     config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     config.insert_json5("scouting/multicast/enabled", "false")
@@ -32,4 +34,4 @@ def main(port: int) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]))
+    main(int(sys.argv[1]), sys.argv[2] if len(sys.argv) > 2 else None)

@@ -1,0 +1,228 @@
+"""docker-compose.yml and the Dockerfile against the settings and the CLI.
+
+No Docker engine runs here, so: the files are parsed and every command, port,
+environment variable and endpoint in them is checked against what the code
+accepts; then the compose topology runs as local processes (a router process
+standing in for zenohd, the service and the fleet in client mode) with the
+commands and environment taken from the compose file itself.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import time
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import yaml
+from packaging.requirements import Requirement
+
+from agv_fe.cli import build_parser
+from service.settings import Settings
+from tests.edge_client.conftest import free_port
+
+ROOT = Path(__file__).resolve().parent.parent
+COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+DOCKERFILE = (ROOT / "Dockerfile").read_text()
+ROUTER_CONFIG = ROOT / "deploy" / "zenoh" / "router.json5"
+SERVICES = COMPOSE["services"]
+
+
+def interpolate(value: str, env: dict[str, str] | None = None) -> str:
+    """Compose's ${VAR:-default} interpolation."""
+    env = env or {}
+    return re.sub(r"\$\{(\w+):-([^}]*)\}", lambda m: env.get(m.group(1), m.group(2)), value)
+
+
+def command_of(name: str, env: dict[str, str] | None = None) -> list[str]:
+    return [interpolate(str(part), env) for part in SERVICES[name]["command"]]
+
+
+def environment_of(name: str) -> dict[str, str]:
+    return {k: str(v) for k, v in SERVICES[name].get("environment", {}).items()}
+
+
+def setting_field(variable: str) -> Any:
+    """The Settings field an AGV_FE_* variable sets; KeyError when it names none."""
+    path = variable.removeprefix("AGV_FE_").lower().split("__")
+    model: Any = Settings
+    field = None
+    for part in path:
+        field = model.model_fields[part]
+        model = field.annotation
+    return field
+
+
+def dockerfile_env() -> dict[str, str]:
+    """Every ENV of the Dockerfile (continued lines included), later stages overriding earlier ones."""
+    env: dict[str, str] = {}
+    for block in re.findall(r"^ENV (.*?)(?=^\S)", DOCKERFILE, re.S | re.M):
+        env.update(re.findall(r"(\w+)=(\S+)", block))
+    return env
+
+
+def test_compose_has_the_four_roles_on_one_image():
+    assert set(SERVICES) == {"router", "service", "fleet", "dashboard"}
+    for name in ("service", "fleet", "dashboard"):
+        assert SERVICES[name]["image"] == "agv-fe:latest" and SERVICES[name]["build"] == "."
+    assert COMPOSE["volumes"] == {"agv-data": None}
+
+
+def test_router_image_is_pinned_to_the_python_binding_and_its_config_is_mounted():
+    router = SERVICES["router"]
+    image, tag = router["image"].split(":")
+    assert image == "eclipse/zenoh" and tag == metadata.version("eclipse-zenoh")
+    mount = router["volumes"][0].split(":")
+    assert (ROOT / mount[0]).resolve() == ROUTER_CONFIG and mount[2] == "ro"
+    assert router["command"] == ["-c", mount[1]]
+    config = ROUTER_CONFIG.read_text()
+    listen_port = int(re.search(r'"tcp/0\.0\.0\.0:(\d+)"', config).group(1))
+    assert router["ports"] == [f"{listen_port}:{listen_port}"]
+    assert re.search(r"multicast:\s*\{\s*enabled:\s*false", config)
+
+
+def test_service_environment_names_real_settings_and_agrees_with_ports_and_endpoints():
+    env = environment_of("service")
+    for variable in [*env, *dockerfile_env()]:
+        if variable.startswith("AGV_FE_"):
+            setting_field(variable)  # KeyError if the variable sets nothing
+    settings = Settings(**_nested(env))  # the values validate
+    assert settings.zenoh.mode == "client"
+    host, port = settings.zenoh.endpoint.removeprefix("tcp/").split(":")
+    assert host == "router" and f"{port}:{port}" in SERVICES["router"]["ports"]
+    assert SERVICES["service"]["ports"] == [f"{settings.http.port}:{settings.http.port}"]
+    assert str(settings.data_dir) == "/data" and "agv-data:/data" in SERVICES["service"]["volumes"]
+    # the image agrees: same port and data dir, exposed, healthcheck on that port
+    image_env = dockerfile_env()
+    assert image_env["AGV_FE_HTTP__PORT"] == str(settings.http.port) and image_env["AGV_FE_DATA_DIR"] == "/data"
+    assert re.search(rf"^EXPOSE .*\b{settings.http.port}\b", DOCKERFILE, re.M)
+    assert "AGV_FE_HTTP__PORT" in DOCKERFILE.split("HEALTHCHECK", 1)[1] and "/health" in DOCKERFILE
+
+
+def _nested(env: dict[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for variable, value in env.items():
+        *parents, leaf = variable.removeprefix("AGV_FE_").lower().split("__")
+        node = out
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    return out
+
+
+@pytest.mark.parametrize("name", ["service", "fleet", "dashboard"])
+def test_every_command_parses_with_the_cli(name):
+    args = build_parser().parse_args(command_of(name))
+    assert args.command == name if name != "service" else args.command == "serve"
+    if name in ("fleet", "dashboard"):
+        assert args.connect == [environment_of("service")["AGV_FE_ZENOH__ENDPOINT"]]
+        assert args.connect_timeout == -1  # wait for the router, however long it takes to start
+
+
+def test_start_order_is_health_based():
+    assert SERVICES["service"]["depends_on"] == {"router": {"condition": "service_started"}}
+    for name in ("fleet", "dashboard"):
+        assert SERVICES[name]["depends_on"] == {"service": {"condition": "service_healthy"}}
+        assert SERVICES[name]["healthcheck"] == {"disable": True}  # no HTTP in these roles
+    assert "healthcheck" not in SERVICES["service"]  # the image's HEALTHCHECK applies
+    assert int(command_of("fleet", {"FLEET_VEHICLES": "7"})[2]) == 7
+
+
+def test_dockerfile_is_multi_stage_slim_non_root_and_pinned():
+    stages = re.findall(r"^FROM (\S+)", DOCKERFILE, re.M)
+    assert len(stages) == 2 and all(s.startswith("python:3.11-slim") for s in stages)
+    user = re.findall(r"^USER (\S+)", DOCKERFILE, re.M)
+    assert user == ["agv"] and "useradd --system --uid 10001" in DOCKERFILE
+    assert 'ENTRYPOINT ["agv-fe"]' in DOCKERFILE and 'CMD ["serve"]' in DOCKERFILE
+    assert "pip install -r /tmp/requirements.lock" in DOCKERFILE and "pip install --no-deps ." in DOCKERFILE
+
+
+def test_lock_pins_every_runtime_dependency_within_its_range():
+    import tomllib
+
+    declared = [Requirement(r) for r in tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]]
+    pins = {}
+    for line in (ROOT / "requirements.lock").read_text().splitlines():
+        if line and not line.startswith("#"):
+            name, version = line.split("==")
+            pins[name.lower().replace("_", "-")] = version
+    for requirement in declared:
+        version = pins.get(requirement.name.lower().replace("_", "-"))
+        assert version is not None, f"{requirement.name} is not pinned in requirements.lock"
+        assert requirement.specifier.contains(version), f"{requirement.name}=={version} outside {requirement}"
+
+
+def test_compose_topology_as_local_processes(tmp_path):
+    """router (stand-in for zenohd, from the compose router config) + service + fleet, as compose runs them."""
+    router_port, http_port = free_port(), free_port()
+    local = {"router:7447": f"127.0.0.1:{router_port}"}
+
+    def localise(parts: list[str]) -> list[str]:
+        for old, new in local.items():
+            parts = [p.replace(old, new) for p in parts]
+        return parts
+
+    router = subprocess.Popen(
+        [sys.executable, str(ROOT / "tests" / "edge_client" / "zenoh_router.py"), str(router_port), str(ROUTER_CONFIG)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    processes: list[subprocess.Popen[Any]] = [router]
+    try:
+        assert router.stdout is not None and router.stdout.readline().strip() == "ready"
+        env = {**os.environ, **environment_of("service")}
+        env.update(
+            {
+                "AGV_FE_ZENOH__ENDPOINT": localise([env["AGV_FE_ZENOH__ENDPOINT"]])[0],
+                "AGV_FE_HTTP__HOST": "127.0.0.1",
+                "AGV_FE_HTTP__PORT": str(http_port),
+                "AGV_FE_DATA_DIR": str(tmp_path / "data"),
+            }
+        )
+        log = (tmp_path / "service.log").open("w")
+        service = subprocess.Popen(
+            [sys.executable, "-m", "agv_fe", *command_of("service")], env=env, stdout=log, stderr=subprocess.STDOUT
+        )
+        processes.append(service)
+        url = f"http://127.0.0.1:{http_port}"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            assert service.poll() is None, (tmp_path / "service.log").read_text()
+            try:
+                if httpx.get(f"{url}/ready", timeout=1).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.25)
+        else:
+            pytest.fail("the service never became ready")
+        fleet_cmd = localise(command_of("fleet", {"FLEET_VEHICLES": "4", "FLEET_DURATION_S": "6"}))
+        fleet = subprocess.run(
+            [sys.executable, "-m", "agv_fe", *fleet_cmd], capture_output=True, text=True, timeout=120
+        )
+        assert fleet.returncode == 0, fleet.stderr
+        assert "estimates 2400" in " ".join(fleet.stdout.split())  # 4 vehicles x 600 samples, all answered
+        dashboard = subprocess.run(
+            [sys.executable, "-m", "agv_fe", *localise(command_of("dashboard")), "--duration", "1"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert dashboard.returncode == 0, dashboard.stderr
+        vehicles = httpx.get(f"{url}/vehicles", timeout=5).json()
+        listed = vehicles["vehicles"] if isinstance(vehicles, dict) else vehicles
+        assert len(listed) == 4
+    finally:
+        for process in reversed(processes):
+            if process.poll() is None:
+                process.terminate()
+                try:
+                    process.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    process.kill()
