@@ -34,7 +34,6 @@ first.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -42,11 +41,10 @@ from pathlib import Path
 from typing import Literal, get_args
 
 import numpy as np
-import yaml
 
 from edge_client.faults import BiasFault, Fault, IntermittentFault, LossOfEffectivenessFault, SinusoidalFault
 from edge_client.random_drive import random_drive
-from edge_client.scenario import Gust, Scenario, ScenarioError, SensorNoise, scenario_from_data
+from edge_client.scenario import Gust, Scenario, ScenarioError, SensorNoise, read_scenario_file, scenario_from_data
 from service.profiles import AlarmThresholds
 
 MixKind = Literal["healthy", "torque_bias", "torque_loe", "steer_bias", "steer_sinusoidal", "intermittent"]
@@ -291,14 +289,7 @@ def build_fleet(
 def load_scenario_list(path: str | Path) -> list[Scenario]:
     """One scenario or a list of scenarios from a .json/.yaml file; errors name the entry and field."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ScenarioError(f"{path}: cannot read: {exc.strerror}") from exc
-    try:
-        data = yaml.safe_load(text) if path.suffix.lower() in (".yaml", ".yml") else json.loads(text)
-    except (yaml.YAMLError, json.JSONDecodeError) as exc:
-        raise ScenarioError(f"{path}: cannot parse: {exc}") from exc
+    data = read_scenario_file(path)
     entries: Sequence[object] = data if isinstance(data, list) else [data]
     if not entries:
         raise ScenarioError(f"{path}: the list of scenarios is empty")

@@ -226,18 +226,22 @@ class ScenarioError(ValueError):
     """A scenario file that cannot be used; the message names the file and the field."""
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Read a scenario from a .json, .yaml or .yml file, validated."""
+def read_scenario_file(path: str | Path) -> object:
+    """The parsed content of a .json, .yaml or .yml file; ScenarioError names the file if it cannot be read."""
     path = Path(path)
     try:
         text = path.read_text()
     except OSError as exc:
         raise ScenarioError(f"{path}: cannot read: {exc.strerror}") from exc
     try:
-        data = yaml.safe_load(text) if path.suffix.lower() in (".yaml", ".yml") else json.loads(text)
+        return yaml.safe_load(text) if path.suffix.lower() in (".yaml", ".yml") else json.loads(text)
     except (yaml.YAMLError, json.JSONDecodeError) as exc:
         raise ScenarioError(f"{path}: cannot parse: {exc}") from exc
-    return scenario_from_data(data, source=str(path))
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read a scenario from a .json, .yaml or .yml file, validated."""
+    return scenario_from_data(read_scenario_file(path), source=str(path))
 
 
 def scenario_from_data(data: object, source: str = "<scenario>") -> Scenario:
