@@ -231,11 +231,15 @@ class DashboardHub:
 
     # ------------------------------------------------------------------ life cycle
 
-    def start(self, truth: TruthSource | None = None) -> None:
-        """Subscribe to the fleet's events and start pushing (on the running loop)."""
+    def attach(self, truth: TruthSource | None = None) -> None:
+        """Subscribe to the fleet's alarm events, and to estimate events of the vehicles followed (none yet)."""
         self._truth = truth if self.settings.ground_truth else None
         self._alarms = self.engine.events.subscribe(maxsize=100_000, kinds=("alarm",))
         self._estimates = self.engine.events.subscribe(maxsize=100_000, kinds=("estimate",), vehicles=frozenset())
+
+    def start(self, truth: TruthSource | None = None) -> None:
+        """Attach, then push ``push_hz`` times a second (on the running loop)."""
+        self.attach(truth)
         self._task = asyncio.get_running_loop().create_task(self._run(), name="dashboard")
 
     async def stop(self) -> None:
@@ -321,8 +325,8 @@ class DashboardHub:
 
     # ------------------------------------------------------------------ one round
 
-    def tick(self) -> None:
-        """Drain the fleet's events and the ground truth, then push what changed."""
+    def tick(self, now: float | None = None) -> None:
+        """Drain the fleet's events and the ground truth, then push what changed (``now``: monotonic [s])."""
         self.ticks += 1
         self._drain_estimates()
         self._drain_truth()
@@ -330,7 +334,7 @@ class DashboardHub:
         if self._follow_dirty:
             self._refresh_follow()
         self._push_traces()
-        now = time.monotonic()
+        now = time.monotonic() if now is None else now
         if now >= self._fleet_due:
             self._fleet_due = now + 1.0 / self.settings.fleet_hz
             self._push_fleet()
@@ -394,8 +398,9 @@ class DashboardHub:
             changed = [row for vid, row in rows.items() if self._fleet_rows.get(vid) != row]
             removed = [vid for vid in self._fleet_rows if vid not in rows]
             self._fleet_rows = rows
-            frame = {"full": False, "now_s": time.time(), "rows": changed, "removed": removed}
-            self._send(sse("fleet", frame), fleet_clients)
+            if changed or removed:
+                frame = {"full": False, "now_s": time.time(), "rows": changed, "removed": removed}
+                self._send(sse("fleet", frame), fleet_clients)
         for client in [c for c in self.clients if c.vehicle is not None]:
             vehicle = self.engine.vehicles.get(client.vehicle or "")
             if vehicle is not None:

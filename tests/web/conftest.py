@@ -1,0 +1,83 @@
+"""Fixtures of the dashboard tests: fast certified gains, and headless Chromium (Debian's, driven by Playwright).
+
+Browser tests skip, saying why, only when chromium is not installed on a developer's machine; under CI
+(the CI environment variable is set) a missing chromium fails them: .ci/install-system-deps installs it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from synth.design import synthesize
+from synth.gains import ObserverGains
+from synth.options import DesignOptions
+from tests.service.helpers import FAST_DESIGN
+from tests.web.helpers import CHROMIUM_ARGS, OUTPUT_DIR, chromium_executable
+
+VIEWPORT = {"width": 1440, "height": 900}
+
+
+@pytest.fixture(scope="session")
+def fast_gains() -> ObserverGains:
+    return synthesize(options=DesignOptions(**FAST_DESIGN))
+
+
+@pytest.fixture(scope="session")
+def chromium() -> str:
+    path = chromium_executable()
+    if path is None:
+        if os.environ.get("CI"):
+            pytest.fail("chromium is not installed: CI must install it (.ci/install-system-deps)")
+        pytest.skip("Debian's chromium is not installed (apt-get install chromium): browser tests skipped")
+    return path
+
+
+@pytest.fixture(scope="session")
+def browser(chromium: str) -> Iterator[Any]:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=chromium, headless=True, args=CHROMIUM_ARGS)
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+class PageProblems(list[str]):
+    """Console errors and uncaught exceptions of a page (a CSP violation is a console error)."""
+
+
+@pytest.fixture
+def browser_context(browser: Any) -> Iterator[Any]:
+    context = browser.new_context(viewport=VIEWPORT)
+    try:
+        yield context
+    finally:
+        context.close()
+
+
+def watch(page: Any) -> PageProblems:
+    problems = PageProblems()
+    page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+    page.on("pageerror", lambda e: problems.append(f"uncaught: {e}"))
+    return problems
+
+
+@pytest.fixture
+def page(browser_context: Any) -> Iterator[Any]:
+    """A fresh page; the test fails if the page logged an error or threw."""
+    page = browser_context.new_page()
+    problems = watch(page)
+    yield page
+    assert not problems, "\n".join(problems)
+
+
+@pytest.fixture(scope="session")
+def output_dir() -> Any:
+    OUTPUT_DIR.mkdir(parents=True, exist_ok=True)
+    return OUTPUT_DIR
