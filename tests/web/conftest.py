@@ -7,6 +7,7 @@ Browser tests skip, saying why, only when chromium is not installed on a develop
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
 from typing import Any
 
@@ -51,6 +52,17 @@ def browser(chromium: str) -> Iterator[Any]:
 class PageProblems(list[str]):
     """Console errors and uncaught exceptions of a page (a CSP violation is a console error)."""
 
+    def __init__(self) -> None:
+        super().__init__()
+        self.allowed: list[re.Pattern[str]] = []
+
+    def allow(self, pattern: str) -> None:
+        """A problem the test provokes on purpose (a refused request is logged as a console error)."""
+        self.allowed.append(re.compile(pattern))
+
+    def unexpected(self) -> list[str]:
+        return [p for p in self if not any(a.search(p) for a in self.allowed)]
+
 
 @pytest.fixture
 def browser_context(browser: Any) -> Iterator[Any]:
@@ -61,20 +73,25 @@ def browser_context(browser: Any) -> Iterator[Any]:
         context.close()
 
 
-def watch(page: Any) -> PageProblems:
-    problems = PageProblems()
+def watch(page: Any, problems: PageProblems | None = None) -> PageProblems:
+    problems = PageProblems() if problems is None else problems
     page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
     page.on("pageerror", lambda e: problems.append(f"uncaught: {e}"))
     return problems
 
 
 @pytest.fixture
-def page(browser_context: Any) -> Iterator[Any]:
-    """A fresh page; the test fails if the page logged an error or threw."""
+def page_problems() -> PageProblems:
+    return PageProblems()
+
+
+@pytest.fixture
+def page(browser_context: Any, page_problems: PageProblems) -> Iterator[Any]:
+    """A fresh page; the test fails if the page logged an error or threw that the test did not provoke."""
     page = browser_context.new_page()
-    problems = watch(page)
+    watch(page, page_problems)
     yield page
-    assert not problems, "\n".join(problems)
+    assert not page_problems.unexpected(), "\n".join(page_problems.unexpected())
 
 
 @pytest.fixture(scope="session")

@@ -180,3 +180,74 @@ def live_fleet(endpoint: str, scenarios: dict[str, Scenario], **kw: Any) -> Iter
         yield fleet
     finally:
         fleet.close()
+
+
+#: Demanded torque that holds v_x = 10 m/s against drag, C_x v_x^2 (eq. 1) [N m].
+CRUISE_TORQUE_NM = 0.37 * 10.0**2
+
+
+class SteadyFleet:
+    """Many vehicles cruising straight at 10 m/s, one sample each per round at ``rate_hz`` (a thread).
+
+    A vehicle with a torque fault T_f demands ``CRUISE_TORQUE_NM - T_f``: the measurement is then exactly
+    a steady state of eq. (1) with that fault, so its estimate converges to T_f. Samples are 10 ms apart in
+    vehicle time whatever ``rate_hz``. Vehicles in ``silent_after_s`` stop after that long (wall clock).
+    ``vx_jitter_mps`` alternates the measured speed by that much, like a little sensor noise, so that
+    every estimate (and every fleet row) keeps changing.
+    """
+
+    def __init__(
+        self,
+        endpoint: str,
+        torque_faults_nm: dict[str, float],
+        rate_hz: float = 10.0,
+        silent_after_s: dict[str, float] | None = None,
+        vx_jitter_mps: float = 0.0,
+        max_s: float = FLEET_MAX_S,
+    ) -> None:
+        self.session = open_session("client", endpoint)
+        self.vx_jitter_mps = vx_jitter_mps
+        self.vehicles = [(vehicle_key(v, "meas"), v, CRUISE_TORQUE_NM - fault) for v, fault in torque_faults_nm.items()]
+        self.rate_hz = rate_hz
+        self.silent_after_s = silent_after_s or {}
+        self.max_s = max_s
+        self.rounds = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="steady-fleet", daemon=True)
+
+    def start(self) -> SteadyFleet:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        started = time.monotonic()
+        put = self.session.put
+        block = zenoh.CongestionControl.BLOCK
+        t0_ns = time.time_ns()
+        while not self._stop.is_set() and time.monotonic() - started < self.max_s:
+            delay = started + self.rounds / self.rate_hz - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            k = self.rounds
+            elapsed = time.monotonic() - started
+            t_ns = t0_ns + k * 10_000_000
+            vx = 10.0 + (self.vx_jitter_mps if k % 2 else -self.vx_jitter_mps)
+            for key, vehicle_id, torque in self.vehicles:
+                if elapsed >= self.silent_after_s.get(vehicle_id, float("inf")):
+                    continue
+                put(key, Measurement(vehicle_id, k, t_ns, vx, 0.0, torque, 0.0).encode(), congestion_control=block)
+            self.rounds = k + 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(WAIT_S)
+        self.session.close()  # type: ignore[no-untyped-call]
+
+
+@contextmanager
+def steady_fleet(endpoint: str, torque_faults_nm: dict[str, float], **kw: Any) -> Iterator[SteadyFleet]:
+    fleet = SteadyFleet(endpoint, torque_faults_nm, **kw).start()
+    try:
+        yield fleet
+    finally:
+        fleet.close()

@@ -3,7 +3,7 @@
 import { api } from './api.js';
 import { ALARM_KINDS, LEVEL_RANK, clock, el, levelBadge } from './format.js';
 
-const MAX_SHOWN = 200;
+const MAX_SHOWN = 100;
 
 export class AlarmStore {
   constructor() {
@@ -78,6 +78,7 @@ export class AlarmList {
     this.onUnauthorized = onUnauthorized;
     this.items = new Map();
     this.errors = new Map();
+    this.more = null;
     this.unsubscribe = store.subscribe(() => this.render());
     this.render();
   }
@@ -87,7 +88,14 @@ export class AlarmList {
   }
 
   render() {
-    const alarms = this.store.sorted(this.vehicle).slice(0, MAX_SHOWN);
+    const all = this.store.sorted(this.vehicle);
+    const alarms = all.slice(0, MAX_SHOWN);
+    if (!this.more) {
+      this.more = el('p', { class: 'hint alarm-more' });
+      this.list.after(this.more);
+    }
+    this.more.hidden = all.length <= MAX_SHOWN;
+    this.more.textContent = `and ${all.length - MAX_SHOWN} more, less urgent`;
     const wanted = new Set(alarms.map((a) => a.id));
     for (const [id, item] of this.items) {
       if (!wanted.has(id)) {
@@ -115,9 +123,10 @@ export class AlarmList {
       'li',
       { class: 'alarm', 'data-alarm-id': alarm.id },
       el('span', { class: 'alarm-title' }),
+      el('div', { class: 'alarm-actions' }, button),
+      el('span', { class: 'alarm-state' }),
       el('span', { class: 'alarm-message' }),
       el('span', { class: 'alarm-meta' }),
-      el('div', { class: 'alarm-actions' }, el('span', { class: 'alarm-state' }), button),
       el('p', { class: 'alarm-error', role: 'alert' }),
     );
   }
@@ -127,6 +136,7 @@ export class AlarmList {
     item.dataset.state = alarm.state;
     item.dataset.acknowledged = String(alarm.acknowledged);
     item.dataset.vehicle = alarm.vehicle;
+    item.dataset.kind = alarm.kind;
     const title = item.querySelector('.alarm-title');
     const kind = ALARM_KINDS[alarm.kind] || alarm.kind;
     title.replaceChildren(

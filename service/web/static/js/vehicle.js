@@ -155,7 +155,8 @@ export class VehicleView {
         scales: {
           x: {
             time: true,
-            range: (u, min, max) => [max - this.historyS, max],
+            // the last history_s seconds, or from the first sample while there is less
+            range: (u, min, max) => [Math.max(min, max - this.historyS), max],
           },
         },
         axes: [{}, { size: 60 }],
@@ -190,15 +191,17 @@ export class VehicleView {
     const nowS = status.now_s;
     const t = status.thresholds;
     const facts = [
-      ['Profile', profile],
-      ['Gains', shortHash(status.gain_version)],
-      ['Last seen', seen === null ? 'never' : age(nowS - seen)],
-      ['Last sample', status.last_seq === null ? '–' : `#${status.last_seq}`],
-      ['Ground truth', status.truth ? 'shown' : 'none published'],
-      ['Torque thresholds', `${t.torque_warn_nm} / ${t.torque_fault_nm} N m`],
-      ['Steering thresholds', `${t.steer_warn_rad} / ${t.steer_fault_rad} rad`],
+      ['profile', 'Profile', profile],
+      ['gains', 'Gains', shortHash(status.gain_version)],
+      ['seen', 'Last seen', seen === null ? 'never' : age(nowS - seen)],
+      ['seq', 'Last sample', status.last_seq === null ? '–' : `#${status.last_seq}`],
+      ['truth', 'Ground truth', status.truth ? 'shown' : 'none published'],
+      ['torque', 'Torque thresholds', `WARN ${t.torque_warn_nm} / FAULT ${t.torque_fault_nm} N m`],
+      ['steer', 'Steering thresholds', `WARN ${t.steer_warn_rad} / FAULT ${t.steer_fault_rad} rad`],
     ];
-    this.facts.replaceChildren(...facts.map(([k, v]) => el('div', {}, el('dt', {}, k), el('dd', {}, v))));
+    this.facts.replaceChildren(
+      ...facts.map(([key, name, value]) => el('div', { 'data-fact': key }, el('dt', {}, name), el('dd', {}, value))),
+    );
     this.facts.dataset.level = level;
   }
 
