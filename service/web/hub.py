@@ -227,6 +227,7 @@ class DashboardHub:
         self._estimates: Subscription | None = None
         self._truth: TruthSource | None = None
         self._task: asyncio.Task[None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
         self.ticks = 0
 
     # ------------------------------------------------------------------ life cycle
@@ -240,7 +241,18 @@ class DashboardHub:
     def start(self, truth: TruthSource | None = None) -> None:
         """Attach, then push ``push_hz`` times a second (on the running loop)."""
         self.attach(truth)
-        self._task = asyncio.get_running_loop().create_task(self._run(), name="dashboard")
+        self._loop = asyncio.get_running_loop()
+        self._task = self._loop.create_task(self._run(), name="dashboard")
+
+    def end_streams_threadsafe(self) -> None:
+        """End every browser stream soon; callable from a signal handler or another thread (the server is
+        shutting down: browsers reconnect to whichever replica answers)."""
+        if self._loop is not None and not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._end_streams)
+
+    def _end_streams(self) -> None:
+        for client in list(self.clients):
+            self.disconnect(client)
 
     async def stop(self) -> None:
         if self._task is not None:

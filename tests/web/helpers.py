@@ -64,6 +64,11 @@ class DashboardServer(RunningService):
         )
         self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
 
+    def stop(self) -> None:
+        if self.server.started:
+            self.service.dashboard.end_streams_threadsafe()  # as agv-fe serve does on a signal
+        super().stop()
+
 
 @contextmanager
 def dashboard_server(settings: Settings) -> Iterator[DashboardServer]:

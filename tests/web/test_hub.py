@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+import threading
 
 import pytest
 
@@ -176,3 +177,19 @@ def test_a_vehicle_view_of_an_unknown_vehicle_is_refused(fast_gains):
         hub.connect("vehicle", "nobody")
     with pytest.raises(UnknownVehicle):
         hub.connect("vehicle", None)
+
+
+def test_streams_can_be_ended_from_another_thread_for_a_shutdown(fast_gains):
+    engine = make_engine(fast_gains)
+
+    async def scenario() -> list[bytes]:
+        hub = DashboardHub(engine, DashboardSettings())
+        hub.start()
+        client = hub.connect("profiles")
+        threading.Thread(target=hub.end_streams_threadsafe).start()  # as a signal handler would
+        received = [frame async for frame in client.frames()]
+        await hub.stop()
+        return received
+
+    # the stream ends (within the timeout, instead of sending keep-alives forever); what was queued is dropped
+    assert asyncio.run(asyncio.wait_for(scenario(), 10.0)) == []
