@@ -192,6 +192,15 @@ class Trace:
         self.truth.append(point)
         self.new_truth.append(point)
 
+    def prepend(self, older: Trace) -> None:
+        """Put the points of ``older`` (all before this trace's first point) in front, as room allows."""
+        room = (self.points.maxlen or 0) - len(self.points)
+        if not older.points or room <= 0:
+            return
+        if not self.points:  # decimation goes on from the last point put in
+            self._next_point_ns, self._last_point_ns = older._next_point_ns, older._last_point_ns
+        self.points.extendleft(reversed(list(older.points)[-room:]))
+
     def history(self) -> dict[str, Any]:
         return {"vehicle": self.vehicle, "history": True, "points": list(self.points), "truth": list(self.truth)}
 
@@ -229,6 +238,9 @@ class DashboardHub:
         self._task: asyncio.Task[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self.ticks = 0
+        #: how long the slowest tick and the last fleet update took on the loop [s]
+        self.tick_seconds_max = 0.0
+        self.fleet_seconds_last = 0.0
 
     # ------------------------------------------------------------------ life cycle
 
@@ -293,6 +305,7 @@ class DashboardHub:
             client.send(sse("fleet", {"full": True, "now_s": time.time(), "rows": list(self._fleet_rows.values())}))
         if vehicle is not None:
             trace = self._trace(vehicle)
+            self._backfill(trace, vehicle)
             trace.viewed_mono = time.monotonic()
             client.send(sse("status", self._status(vehicle)))
             client.send(sse("trace", trace.history()))
@@ -339,6 +352,7 @@ class DashboardHub:
 
     def tick(self, now: float | None = None) -> None:
         """Drain the fleet's events and the ground truth, then push what changed (``now``: monotonic [s])."""
+        started = time.perf_counter()
         self.ticks += 1
         self._drain_estimates()
         self._drain_truth()
@@ -349,7 +363,10 @@ class DashboardHub:
         now = time.monotonic() if now is None else now
         if now >= self._fleet_due:
             self._fleet_due = now + 1.0 / self.settings.fleet_hz
+            fleet_started = time.perf_counter()
             self._push_fleet()
+            self.fleet_seconds_last = time.perf_counter() - fleet_started
+        self.tick_seconds_max = max(self.tick_seconds_max, time.perf_counter() - started)
 
     def _drain_estimates(self) -> None:
         if self._estimates is None:
@@ -462,16 +479,23 @@ class DashboardHub:
     # ------------------------------------------------------------------ following
 
     def _trace(self, vehicle: Vehicle) -> Trace:
-        """The vehicle's trace; a new one starts from the estimate history the engine keeps."""
         trace = self.traces.get(vehicle.id)
         if trace is None:
             trace = self.traces[vehicle.id] = Trace(vehicle.id, self._period_ns, self._maxlen)
-            for row in self.engine.estimate_history(vehicle, vehicle.bank.history_samples):
-                x5 = (row["vx"], row["vy"], row["r"], row["torque_fault"], row["steer_fault"])
-                trace.add_estimate(row["t_ns"], x5, None)
-            trace.new_points.clear()
-            trace.reset = False
         return trace
+
+    def _backfill(self, trace: Trace, vehicle: Vehicle) -> None:
+        """Put the estimates the engine keeps (its last ``ingest.history_samples``) before the trace's first
+        point: a vehicle opened for the first time shows its recent past at once. Done when a browser
+        opens the vehicle, not when it is followed, so following many vehicles costs nothing up front."""
+        first_ns = round(trace.points[0][0] * 1e9) if trace.points and trace.points[0][0] is not None else None
+        older = Trace(vehicle.id, self._period_ns, self._maxlen)
+        for row in self.engine.estimate_history(vehicle, vehicle.bank.history_samples):
+            if first_ns is not None and row["t_ns"] >= first_ns - self._period_ns // 2:
+                break
+            x5 = (row["vx"], row["vy"], row["r"], row["torque_fault"], row["steer_fault"])
+            older.add_estimate(row["t_ns"], x5, None)
+        trace.prepend(older)
 
     def _refresh_follow(self) -> None:
         """Follow the viewed vehicles, then those with latched alarms (faults first), then the recently viewed."""

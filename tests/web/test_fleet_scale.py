@@ -128,6 +128,7 @@ def test_the_fleet_view_stays_responsive_with_1000_live_vehicles(server, page, o
     expect(page.locator("#fleet-table")).to_have_attribute("data-shown", "20")
     page.screenshot(path=str(output_dir / "fleet-1000.png"))
     sent_bytes, sent_frames = stream_bytes(server.url, 5.0)
+    hub = server.service.dashboard
     figures = {
         "vehicles": N_VEHICLES,
         "measurements_per_s": N_VEHICLES * 10,
@@ -146,6 +147,8 @@ def test_the_fleet_view_stays_responsive_with_1000_live_vehicles(server, page, o
         "dom_elements": dom_nodes,
         "stream_bytes_per_s": round(sent_bytes / 5.0),
         "stream_fleet_frames_per_s": round(sent_frames / 5.0, 1),
+        "server_fleet_update_ms": round(hub.fleet_seconds_last * 1e3, 2),
+        "server_slowest_tick_ms": round(hub.tick_seconds_max * 1e3, 2),
     }
     (output_dir / "fleet-1000.json").write_text(json.dumps(figures, indent=2) + "\n")
     print(json.dumps(figures, indent=2))

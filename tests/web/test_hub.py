@@ -193,3 +193,20 @@ def test_streams_can_be_ended_from_another_thread_for_a_shutdown(fast_gains):
 
     # the stream ends (within the timeout, instead of sending keep-alives forever); what was queued is dropped
     assert asyncio.run(asyncio.wait_for(scenario(), 10.0)) == []
+
+
+def test_a_vehicle_opened_for_the_first_time_shows_the_estimates_the_engine_keeps(fast_gains):
+    engine = make_engine(fast_gains)
+    hub = make_hub(engine, plot_hz=20.0)
+    for k in range(300):  # 3 s, within the engine's 500-sample history
+        feed(engine, [constant_measurement("a", k)])
+    client = hub.connect("vehicle", "a")
+    (history,) = [data for name, data in frames(client) if name == "trace"]
+    assert history["history"] and len(history["points"]) == 60  # 3 s at 20 Hz
+    assert all(p[1] is None and p[2] is None for p in history["points"])  # estimates only, no measurements
+    for k in range(300, 320):
+        feed(engine, [constant_measurement("a", k)])
+    hub.tick(now=0.0)
+    live = [p for name, data in frames(client) if name == "trace" for p in data["points"]]
+    last = history["points"][-1][0]
+    assert [round(p[0] - last, 3) for p in live] == [0.05, 0.1, 0.15, 0.2]  # the same grid goes on
