@@ -37,8 +37,10 @@ def chromium() -> str:
     return path
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser(chromium: str) -> Iterator[Any]:
+    """One Chromium per test module: Playwright's sync API holds an asyncio loop in the main thread while it
+    runs, so it must be stopped before tests that start their own loop (asyncio.run)."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright:
