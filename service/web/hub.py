@@ -309,7 +309,6 @@ class DashboardHub:
             trace.viewed_mono = time.monotonic()
             client.send(sse("status", self._status(vehicle)))
             client.send(sse("trace", trace.history()))
-            self._follow_dirty = True
         self.clients.append(client)
         if vehicle is not None:
             self._refresh_follow()

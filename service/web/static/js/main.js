@@ -49,7 +49,10 @@ function showConnection(state, detail) {
   connection.dataset.state = state;
   connection.textContent = CONNECTION_TEXT[state] || state;
   connection.title = detail || '';
-  if (state === 'notfound' && current && current.view === 'vehicle') views.vehicle.notFound(detail || 'No such vehicle');
+  if (current && current.view === 'vehicle') {
+    if (state === 'notfound') views.vehicle.notFound(detail || 'No such vehicle');
+    if (state === 'live') views.vehicle.found();
+  }
   if (state === 'unauthorized') askForToken();
 }
 

@@ -3,6 +3,7 @@
 
 const MIN_DELAY_MS = 500;
 const MAX_DELAY_MS = 10000;
+const NOT_FOUND_DELAY_MS = 5000;
 
 const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
 
@@ -16,7 +17,11 @@ export class EventStream {
     this.url = url;
     this.headers = headers;
     this.onEvent = onEvent;
-    this.onState = onState;
+    this.lastState = null;
+    this.onState = (state, detail) => {
+      this.lastState = state;
+      onState(state, detail);
+    };
     this.stopped = false;
     this.abort = new AbortController();
   }
@@ -44,9 +49,10 @@ export class EventStream {
         if (response.status === 401) {
           this.onState('unauthorized', 'the API token is missing or refused');
         } else if (response.status === 404) {
+          // a vehicle not seen yet: ask again now and then, it may start sending
           const body = await response.json().catch(() => ({}));
           this.onState('notfound', body.detail || 'not found');
-          return;
+          delay = Math.max(delay, NOT_FOUND_DELAY_MS);
         } else if (!response.ok) {
           this.onState('error', `HTTP ${response.status}`);
         } else {
@@ -58,8 +64,8 @@ export class EventStream {
         if (this.stopped) return;
         this.onState('reconnecting', String(err));
       }
+      if (!this.stopped && this.lastState === 'live') this.onState('reconnecting');
       if (this.stopped) return;
-      this.onState('reconnecting');
       await sleep(delay);
       delay = Math.min(2 * delay, MAX_DELAY_MS);
     }

@@ -120,6 +120,10 @@ export class VehicleView {
     this.vehicle = null;
   }
 
+  found() {
+    this.missing.hidden = true;
+  }
+
   notFound(detail) {
     this.missing.textContent = `${detail}. It appears here once the service has received its first measurement.`;
     this.missing.hidden = false;
