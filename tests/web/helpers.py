@@ -40,8 +40,10 @@ FLEET_MAX_S = 240.0
 
 
 def chromium_executable() -> str | None:
-    """Debian's chromium (or AGV_FE_CHROMIUM), None when it is not installed."""
-    for candidate in (os.environ.get("AGV_FE_CHROMIUM"), "/usr/bin/chromium", shutil.which("chromium")):
+    """Debian's chromium, or the executable named by AGV_FE_CHROMIUM alone when set; None when not installed."""
+    override = os.environ.get("AGV_FE_CHROMIUM")
+    candidates = [override] if override else ["/usr/bin/chromium", shutil.which("chromium")]
+    for candidate in candidates:
         if candidate and Path(candidate).is_file() and os.access(candidate, os.X_OK):
             return candidate
     return None
