@@ -28,6 +28,7 @@ from service.protocol import all_buckets, shard_buckets
 from service.settings import Settings
 from service.storage import Storage
 from service.transport import Transport
+from service.web.hub import DashboardHub
 from synth.gains import ObserverGains
 from synth.observer import RuntimeGains
 
@@ -79,6 +80,7 @@ class Service:
             events=self.events,
         )
         self.metrics = ServiceMetrics()
+        self.dashboard = DashboardHub(self.engine, settings.dashboard, self.replica_id)
         self.storage: Storage | None = None
         self.transport: Transport | None = None
         self.jobs = SynthesisJobs(settings.synthesis_workers, self._activate_job, self._persist_job)
@@ -103,6 +105,8 @@ class Service:
             loop.create_task(self._ingest_loop(), name="ingest"),
             loop.create_task(self._housekeeping_loop(), name="housekeeping"),
         ]
+        if self.settings.dashboard.enabled:
+            self.dashboard.start(truth=self.transport)
         log.info(
             "replica %s serving buckets %s on zenoh %s %s",
             self.replica_id,
@@ -119,6 +123,7 @@ class Service:
             with suppress(asyncio.CancelledError):
                 await task
         self._tasks = []
+        await self.dashboard.stop()
         await self.jobs.close()
         if self.transport is not None:
             await asyncio.to_thread(self.transport.close)
@@ -306,4 +311,8 @@ def create_app(settings: Settings) -> FastAPI:
         lifespan=lifespan,
     )
     app.include_router(build_router(settings))
+    if settings.dashboard.enabled:
+        from service.api.routes.ui import install_dashboard
+
+        install_dashboard(app)
     return app

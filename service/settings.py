@@ -108,6 +108,30 @@ class ShardSettings(_Section):
         return self.replica_id or f"replica-{self.index}"
 
 
+class DashboardSettings(_Section):
+    enabled: bool = Field(True, description="serve the web dashboard at / (static files, /ui/stream)")
+    fleet_hz: Annotated[float, Field(gt=0, le=10)] = Field(
+        2.0, description="fleet view updates per second (changed rows only)"
+    )
+    push_hz: Annotated[float, Field(gt=0, le=50)] = Field(
+        10.0, description="how often new plot points and alarm changes are pushed to browsers"
+    )
+    plot_hz: Annotated[float, Field(gt=0, le=100)] = Field(
+        20.0, description="samples per second kept for the vehicle plots (estimates are decimated to this)"
+    )
+    history_s: Annotated[float, Field(ge=5, le=600)] = Field(60.0, description="time span of the vehicle plots [s]")
+    follow_max: Annotated[int, Field(ge=1, le=10_000)] = Field(
+        64,
+        description="vehicles whose plot history is kept: those being viewed, then those with latched alarms, "
+        "then the most recently viewed",
+    )
+    ground_truth: bool = Field(
+        True,
+        description="subscribe to the 'truth' key of the followed vehicles (simulators publish it) and overlay it "
+        "on the plots; never used for estimation",
+    )
+
+
 class Settings(BaseSettings):
     """Everything `agv-fe serve` can be told."""
 
@@ -123,6 +147,7 @@ class Settings(BaseSettings):
     zenoh: ZenohSettings = ZenohSettings()
     ingest: IngestSettings = IngestSettings()
     shard: ShardSettings = ShardSettings()
+    dashboard: DashboardSettings = DashboardSettings()
 
     @property
     def database_path(self) -> Path:

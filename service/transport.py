@@ -8,6 +8,11 @@ no Python code runs in a Zenoh callback, and when the loop falls behind the
 channel fills and back-pressure reaches the publishers instead of samples
 being dropped.
 
+Ground truth (the ``truth`` key a simulator publishes) is subscribed only
+for the vehicles the dashboard follows (:meth:`Transport.follow_truth`),
+each into a small ``RingChannel`` that keeps the newest samples, so a slow
+dashboard never slows a simulator down. It is shown, never estimated from.
+
 Congestion control, chosen per stream: alarms ``BLOCK`` at
 ``INTERACTIVE_HIGH`` priority (they must not be lost); estimates ``DROP`` by
 default so that a slow estimate subscriber can never stall ingest (setting
@@ -18,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+from collections.abc import Collection
 from typing import Any
 
 import zenoh
@@ -31,6 +37,9 @@ from service.protocol import (
     vehicle_key,
 )
 from service.settings import ZenohSettings
+
+#: Ground-truth samples kept per followed vehicle between two drains (newest kept).
+TRUTH_RING_CAPACITY = 1024
 
 
 class TransportError(Exception):
@@ -75,6 +84,7 @@ class Transport:
         self._token: Any = None
         self._estimate_pubs: dict[str, Any] = {}
         self._alarm_pubs: dict[str, Any] = {}
+        self._truth: dict[str, Any] = {}
         self._estimate_cc = (
             zenoh.CongestionControl.BLOCK if settings.estimate_congestion == "block" else zenoh.CongestionControl.DROP
         )
@@ -133,6 +143,25 @@ class Transport:
                 out.append((vehicle_id, sample.kind == zenoh.SampleKind.PUT))
         return out
 
+    def follow_truth(self, vehicle_ids: Collection[str]) -> None:
+        """Subscribe to the ground truth of exactly ``vehicle_ids`` (for the dashboard only)."""
+        wanted = set(vehicle_ids)
+        for vehicle_id in [v for v in self._truth if v not in wanted]:
+            with contextlib.suppress(zenoh.ZError):
+                self._truth.pop(vehicle_id).undeclare()
+        for vehicle_id in sorted(wanted - self._truth.keys()):
+            self._truth[vehicle_id] = self.session.declare_subscriber(
+                vehicle_key(vehicle_id, "truth", self.prefix), zenoh.handlers.RingChannel(TRUTH_RING_CAPACITY)
+            )
+
+    def drain_truth(self) -> list[tuple[str, bytes]]:
+        """Ground-truth payloads received since the last call: (vehicle id, payload)."""
+        out: list[tuple[str, bytes]] = []
+        for vehicle_id, sub in self._truth.items():
+            while (sample := sub.try_recv()) is not None:
+                out.append((vehicle_id, sample.payload.to_bytes()))
+        return out
+
     def publish_estimates(self, items: list[tuple[str, bytes]]) -> None:
         pubs = self._estimate_pubs
         for vehicle_id, payload in items:
@@ -158,14 +187,15 @@ class Transport:
 
     def close(self) -> None:
         """Undeclare everything and close the session (an unclosed session can hang the process at exit)."""
-        for entity in [*self._meas, *self._alive, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
+        entities = [*self._meas, *self._alive, *self._truth.values()]
+        for entity in [*entities, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         if self._token is not None:
             with contextlib.suppress(zenoh.ZError):
                 self._token.undeclare()
         self._meas, self._alive, self._token = [], [], None
-        self._estimate_pubs, self._alarm_pubs = {}, {}
+        self._estimate_pubs, self._alarm_pubs, self._truth = {}, {}, {}
         if self._session is not None:
             self._session.close()  # type: ignore[no-untyped-call]
             self._session = None

@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+#: How long a shutdown waits for open HTTP responses before it cuts them [s].
+GRACEFUL_SHUTDOWN_S = 5
+
 
 def register(sub: Any) -> None:
     parser = sub.add_parser(
@@ -88,5 +91,22 @@ def run(args: argparse.Namespace) -> int:
         return fail(exc)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     app = create_app(settings)
-    uvicorn.run(app, host=settings.http.host, port=settings.http.port, log_level=args.log_level, lifespan="on")
+
+    class Server(uvicorn.Server):
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            # open dashboard streams never end by themselves: end them, or the shutdown waits for them
+            service = getattr(app.state, "service", None)
+            if service is not None:
+                service.dashboard.end_streams_threadsafe()
+            super().handle_exit(sig, frame)
+
+    config = uvicorn.Config(
+        app,
+        host=settings.http.host,
+        port=settings.http.port,
+        log_level=args.log_level,
+        lifespan="on",
+        timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
+    )
+    Server(config).run()
     return 0

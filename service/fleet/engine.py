@@ -476,6 +476,7 @@ class FleetEngine:
         lvl_l = level.tolist()
         fin_l = finite.tolist()
         want_events = self.events.wants("estimate")
+        audience = self.events.audience("estimate") if want_events else None  # None: every vehicle
         n_est = 0
         for j, i in enumerate(idx.tolist()):
             if not fin_l[j]:
@@ -494,7 +495,7 @@ class FleetEngine:
                 (vehicle.id, encode_estimate(vehicle.id, seq_l[j], t_l[j], vx, vy, r, tf, df, dom_l[j], version, name))
             )
             vehicle.counters["published"] += 1
-            if want_events:
+            if want_events and (audience is None or vehicle.id in audience):
                 self.events.publish(
                     FleetEvent(
                         "estimate",
@@ -513,6 +514,7 @@ class FleetEngine:
                             level=name,
                             v=1,
                         ),
+                        rows.values[i],
                     )
                 )
         for j in np.flatnonzero(~finite).tolist():

@@ -5,7 +5,9 @@ the returned :class:`Subscription`. Publishing never blocks and never raises:
 a subscriber that falls behind loses its oldest events and sees the count in
 ``Subscription.dropped``. Estimate events are only built while someone
 listens (:attr:`EventBus.has_subscribers`), so the hook costs nothing
-otherwise. Everything runs on the asyncio loop that owns the fleet.
+otherwise; a subscription may follow only some vehicles (``vehicles``), and
+then only their estimate events are built (:meth:`EventBus.audience`).
+Everything runs on the asyncio loop that owns the fleet.
 """
 
 from __future__ import annotations
@@ -23,24 +25,39 @@ EventKind = Literal["estimate", "alarm", "vehicle"]
 @dataclass(frozen=True, slots=True)
 class FleetEvent:
     """One event: ``estimate`` carries an :class:`Estimate`, ``alarm`` an :class:`Alarm`,
-    ``vehicle`` a status dict (registered, stale, alive, profile changed)."""
+    ``vehicle`` a status dict (registered, stale, alive, profile changed).
+
+    An estimate event also carries the measurement it answers, ``measured`` =
+    (v_x [m/s], r [rad/s], T_d [N m], delta_d [rad]).
+    """
 
     kind: EventKind
     vehicle: str
     data: Estimate | Alarm | dict[str, Any]
+    measured: tuple[float, float, float, float] | None = None
 
 
 class Subscription:
     """A bounded queue of events for one listener; iterate it with ``async for``."""
 
-    def __init__(self, bus: EventBus, maxsize: int, kinds: frozenset[EventKind]) -> None:
+    def __init__(
+        self, bus: EventBus, maxsize: int, kinds: frozenset[EventKind], vehicles: frozenset[str] | None = None
+    ) -> None:
         self._bus = bus
         self._queue: asyncio.Queue[FleetEvent] = asyncio.Queue(maxsize)
         self.kinds = kinds
+        #: only events of these vehicles (None: every vehicle); change it with :meth:`follow`
+        self.vehicles = vehicles
         self.dropped = 0
+
+    def follow(self, vehicles: frozenset[str] | None) -> None:
+        """From now on take only the events of ``vehicles`` (None: of every vehicle)."""
+        self.vehicles = vehicles
 
     def _offer(self, event: FleetEvent) -> None:
         if event.kind not in self.kinds:
+            return
+        if self.vehicles is not None and event.vehicle not in self.vehicles:
             return
         if self._queue.full():
             self._queue.get_nowait()
@@ -86,10 +103,23 @@ class EventBus:
     def wants(self, kind: EventKind) -> bool:
         return any(kind in s.kinds for s in self._subscriptions)
 
+    def audience(self, kind: EventKind) -> frozenset[str] | None:
+        """The vehicles whose ``kind`` events some subscription takes; None when one takes every vehicle's."""
+        wanted: set[str] = set()
+        for subscription in self._subscriptions:
+            if kind in subscription.kinds:
+                if subscription.vehicles is None:
+                    return None
+                wanted |= subscription.vehicles
+        return frozenset(wanted)
+
     def subscribe(
-        self, maxsize: int = 10_000, kinds: tuple[EventKind, ...] = ("estimate", "alarm", "vehicle")
+        self,
+        maxsize: int = 10_000,
+        kinds: tuple[EventKind, ...] = ("estimate", "alarm", "vehicle"),
+        vehicles: frozenset[str] | None = None,
     ) -> Subscription:
-        subscription = Subscription(self, maxsize, frozenset(kinds))
+        subscription = Subscription(self, maxsize, frozenset(kinds), vehicles)
         self._subscriptions.append(subscription)
         return subscription
 
