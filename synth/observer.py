@@ -151,33 +151,34 @@ def observer_step(rt: RuntimeGains, z: FloatArray, y: ArrayLike, u: ArrayLike) -
     transpose of a contiguous (n, nv) array, which makes the next call's
     transposes free.
     """
-    yT = np.asarray(y, dtype=float).T
-    uT = np.asarray(u, dtype=float).T
+    y = np.asarray(y, dtype=float)
+    nv = y.shape[0]
+    n, n2 = rt.n, rt.n + 2
+    width = rt.n_rules * n2
+    Phi = np.empty((width + 6, nv))
+    yT = np.ascontiguousarray(y.T)  # contiguous rows: every loop below runs at unit stride
+    Phi[width + 3 : width + 5] = np.asarray(u, dtype=float).T
     zT = z.T
-    nv = yT.shape[1]
     # line 8: x_hat_k = z_k - E y_k
-    x_hat = z if rt.E_is_zero else z - yT.T @ rt.E.T
-    # premise xi = [1/v_x, r], flagged when outside the design box, then clipped
-    V_x = 1.0 / yT[0]
-    r = yT[1]
+    x_hat = z if rt.E_is_zero else z - y @ rt.E.T
+    # premise xi = [1/v_x, r], clipped to the design box, flagged when the clip moved it
     lo, hi = rt.premise_low, rt.premise_high
-    in_domain = (V_x >= lo[0]) & (V_x <= hi[0]) & (r >= lo[1]) & (r <= hi[1])
-    V_x = np.clip(V_x, lo[0], hi[0])
-    r = np.clip(r, lo[1], hi[1])
+    V_raw, r_raw = 1.0 / yT[0], yT[1]
+    V_x = np.minimum(np.maximum(V_raw, lo[0]), hi[0])
+    r = np.minimum(np.maximum(r_raw, lo[1]), hi[1])
+    in_domain = (V_x == V_raw) & (r == r_raw)
     # memberships of eq. (16): products of the two sector weights
-    a = (hi[0] - V_x) / (hi[0] - lo[0])
-    b = (hi[1] - r) / (hi[1] - lo[1])
+    a = (hi[0] - V_x) * (1.0 / (hi[0] - lo[0]))
+    b = (hi[1] - r) * (1.0 / (hi[1] - lo[1]))
     h = np.empty((4, nv))
     np.multiply(a, b, out=h[0])
     np.subtract(a, h[0], out=h[1])
     np.subtract(b, h[0], out=h[2])
-    h[3] = 1.0 - a - h[2]
+    np.subtract(1.0 - a, h[2], out=h[3])
     vy_hat = x_hat[:, VY_INDEX]
-    vy_in_bounds = (vy_hat >= rt.vy_low) & (vy_hat <= rt.vy_high)
+    vy_sat = np.minimum(np.maximum(vy_hat, rt.vy_low), rt.vy_high)
+    vy_in_bounds = vy_sat == vy_hat
     # line 9 as W^T Phi: rule blend of [z, y], the monomials of g, u, and phi(sat(v_y_hat))
-    n, n2 = rt.n, rt.n + 2
-    width = rt.n_rules * n2
-    Phi = np.empty((width + 6, nv))
     blend = Phi[:width].reshape(rt.n_rules, n2, nv)
     np.multiply(h[:, None, :], zT[None, :, :], out=blend[:, :n])
     np.multiply(h[:, None, :], yT[None, :, :], out=blend[:, n:])
@@ -185,8 +186,7 @@ def observer_step(rt: RuntimeGains, z: FloatArray, y: ArrayLike, u: ArrayLike) -
     np.multiply(v_x, v_x, out=Phi[width])
     np.multiply(r, V_x, out=Phi[width + 1])
     np.multiply(v_x, r, out=Phi[width + 2])
-    Phi[width + 3 : width + 5] = uT
-    Phi[width + 5] = np.clip(vy_hat, rt.vy_low, rt.vy_high) ** 2
+    np.multiply(vy_sat, vy_sat, out=Phi[width + 5])
     z_next = (rt.WT @ Phi).T
     return z_next, StepResult(x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds)
 
