@@ -187,14 +187,11 @@ class Measurement:
         return all(math.isfinite(v) for v in (self.vx_mps, self.r_radps, self.torque_nm, self.steer_rad))
 
 
-def unpack_measurement_header(payload: bytes) -> tuple[bytes, int, int, int, int, int, float, float, float, float, int]:
-    """The raw header fields (magic, version, flags, id length, seq, t_ns, v_x, r, T_d, delta_d, reserved).
-
-    The service's hot path: no validation beyond the size, which the caller
-    checks (``len(payload) >= MEASUREMENT_HEADER_SIZE``). Use
-    :meth:`Measurement.decode` for a checked decode with a readable error.
-    """
-    return _HEADER.unpack_from(payload)
+#: The raw header fields of a measurement, (magic, version, flags, id length, seq, t_ns, v_x, r, T_d,
+#: delta_d, reserved): the service's hot path, a bound ``struct`` method with no Python frame of its own.
+#: No validation beyond the size, which the caller checks (``len(payload) >= MEASUREMENT_HEADER_SIZE``);
+#: use :meth:`Measurement.decode` for a checked decode with a readable error.
+unpack_measurement_header = _HEADER.unpack_from
 
 
 class _Message(BaseModel):

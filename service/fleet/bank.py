@@ -71,6 +71,11 @@ class ProfileBank:
         self.hist_seq = np.zeros((cap, history_samples), dtype=np.int64)
         self.hist_t_ns = np.zeros((cap, history_samples), dtype=np.int64)
         self.hist_count = np.zeros(cap, dtype=np.int64)
+        # per-sample counts of each row, and the row's place in its estimate publishing cycle
+        self.accepted = np.zeros(cap, dtype=np.int64)
+        self.estimates = np.zeros(cap, dtype=np.int64)
+        self.published = np.zeros(cap, dtype=np.int64)
+        self.phase = np.zeros(cap, dtype=np.int64)
         a = spec.alarms
         self.torque = LevelDetector(
             cap,
@@ -151,6 +156,7 @@ class ProfileBank:
         self.last_seq[slot] = -1
         self.last_t_ns[slot] = 0
         self.hist_count[slot] = 0
+        self.accepted[slot] = self.estimates[slot] = self.published[slot] = self.phase[slot] = 0
         rows = np.array([slot])
         for detector in (self.torque, self.steer, self.domain):
             detector.reset(rows)
@@ -176,10 +182,22 @@ class ProfileBank:
         self.hist_seq = pad(self.hist_seq, 0)
         self.hist_t_ns = pad(self.hist_t_ns, 0)
         self.hist_count = pad(self.hist_count, 0)
+        self.accepted = pad(self.accepted, 0)
+        self.estimates = pad(self.estimates, 0)
+        self.published = pad(self.published, 0)
+        self.phase = pad(self.phase, 0)
         for detector in (self.torque, self.steer, self.domain):
             detector.grow(capacity)
         self.free.extend(range(capacity - 1, self.capacity - 1, -1))
         self.capacity = capacity
+
+    def sample_counts(self, slot: int) -> dict[str, int]:
+        """Samples the row accepted, estimates it made and estimates it published."""
+        return {
+            "accepted": int(self.accepted[slot]),
+            "estimates": int(self.estimates[slot]),
+            "published": int(self.published[slot]),
+        }
 
     # ------------------------------------------------------------------ the step
 

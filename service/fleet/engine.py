@@ -114,7 +114,7 @@ class Vehicle:
     __slots__ = (
         "alive",
         "bank",
-        "counters",
+        "base_counters",
         "id",
         "id_bytes",
         "last_seen_mono",
@@ -123,7 +123,6 @@ class Vehicle:
         "meas_key",
         "payload_len",
         "pending",
-        "publish_phase",
         "registered_t_ns",
         "reject_times",
         "rejected",
@@ -142,10 +141,11 @@ class Vehicle:
         self.last_seen_mono: float | None = None
         self.last_seen_ns: int | None = None
         self.registered_t_ns = registered_t_ns
-        self.counters = {"accepted": 0, "estimates": 0, "published": 0, "missing": 0, "gaps": 0, "restarts": 0}
+        #: Event counts kept per vehicle; the per-sample counts (accepted, estimates, published) live in
+        #: the bank's arrays and are added here when the vehicle moves to another profile.
+        self.base_counters = {"accepted": 0, "estimates": 0, "published": 0, "missing": 0, "gaps": 0, "restarts": 0}
         self.rejected: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
         self.pending = 0
-        self.publish_phase = 0
         self.reject_times: deque[float] = deque()
         self.stale = False
         self.alive: bool | None = None
@@ -153,6 +153,14 @@ class Vehicle:
     @property
     def profile(self) -> str:
         return self.bank.name
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Samples accepted, estimates made and published, samples missing, gaps, restarts (a copy)."""
+        out = dict(self.base_counters)
+        for name, value in self.bank.sample_counts(self.slot).items():
+            out[name] += value
+        return out
 
 
 @dataclass
@@ -167,17 +175,15 @@ class TickResult:
 
 
 class _Rows:
-    """Samples of one profile collected during a tick, in arrival order."""
+    """Samples of one profile collected during a tick, in arrival order (three appends per sample)."""
 
-    __slots__ = ("restart", "rounds", "seq", "t_ns", "values", "vehicles")
+    __slots__ = ("ints", "restart", "values", "vehicles")
 
     def __init__(self) -> None:
         self.vehicles: list[Vehicle] = []
-        self.rounds: list[int] = []
-        self.seq: list[int] = []
-        self.t_ns: list[int] = []
-        self.values: list[tuple[float, float, float, float]] = []
-        self.restart: list[bool] = []
+        self.ints: list[tuple[int, int, int, int]] = []  # (slot, round, seq, t_ns)
+        self.values: list[tuple[float, float, float, float]] = []  # (v_x, r, T_d, delta_d)
+        self.restart: list[int] = []  # positions of the samples that restart their observer
 
 
 class FleetEngine:
@@ -238,6 +244,8 @@ class FleetEngine:
         if existing is not None:
             if existing.bank is bank:
                 return existing
+            for name, value in existing.bank.sample_counts(existing.slot).items():
+                existing.base_counters[name] += value
             existing.bank.release(existing.slot)
             existing.bank = bank
             existing.slot = bank.allocate()
@@ -294,7 +302,7 @@ class FleetEngine:
             if magic != MAGIC or version != PROTOCOL_VERSION:
                 self._reject(vehicle, "malformed", now_mono, result)
                 continue
-            if payload[MEASUREMENT_HEADER_SIZE:] != vehicle.id_bytes:
+            if not payload.endswith(vehicle.id_bytes):  # same length as expected: the id is the tail
                 self._reject(vehicle, "id_mismatch", now_mono, result)
                 continue
             last = vehicle.last_seq
@@ -310,8 +318,8 @@ class FleetEngine:
                     continue
             elif last >= 0 and seq > last + 1:
                 missing = seq - last - 1
-                vehicle.counters["missing"] += missing
-                vehicle.counters["gaps"] += 1
+                vehicle.base_counters["missing"] += missing
+                vehicle.base_counters["gaps"] += 1
                 self.stats["missing"] += missing
                 self.stats["gaps"] += 1
                 if missing * vehicle.bank.spec.params.sample_period_s >= self.config.long_gap_s:
@@ -331,12 +339,11 @@ class FleetEngine:
             if rnd == 0:
                 touched.append(vehicle)
             vehicle.pending = rnd + 1
+            if restart:
+                rows.restart.append(len(rows.vehicles))
             rows.vehicles.append(vehicle)
-            rows.rounds.append(rnd)
-            rows.seq.append(seq)
-            rows.t_ns.append(t_ns)
+            rows.ints.append((vehicle.slot, rnd, seq, t_ns))
             rows.values.append((vx, r, torque, steer))
-            rows.restart.append(restart)
         for vehicle in touched:
             vehicle.pending = 0
         self.stats["received"] += received
@@ -401,11 +408,10 @@ class FleetEngine:
 
     def _step_bank(self, bank: ProfileBank, rows: _Rows, now_mono: float, now_ns: int, result: TickResult) -> None:
         values = np.array(rows.values, dtype=float)
-        slots = np.fromiter((v.slot for v in rows.vehicles), dtype=np.int64, count=len(rows.vehicles))
-        rounds = np.array(rows.rounds, dtype=np.int64)
-        seq = np.array(rows.seq, dtype=np.int64)
-        t_ns = np.array(rows.t_ns, dtype=np.int64)
-        restart = np.array(rows.restart, dtype=bool)
+        ints = np.array(rows.ints, dtype=np.int64)
+        slots, rounds, seq, t_ns = ints[:, 0], ints[:, 1], ints[:, 2], ints[:, 3]
+        restart = np.zeros(len(values), dtype=bool)
+        restart[rows.restart] = True
         limits = bank.spec.limits
         finite = np.isfinite(values).all(axis=1)
         with np.errstate(invalid="ignore"):
@@ -428,7 +434,7 @@ class FleetEngine:
             if len(again):
                 for i in again:
                     bank.restart(int(slots[i]))
-                    rows.vehicles[i].counters["restarts"] += 1
+                    rows.vehicles[i].base_counters["restarts"] += 1
                 self.stats["restarts"] += len(again)
             out = bank.step(s, values[idx][:, [0, 1]], values[idx][:, [2, 3]], seq[idx], t_ns[idx])
             self._after_step(bank, rows, idx, s, out.x5, out.in_domain, out.vy_in_bounds, out.finite, seq, t_ns, result)
@@ -465,36 +471,38 @@ class FleetEngine:
         changed.update(f[bank.domain.update(slots[f], outside, t[f])].tolist())
         for j in sorted(changed):
             self._alarm_transitions(bank, rows.vehicles[idx[j]], int(t[j]), x5[j], result)
-        # estimates
-        level = np.maximum(np.maximum(bank.torque.level[slots], bank.steer.level[slots]), bank.domain.level[slots])
+        # counts, and which estimates to publish: every n-th finite estimate of each vehicle
+        bank.accepted[slots] += 1
+        done = slots[finite]
+        bank.estimates[done] += 1
         every_n = self.config.estimate_every_n
+        phase = bank.phase[done]
+        bank.phase[done] = (phase + 1) % every_n
+        pub = np.flatnonzero(finite)[phase == 0]
+        bank.published[slots[pub]] += 1
+        self.stats["estimates"] += len(done)
+        if not len(pub):
+            return
+        level = np.maximum(
+            np.maximum(bank.torque.level[slots[pub]], bank.steer.level[slots[pub]]), bank.domain.level[slots[pub]]
+        )
         version = bank.version or ""
-        rows_x = x5.tolist()
-        seq_l = seq[idx].tolist()
-        t_l = t.tolist()
-        dom_l = in_domain.tolist()
-        lvl_l = level.tolist()
-        fin_l = finite.tolist()
         want_events = self.events.wants("estimate")
         audience = self.events.audience("estimate") if want_events else None  # None: every vehicle
-        n_est = 0
-        for j, i in enumerate(idx.tolist()):
-            if not fin_l[j]:
-                continue
+        for i, (vx, vy, r, tf, df), sq, tn, dom, lvl in zip(
+            idx[pub].tolist(),
+            x5[pub].tolist(),
+            seq[idx[pub]].tolist(),
+            t[pub].tolist(),
+            in_domain[pub].tolist(),
+            level.tolist(),
+            strict=True,
+        ):
             vehicle = rows.vehicles[i]
-            vehicle.counters["accepted"] += 1
-            vehicle.counters["estimates"] += 1
-            n_est += 1
-            phase = vehicle.publish_phase
-            vehicle.publish_phase = phase + 1 if phase + 1 < every_n else 0
-            if phase:
-                continue
-            vx, vy, r, tf, df = rows_x[j]
-            name = "STALE" if vehicle.stale else LEVEL_NAMES[lvl_l[j]]
+            name = "STALE" if vehicle.stale else LEVEL_NAMES[lvl]
             result.estimates.append(
-                (vehicle.id, encode_estimate(vehicle.id, seq_l[j], t_l[j], vx, vy, r, tf, df, dom_l[j], version, name))
+                (vehicle.id, encode_estimate(vehicle.id, sq, tn, vx, vy, r, tf, df, dom, version, name))
             )
-            vehicle.counters["published"] += 1
             if want_events and (audience is None or vehicle.id in audience):
                 self.events.publish(
                     FleetEvent(
@@ -502,14 +510,14 @@ class FleetEngine:
                         vehicle.id,
                         Estimate.model_construct(
                             vehicle=vehicle.id,
-                            seq=seq_l[j],
-                            t_ns=t_l[j],
+                            seq=sq,
+                            t_ns=tn,
                             vx=vx,
                             vy=vy,
                             r=r,
                             torque_fault=tf,
                             steer_fault=df,
-                            in_domain=dom_l[j],
+                            in_domain=dom,
                             gain_version=version,
                             level=name,
                             v=1,
@@ -517,9 +525,6 @@ class FleetEngine:
                         rows.values[i],
                     )
                 )
-        for j in np.flatnonzero(~finite).tolist():
-            rows.vehicles[idx[j]].counters["accepted"] += 1
-        self.stats["estimates"] += n_est
 
     def _alarm_transitions(
         self, bank: ProfileBank, vehicle: Vehicle, t_ns: int, x5: np.ndarray, result: TickResult

@@ -246,6 +246,23 @@ def test_estimate_every_n_publishes_a_subset_but_observes_every_sample(fast_gain
         published += decoded(engine.process(pairs([constant_measurement("v", k)])))
     assert [e.seq for e in published] == [0, 4, 8]
     assert engine.vehicles["v"].counters["estimates"] == 12
+    assert engine.vehicles["v"].counters["published"] == 3
+
+
+def test_counters_follow_a_vehicle_that_moves_to_another_profile(fast_gains):
+    engine = make_engine(fast_gains, estimate_every_n=2)
+    engine.add_profile("other", engine.banks["default"].spec)
+    engine.activate("other", fast_gains)
+    for k in range(5):
+        engine.process(pairs([constant_measurement("v", k)]))
+    moved = engine.register("v", "other")
+    assert moved.counters["accepted"] == 5 and moved.counters["published"] == 3
+    for k in range(5, 9):
+        engine.process(pairs([constant_measurement("v", k)]))
+    counters = engine.vehicles["v"].counters
+    assert (counters["accepted"], counters["estimates"], counters["published"]) == (9, 9, 5)
+    newcomer = engine.register("w", "default")  # the freed row starts from zero
+    assert newcomer.slot == 0 and newcomer.counters["accepted"] == 0
 
 
 def test_gain_activation_continues_from_the_last_estimate(fast_gains):
