@@ -39,6 +39,7 @@ import zlib
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 PROTOCOL_VERSION = 1
@@ -49,6 +50,22 @@ N_BUCKETS = 16
 MAGIC = b"AGVM"
 _HEADER = struct.Struct("<4sBBHQqddddQ")
 MEASUREMENT_HEADER_SIZE = _HEADER.size  # 64
+#: The same header as a numpy record, to decode a tick's headers in one ``np.frombuffer``.
+MEASUREMENT_HEADER_DTYPE = np.dtype(
+    [
+        ("magic", "S4"),
+        ("version", "u1"),
+        ("flags", "u1"),
+        ("id_len", "<u2"),
+        ("seq", "<u8"),
+        ("t_ns", "<i8"),
+        ("vx", "<f8"),
+        ("r", "<f8"),
+        ("torque", "<f8"),
+        ("steer", "<f8"),
+        ("reserved", "<u8"),
+    ]
+)
 FLAG_SEQUENCE_RESTART = 0x01
 
 VEHICLE_ID_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
@@ -188,10 +205,13 @@ class Measurement:
 
 
 #: The raw header fields of a measurement, (magic, version, flags, id length, seq, t_ns, v_x, r, T_d,
-#: delta_d, reserved): the service's hot path, a bound ``struct`` method with no Python frame of its own.
-#: No validation beyond the size, which the caller checks (``len(payload) >= MEASUREMENT_HEADER_SIZE``);
-#: use :meth:`Measurement.decode` for a checked decode with a readable error.
+#: delta_d, reserved), with no validation beyond the size, which the caller checks
+#: (``len(payload) >= MEASUREMENT_HEADER_SIZE``); use :meth:`Measurement.decode` for a checked decode
+#: with a readable error.
 unpack_measurement_header = _HEADER.unpack_from
+#: Only (magic, version, flags, seq): what the service's per-sample loop needs; the numbers are
+#: decoded for a whole tick at once with :data:`MEASUREMENT_HEADER_DTYPE`.
+unpack_measurement_sequence = struct.Struct("<4sBBxxQ").unpack_from
 
 
 class _Message(BaseModel):

@@ -42,6 +42,7 @@ from service.profiles import ProfileSpec
 from service.protocol import (
     FLAG_SEQUENCE_RESTART,
     MAGIC,
+    MEASUREMENT_HEADER_DTYPE,
     MEASUREMENT_HEADER_SIZE,
     PROTOCOL_VERSION,
     AlarmKind,
@@ -52,7 +53,7 @@ from service.protocol import (
     bucket_of,
     encode_estimate,
     parse_vehicle_key,
-    unpack_measurement_header,
+    unpack_measurement_sequence,
     vehicle_key,
 )
 from synth.gains import ObserverGains
@@ -175,14 +176,15 @@ class TickResult:
 
 
 class _Rows:
-    """Samples of one profile collected during a tick, in arrival order (three appends per sample)."""
+    """Samples of one profile collected during a tick, in arrival order."""
 
-    __slots__ = ("ints", "restart", "values", "vehicles")
+    __slots__ = ("headers", "later", "restart", "slots", "vehicles")
 
     def __init__(self) -> None:
         self.vehicles: list[Vehicle] = []
-        self.ints: list[tuple[int, int, int, int]] = []  # (slot, round, seq, t_ns)
-        self.values: list[tuple[float, float, float, float]] = []  # (v_x, r, T_d, delta_d)
+        self.slots: list[int] = []
+        self.headers: list[bytes] = []  # the 64-byte header of each sample, decoded at once
+        self.later: list[tuple[int, int]] = []  # (position, round) of a vehicle's 2nd, 3rd... sample this tick
         self.restart: list[int] = []  # positions of the samples that restart their observer
 
 
@@ -287,7 +289,8 @@ class FleetEngine:
         per_bank: dict[str, _Rows] = {}
         touched: list[Vehicle] = []
         received = 0
-        unpack = unpack_measurement_header
+        unpack = unpack_measurement_sequence
+        header_size = MEASUREMENT_HEADER_SIZE
         for key, payload in batch:
             received += 1
             vehicle = self._by_key.get(key)
@@ -298,7 +301,7 @@ class FleetEngine:
             if len(payload) != vehicle.payload_len:
                 self._reject(vehicle, _classify(payload, vehicle.id), now_mono, result)
                 continue
-            magic, version, flags, _, seq, t_ns, vx, r, torque, steer, _ = unpack(payload)
+            magic, version, flags, seq = unpack(payload)
             if magic != MAGIC or version != PROTOCOL_VERSION:
                 self._reject(vehicle, "malformed", now_mono, result)
                 continue
@@ -338,12 +341,14 @@ class FleetEngine:
             rnd = vehicle.pending
             if rnd == 0:
                 touched.append(vehicle)
+            else:
+                rows.later.append((len(rows.vehicles), rnd))
             vehicle.pending = rnd + 1
             if restart:
                 rows.restart.append(len(rows.vehicles))
             rows.vehicles.append(vehicle)
-            rows.ints.append((vehicle.slot, rnd, seq, t_ns))
-            rows.values.append((vx, r, torque, steer))
+            rows.slots.append(vehicle.slot)
+            rows.headers.append(payload[:header_size])
         for vehicle in touched:
             vehicle.pending = 0
         self.stats["received"] += received
@@ -407,10 +412,16 @@ class FleetEngine:
             self._emit(change, result)
 
     def _step_bank(self, bank: ProfileBank, rows: _Rows, now_mono: float, now_ns: int, result: TickResult) -> None:
-        values = np.array(rows.values, dtype=float)
-        ints = np.array(rows.ints, dtype=np.int64)
-        slots, rounds, seq, t_ns = ints[:, 0], ints[:, 1], ints[:, 2], ints[:, 3]
-        restart = np.zeros(len(values), dtype=bool)
+        header = np.frombuffer(b"".join(rows.headers), dtype=MEASUREMENT_HEADER_DTYPE)
+        values = np.column_stack([header["vx"], header["r"], header["torque"], header["steer"]])
+        seq = header["seq"].astype(np.int64)
+        t_ns = header["t_ns"].astype(np.int64)
+        slots = np.array(rows.slots, dtype=np.int64)
+        rounds = np.zeros(len(slots), dtype=np.int64)
+        if rows.later:
+            at, rnd = np.array(rows.later, dtype=np.int64).T
+            rounds[at] = rnd
+        restart = np.zeros(len(slots), dtype=bool)
         restart[rows.restart] = True
         limits = bank.spec.limits
         finite = np.isfinite(values).all(axis=1)
@@ -437,7 +448,9 @@ class FleetEngine:
                     rows.vehicles[i].base_counters["restarts"] += 1
                 self.stats["restarts"] += len(again)
             out = bank.step(s, values[idx][:, [0, 1]], values[idx][:, [2, 3]], seq[idx], t_ns[idx])
-            self._after_step(bank, rows, idx, s, out.x5, out.in_domain, out.vy_in_bounds, out.finite, seq, t_ns, result)
+            self._after_step(
+                bank, rows, idx, s, out.x5, out.in_domain, out.vy_in_bounds, out.finite, seq, t_ns, values, result
+            )
         result.accepted += int(ok.sum())
         self.stats["accepted"] += int(ok.sum())
 
@@ -453,6 +466,7 @@ class FleetEngine:
         finite: np.ndarray,
         seq: np.ndarray,
         t_ns: np.ndarray,
+        values: np.ndarray,
         result: TickResult,
     ) -> None:
         t = t_ns[idx]
@@ -522,7 +536,7 @@ class FleetEngine:
                             level=name,
                             v=1,
                         ),
-                        rows.values[i],
+                        tuple(values[i].tolist()),
                     )
                 )
 

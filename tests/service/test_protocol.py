@@ -1,8 +1,12 @@
 import math
 
+import numpy as np
 import pytest
 
 from service.protocol import (
+    FLAG_SEQUENCE_RESTART,
+    MAGIC,
+    MEASUREMENT_HEADER_DTYPE,
     MEASUREMENT_HEADER_SIZE,
     Alarm,
     Estimate,
@@ -12,6 +16,7 @@ from service.protocol import (
     bucket_of,
     parse_vehicle_key,
     shard_buckets,
+    unpack_measurement_sequence,
     vehicle_key,
 )
 
@@ -21,6 +26,20 @@ def test_measurement_round_trip_is_compact():
     payload = m.encode()
     assert len(payload) == MEASUREMENT_HEADER_SIZE + len("veh-001") == 71
     assert Measurement.decode(payload) == m
+
+
+def test_the_batch_decoders_read_what_encode_wrote():
+    """The service decodes a tick's headers as one numpy record array; it must agree with the struct."""
+    ms = [
+        Measurement("a", 7, 1_700_000_000_000_000_001, 12.5, -0.125, 180.0, 0.0125),
+        Measurement("veh-long-name", 2**40, -5, 0.0, 1e-300, -1e300, -0.5, FLAG_SEQUENCE_RESTART),
+    ]
+    header = np.frombuffer(b"".join(m.encode()[:MEASUREMENT_HEADER_SIZE] for m in ms), dtype=MEASUREMENT_HEADER_DTYPE)
+    assert MEASUREMENT_HEADER_DTYPE.itemsize == MEASUREMENT_HEADER_SIZE
+    for m, h in zip(ms, header, strict=True):
+        assert (h["seq"], h["t_ns"], h["flags"], h["id_len"]) == (m.seq, m.timestamp_ns, m.flags, len(m.vehicle_id))
+        assert (h["vx"], h["r"], h["torque"], h["steer"]) == (m.vx_mps, m.r_radps, m.torque_nm, m.steer_rad)
+        assert unpack_measurement_sequence(m.encode()) == (MAGIC, 1, m.flags, m.seq)
 
 
 @pytest.mark.parametrize(
