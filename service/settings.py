@@ -76,7 +76,9 @@ class IngestSettings(_Section):
         0.5, description="a sequence gap longer than this re-initialises the vehicle's observer [s]"
     )
     estimate_every_n: Annotated[int, Field(ge=1)] = Field(
-        1, description="publish every Nth estimate of a vehicle (1: every sample); all samples are still observed"
+        1,
+        description="publish every Nth estimate of a vehicle (1: every sample); all samples are still observed; "
+        "vehicles are spread over the N phases so that each sample tick publishes about 1/N of the fleet",
     )
     history_samples: Annotated[int, Field(ge=1, le=100_000)] = Field(
         500, description="estimates kept per vehicle for GET /vehicles/{id}/estimates"

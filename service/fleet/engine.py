@@ -251,6 +251,7 @@ class FleetEngine:
             existing.bank.release(existing.slot)
             existing.bank = bank
             existing.slot = bank.allocate()
+            self._stagger(existing)
             return existing
         vehicle = Vehicle(
             vehicle_id,
@@ -260,11 +261,18 @@ class FleetEngine:
             self._clock_ns() if registered_t_ns is None else registered_t_ns,
         )
         vehicle.alive = self._presence.pop(vehicle_id, None)
+        self._stagger(vehicle)
         self.vehicles[vehicle_id] = vehicle
         self._by_key[vehicle.meas_key] = vehicle
         if self.events.wants("vehicle"):
             self.events.publish(FleetEvent("vehicle", vehicle_id, {"event": "registered", "profile": profile}))
         return vehicle
+
+    def _stagger(self, vehicle: Vehicle) -> None:
+        """Spread the published estimates of vehicles that register together over the N ticks of
+        ``estimate_every_n``: after a service restart the whole fleet registers at once, and aligned
+        phases would publish every vehicle's estimate on the same tick and none on the N - 1 others."""
+        vehicle.bank.phase[vehicle.slot] = vehicle.slot % self.config.estimate_every_n
 
     def vehicle(self, vehicle_id: str) -> Vehicle:
         try:

@@ -249,6 +249,20 @@ def test_estimate_every_n_publishes_a_subset_but_observes_every_sample(fast_gain
     assert engine.vehicles["v"].counters["published"] == 3
 
 
+def test_vehicles_that_register_together_publish_on_different_ticks(fast_gains):
+    """Eight vehicles from the first tick, every 4th estimate: two per tick, each vehicle still every 4th."""
+    engine = make_engine(fast_gains, estimate_every_n=4)
+    ids = [f"v{i}" for i in range(8)]
+    per_tick: list[list[Estimate]] = []
+    for k in range(12):
+        per_tick.append(decoded(engine.process(pairs([constant_measurement(v, k) for v in ids]))))
+    assert [len(tick) for tick in per_tick] == [2] * 12
+    for v in ids:
+        seqs = [e.seq for tick in per_tick for e in tick if e.vehicle == v]
+        assert len(seqs) == 3 and seqs[1] - seqs[0] == seqs[2] - seqs[1] == 4 and seqs[0] < 4
+    assert sorted({e.seq % 4 for tick in per_tick for e in tick}) == [0, 1, 2, 3]
+
+
 def test_counters_follow_a_vehicle_that_moves_to_another_profile(fast_gains):
     engine = make_engine(fast_gains, estimate_every_n=2)
     engine.add_profile("other", engine.banks["default"].spec)
