@@ -226,6 +226,9 @@ def synthesize_robust(params: VehicleParams, bounds: OperatingBounds, options: D
         if why is not None:
             failures.append(why)
             continue
+        stats = lmis.problem.solver_stats
+        timings["compile_s"] = float(lmis.problem.compilation_time or 0.0)
+        timings["solver_s"] = float(stats.solve_time or 0.0) if stats is not None else float("nan")
         try:
             return _verified_gains(params, bounds, options, aug, dc, lmis, solver, timings, started)
         except (VerificationFailed, np.linalg.LinAlgError) as exc:
