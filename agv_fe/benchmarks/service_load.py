@@ -34,6 +34,11 @@ FLEET_SIZES = (100, 250, 500, 750, 1000, 1250, 1500)
 STEP_S = 10.0
 WARMUP_S = 2.0
 ESTIMATE_EVERY_N = 10
+#: The fleet size of the latency target, and how many steps measure it (the sweep's and repeats after it):
+#: one 10 s step on a shared machine is one sample of a noisy figure.
+TARGET_VEHICLES = 1000
+TARGET_STEPS = 3
+TARGET_P99_MS = 10.0
 RATE_HZ = 100.0
 #: A step passes when the generator reached this fraction of the target rate.
 PACE_FRACTION = 0.99
@@ -258,6 +263,7 @@ def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES) -> Path:
         proc = subprocess.Popen(cmd, env=env)
         http = httpx.Client(base_url=f"http://127.0.0.1:{http_port}", timeout=30)
         rows: list[dict[str, Any]] = []
+        repeats: list[dict[str, Any]] = []  # more steps at TARGET_VEHICLES after the sweep
         try:
             deadline = time.monotonic() + 300
             while time.monotonic() < deadline:
@@ -282,6 +288,12 @@ def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES) -> Path:
                 )
                 if not (row["zero_loss"] and row["paced"]):
                     break
+            if any(r["vehicles"] == TARGET_VEHICLES and r["zero_loss"] and r["paced"] for r in rows):
+                for _ in range(TARGET_STEPS - 1):
+                    again = _step(endpoint, http, proc.pid, TARGET_VEHICLES)
+                    repeats.append(again)
+                    print(f"  {TARGET_VEHICLES} vehicles again: p50 {again['p50_ms']:.2f} ms, "
+                          f"p99 {again['p99_ms']:.2f} ms, zero loss {again['zero_loss']}", flush=True)  # fmt: skip
         finally:
             http.close()
             proc.send_signal(signal.SIGINT)
@@ -290,10 +302,16 @@ def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES) -> Path:
             except subprocess.TimeoutExpired:
                 proc.kill()
     engine = _engine_alone(gains_doc, tuple(r["vehicles"] for r in rows))
-    return _report(out_dir, rows, design, engine)
+    return _report(out_dir, rows, design, engine, repeats)
 
 
-def _report(out_dir: Path, rows: list[dict[str, Any]], design: dict[str, Any], engine: list[dict[str, Any]]) -> Path:
+def _report(
+    out_dir: Path,
+    rows: list[dict[str, Any]],
+    design: dict[str, Any],
+    engine: list[dict[str, Any]],
+    repeats: list[dict[str, Any]] | None = None,
+) -> Path:
     sustained = [r for r in rows if r["zero_loss"] and r["paced"]]
     best = max((r["vehicles"] for r in sustained), default=0)
     lines = [
@@ -327,8 +345,9 @@ def _report(out_dir: Path, rows: list[dict[str, Any]], design: dict[str, Any], e
         *(f"| {e['vehicles']} | {e['us_per_msg']:.2f} | {e['cores_at_100hz']:.3f} |" for e in engine),
     ]
     path = out_dir / "service_load.md"
-    text = "\n".join(lines) + "\n\n" + ANALYSIS + "\n" + _against_target(rows, engine)
-    path.write_text(text + "\n```json\n" + json.dumps({"service": rows, "engine": engine}, indent=1) + "\n```\n")
+    text = "\n".join(lines) + "\n\n" + ANALYSIS + "\n" + _against_target(rows, engine, repeats)
+    data = {"service": rows, "target_repeats": repeats, "engine": engine}
+    path.write_text(text + "\n```json\n" + json.dumps(data, indent=1) + "\n```\n")
     return path
 
 
@@ -350,12 +369,14 @@ would otherwise have; a service on its own machine carries more.
 """
 
 
-def _against_target(rows: list[dict[str, Any]], engine: list[dict[str, Any]]) -> str:
+def _against_target(
+    rows: list[dict[str, Any]], engine: list[dict[str, Any]], repeats: list[dict[str, Any]] | None = None
+) -> str:
     """The verdict against the product's targets, from this run's figures."""
     sustained = [r for r in rows if r["zero_loss"] and r["paced"]]
-    fast = [r["vehicles"] for r in sustained if r["p99_ms"] < 10.0]
+    fast = [r["vehicles"] for r in sustained if r["p99_ms"] < TARGET_P99_MS]
     at = {r["vehicles"]: r for r in rows}
-    big = at.get(1000) or (rows[-1] if rows else None)
+    big = at.get(TARGET_VEHICLES) or (rows[-1] if rows else None)
     parts = ["**Against the targets (this run).**"]
     if big is not None:
         ok = big["zero_loss"] and big["paced"]
@@ -364,10 +385,21 @@ def _against_target(rows: list[dict[str, Any]], engine: list[dict[str, Any]]) ->
             f"(p50 {big['p50_ms']:.1f} ms, p99 {big['p99_ms']:.1f} ms, service CPU {big['service_cpu']:.2f} cores)."
         )
     parts.append(
-        f"The p99 < 10 ms latency target held up to {max(fast):,} vehicles of the sizes tried."
+        f"In the sweep, the p99 < {TARGET_P99_MS:.0f} ms latency target held up to {max(fast):,} vehicles."
         if fast
-        else "The p99 < 10 ms latency target was not met at any size tried."
+        else f"In the sweep, the p99 < {TARGET_P99_MS:.0f} ms latency target was not met at any size."
     )
+    steps = ([big] if big is not None and big["vehicles"] == TARGET_VEHICLES else []) + list(repeats or [])
+    if len(steps) > 1:
+        p99s = [r["p99_ms"] for r in steps]
+        clean = all(r["zero_loss"] and r["paced"] for r in steps)
+        median = sorted(p99s)[len(p99s) // 2]
+        parts.append(
+            f"Over {len(steps)} steps of {TARGET_VEHICLES:,} vehicles (the sweep's and {len(steps) - 1} more), "
+            f"p99 was {', '.join(f'{x:.1f}' for x in p99s)} ms, median {median:.1f} ms"
+            f"{'' if clean else ' (not every step was clean)'}: the target is "
+            f"{'met' if clean and median < TARGET_P99_MS else 'not met'} by the median."
+        )
     e = next((x for x in engine if big is not None and x["vehicles"] == big["vehicles"]), None)
     if e is not None:
         parts.append(
