@@ -52,11 +52,22 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _templates(ids: list[str]) -> list[bytearray]:
+    """One encoded measurement per vehicle, flagged as a sequence restart (each step starts new
+    sequences); the caller writes seq and t_ns in place (bytes 8-23) and clears the flag after tick 0."""
+    from service.protocol import FLAG_SEQUENCE_RESTART, Measurement
+
+    templates = [bytearray(Measurement(v, 0, 0, 12.0, 0.02, 90.0, 0.01).encode()) for v in ids]
+    for t in templates:
+        t[5] = FLAG_SEQUENCE_RESTART
+    return templates
+
+
 def _generator(endpoint: str, n: int, duration_s: float, out: Any) -> None:
     """Publish n vehicles at 100 Hz for duration_s; report samples sent and the time it took."""
     import zenoh
 
-    from service.protocol import FLAG_SEQUENCE_RESTART, Measurement, vehicle_key
+    from service.protocol import vehicle_key
     from service.transport import open_session
 
     session = open_session("client", endpoint)
@@ -64,9 +75,7 @@ def _generator(endpoint: str, n: int, duration_s: float, out: Any) -> None:
     pubs = [
         session.declare_publisher(vehicle_key(v, "meas"), congestion_control=zenoh.CongestionControl.BLOCK) for v in ids
     ]
-    templates = [bytearray(Measurement(v, 0, 0, 12.0, 0.02, 90.0, 0.01).encode()) for v in ids]
-    for t in templates:
-        t[5] = FLAG_SEQUENCE_RESTART  # each step starts new sequences
+    templates = _templates(ids)
     pack = struct.Struct("<Qq").pack_into
     time.sleep(0.5)
     period = 1.0 / RATE_HZ
@@ -213,7 +222,7 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...]) -> list[dic
     """
     from service.fleet.engine import EngineConfig, FleetEngine
     from service.profiles import ProfileSpec
-    from service.protocol import FLAG_SEQUENCE_RESTART, Measurement, vehicle_key
+    from service.protocol import vehicle_key
     from synth.gains import ObserverGains
 
     gains = ObserverGains.from_dict(gains_doc, reverify=False)
@@ -225,9 +234,7 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...]) -> list[dic
         engine.activate("default", gains)
         ids = [f"bench-{i:05d}" for i in range(n)]
         keys = [vehicle_key(v, "meas") for v in ids]
-        templates = [bytearray(Measurement(v, 0, 0, 12.0, 0.02, 90.0, 0.01).encode()) for v in ids]
-        for t in templates:
-            t[5] = FLAG_SEQUENCE_RESTART
+        templates = _templates(ids)
         elapsed = 0.0
         for k in range(ENGINE_TICKS + 20):
             t_ns = time.time_ns()
