@@ -205,6 +205,8 @@ class Certificate:
     content_hash: str
     performance: dict[str, float] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    #: "mirror": the LMIs were posed on mirror-invariant points only (synth.symmetry), "none": in full
+    symmetry: str = "none"
 
     def summary(self) -> dict[str, Any]:
         """The headline figures, without the per-LMI lists."""

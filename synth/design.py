@@ -224,6 +224,7 @@ def _package(
         solves=solves,
         timings_s={k: round(v, 6) for k, v in timings.items()},
         content_hash=gains_hash(params, bounds, options, N, L, M, E),
+        symmetry="mirror" if lmis.symmetry is not None else "none",
     )
     return ObserverGains(
         params=params,

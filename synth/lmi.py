@@ -28,6 +28,9 @@ Two equivalent forms are offered:
   where L0_ij is the vertex LMI at the centre of S_rho. 16 LMIs instead of 32:
   the solver's KKT system is much smaller (docs/benchmarks/synthesis.md).
 
+When the yaw-rate bounds are symmetric, either form is posed on the
+mirror-invariant points only (:mod:`synth.symmetry`): half the LMIs, no loss.
+
 Every solution is re-checked in numpy against the 32 vertex LMIs of the
 paper's form, whichever form was solved (:mod:`synth.certificate`).
 """
@@ -45,6 +48,7 @@ from synth.augmented import VY_INDEX, AugmentedModel, difference_coordinates
 from synth.errors import BadParameters
 from synth.existence import decoupling_matrices
 from synth.model import FloatArray
+from synth.symmetry import MirrorSymmetry, Parametrisation, find_mirror_symmetry
 
 LyapunovKind = Literal["fuzzy", "common"]
 LMIForm = Literal["vertex", "petersen"]
@@ -93,6 +97,10 @@ class DesignCoordinates:
     def A_rho(self, i: int, rho: float) -> FloatArray:
         """A(i, rho) of eq. (34), shape (n, n)."""
         return self.A[i] + rho * self.G @ self.rho_row
+
+    def mirror_symmetry(self) -> MirrorSymmetry | None:
+        """The left-right mirror of the data in these coordinates, if they have it (synth.symmetry)."""
+        return find_mirror_symmetry(self.T, self.T_inv, self.A, self.C, self.G @ self.rho_row)
 
 
 def design_coordinates(
@@ -184,6 +192,7 @@ class Theorem2LMIs:
         lyapunov: LyapunovKind = "fuzzy",
         form: LMIForm = "petersen",
         margin: float = 1e-4,
+        use_symmetry: bool = True,
     ) -> None:
         if lyapunov not in ("fuzzy", "common"):
             raise BadParameters(f"lyapunov must be 'fuzzy' or 'common', got {lyapunov!r}")
@@ -198,9 +207,15 @@ class Theorem2LMIs:
         p = dc.C.shape[0]
         self.alpha_sq = cp.Parameter(nonneg=True, value=1.0, name="alpha_sq")
         n_P = r if lyapunov == "fuzzy" else 1
-        self.P = [cp.Variable((n, n), symmetric=True, name=f"P{i + 1}") for i in range(n_P)]
-        self.R = cp.Variable((n, n), name="R")
-        self.X = [cp.Variable((n, p), name=f"X{i + 1}") for i in range(r)]
+        # the decoupled design is refused before any solve for this plant; it is posed in full
+        self.symmetry = dc.mirror_symmetry() if use_symmetry and not decoupled else None
+        var = Parametrisation(self.symmetry)
+        if lyapunov == "fuzzy":
+            self.P = var.per_rule_square(n, r, "P", symmetric=True)
+        else:
+            self.P = [var.square(n, "P", symmetric=True)]
+        self.R = var.square(n, "R")
+        self.X = var.per_rule_gain(n, r, "X")
         if decoupled:
             U, V = _decoupling_in(dc)
             self.U, self.V = U, V
@@ -208,38 +223,38 @@ class Theorem2LMIs:
             # eq. (35): Psi = R + (R U + Z V) C_bar
             RE = self.R @ U + self.Z @ V
         else:
-            self.W = cp.Variable((n, p), name="W")
+            self.W = var.gain(n, "W")
             RE = self.W
         self.RE = RE
         Psi = self.R + RE @ dc.C
         sym_R = self.R + self.R.T
         constraints: list[cp.Constraint] = []
         eye_n = np.eye(n)
-        for P_i in self.P:
-            constraints += [P_i >> margin * eye_n]
+        distinct_P = var.representatives(n_P) if lyapunov == "fuzzy" else [0]
+        for k in distinct_P:
+            constraints += [self.P[k] >> margin * eye_n]
         constraints.append(sum(cp.trace(P_i) for P_i in self.P) <= n * n_P)
         self.multipliers: list[cp.Variable] = []
         rho_lo, rho_hi = dc.rho_vertices()
-        for i in range(r):
+        for i, j in var.pairs(r, n_P):
             P_i = self.P[i if lyapunov == "fuzzy" else 0]
-            for j in range(n_P):
-                P_j = self.P[j]
-                if form == "vertex":
-                    for rho in (rho_lo, rho_hi):
-                        Q = Psi @ dc.A_rho(i, rho) - self.X[i] @ dc.C
-                        block = cp.bmat([[self.alpha_sq * P_i, Q.T], [Q, sym_R - P_j]])
-                        constraints.append(_sym(block) >> margin * np.eye(2 * n))
-                else:
-                    rho_mid, rho_rad = 0.5 * (rho_lo + rho_hi), 0.5 * (rho_hi - rho_lo)
-                    Q0 = Psi @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
-                    L0 = cp.bmat([[self.alpha_sq * P_i, Q0.T], [Q0, sym_R - P_j]])
-                    lam = cp.Variable(name=f"lambda_{i + 1}{j + 1}")
-                    self.multipliers.append(lam)
-                    b = np.vstack([dc.rho_row.T, np.zeros((n, 1))])
-                    a = cp.vstack([np.zeros((n, 1)), rho_rad * (Psi @ dc.G)])
-                    block = cp.bmat([[L0 - lam * (b @ b.T), a], [a.T, cp.reshape(lam, (1, 1), order="C")]])
-                    constraints.append(_sym(block) >> margin * np.eye(2 * n + 1))
-        self.n_lmis = len(constraints) - n_P - 1
+            P_j = self.P[j]
+            if form == "vertex":
+                for rho in (rho_lo, rho_hi):
+                    Q = Psi @ dc.A_rho(i, rho) - self.X[i] @ dc.C
+                    block = cp.bmat([[self.alpha_sq * P_i, Q.T], [Q, sym_R - P_j]])
+                    constraints.append(_sym(block) >> margin * np.eye(2 * n))
+            else:
+                rho_mid, rho_rad = 0.5 * (rho_lo + rho_hi), 0.5 * (rho_hi - rho_lo)
+                Q0 = Psi @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
+                L0 = cp.bmat([[self.alpha_sq * P_i, Q0.T], [Q0, sym_R - P_j]])
+                lam = cp.Variable(name=f"lambda_{i + 1}{j + 1}")
+                self.multipliers.append(lam)
+                b = np.vstack([dc.rho_row.T, np.zeros((n, 1))])
+                a = cp.vstack([np.zeros((n, 1)), rho_rad * (Psi @ dc.G)])
+                block = cp.bmat([[L0 - lam * (b @ b.T), a], [a.T, cp.reshape(lam, (1, 1), order="C")]])
+                constraints.append(_sym(block) >> margin * np.eye(2 * n + 1))
+        self.n_lmis = len(constraints) - len(distinct_P) - 1
         started = time.perf_counter()
         self.problem = cp.Problem(cp.Minimize(0), constraints)
         self.build_time_s = time.perf_counter() - started
