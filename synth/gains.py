@@ -5,6 +5,10 @@ Gains are stored in physical shift coordinates, the paper's form of eq. (19):
     z_{k+1} = N(h) z_k + L(h) y_k + M T1 (g(xi_k) + B u_k) + M G_bar phi(x_hat_k)
     x_hat_k = z_k - E y_k
 
+and the output gain K of the robust design, which reports the fault
+estimates filtered with the current measurement, x_hat_k + K (y_k - C_bar x_hat_k)
+(zero for the paper's designs; see synth.robust).
+
 The Lyapunov multipliers P_i, R are kept in the solver's coordinates
 (x' = T x_bar) where they are well conditioned, with T alongside, so that a
 stored design can be re-verified anywhere.
@@ -37,15 +41,22 @@ def gains_hash(
     L: FloatArray,
     M: FloatArray,
     E: FloatArray,
+    K: FloatArray | None = None,
 ) -> str:
-    """Content hash of runtime gains and everything they were designed for."""
+    """Content hash of runtime gains and everything they were designed for.
+
+    A zero (or absent) output gain K is left out, so gains designed before K existed keep their hash.
+    """
     meta = {
         "format": GAINS_FORMAT,
         "params": params.model_dump(),
         "bounds": bounds.model_dump(),
         "options": options.model_dump(mode="json"),
     }
-    return content_hash({"N": N, "L": L, "M": M, "E": E}, meta)
+    arrays = {"N": N, "L": L, "M": M, "E": E}
+    if K is not None and np.any(K):
+        arrays["K"] = K
+    return content_hash(arrays, meta)
 
 
 @dataclass(frozen=True)
@@ -53,6 +64,7 @@ class ObserverGains:
     """Gains of eq. (19) with their certificate.
 
     N : (r, n, n); L : (r, n, 2); M : (n, n); E : (n, 2)   physical coordinates
+    K : (n, 2) output gain (None: zero)                     physical coordinates
     P : (r or 1, n, n); R : (n, n)                          design coordinates
     T : (n, n)                                              x_design = T x_bar
     """
@@ -68,6 +80,12 @@ class ObserverGains:
     R: FloatArray
     T: FloatArray
     certificate: Certificate
+    K: FloatArray | None = None
+
+    @property
+    def output_gain(self) -> FloatArray:
+        """K, (n, 2): the reported estimate is x_hat_k + K (y_k - C_bar x_hat_k); zeros when there is none."""
+        return np.zeros_like(self.E) if self.K is None else self.K
 
     @cached_property
     def model(self) -> AugmentedModel:
@@ -81,7 +99,7 @@ class ObserverGains:
 
     def content_hash(self) -> str:
         """Recompute the content hash of these gains (see :func:`gains_hash`)."""
-        return gains_hash(self.params, self.bounds, self.options, self.N, self.L, self.M, self.E)
+        return gains_hash(self.params, self.bounds, self.options, self.N, self.L, self.M, self.E, self.K)
 
     def to_dict(self, *, matrices: bool = True) -> dict[str, Any]:
         """A JSON-ready dict; ``matrices=False`` leaves out the arrays (summary only)."""
@@ -97,6 +115,8 @@ class ObserverGains:
             data["matrices"] = {
                 name: np.asarray(getattr(self, name)).tolist() for name in ("N", "L", "M", "E", "P", "R", "T")
             }
+            if self.K is not None:
+                data["matrices"]["K"] = np.asarray(self.K).tolist()
         return data
 
     @classmethod
@@ -119,6 +139,7 @@ class ObserverGains:
             R=mats["R"],
             T=mats["T"],
             certificate=Certificate(**data["certificate"]),
+            K=mats.get("K"),
         )
         recomputed = gains.content_hash()
         if recomputed != gains.certificate.content_hash:

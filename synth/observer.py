@@ -10,6 +10,11 @@ the letter of Algorithm 1, each keeping the certificate meaningful:
 
 * the premise is clipped to the design box before h and g are evaluated, and
   ``in_domain`` flags the vehicles whose measured premise left it;
+* the reported estimate is x_hat_k + K (y_k - C_bar x_hat_k), with the output
+  gain K of the robust design (synth.robust): the faults filtered with the
+  current measurement, as an EKF reports x_{k|k}. K = 0 for the paper's
+  designs. It is an output map only: the observer state and its certified
+  error dynamics are those of eq. (19);
 * phi is evaluated at v_y_hat saturated to [v_y,min, v_y,max]. For a true v_y
   inside the bounds, phi(v_y) - phi(sat(v_y_hat)) = rho_eff (v_y - v_y_hat)
   with rho_eff = (v_y + sat(v_y_hat)) * (v_y - sat(v_y_hat)) / (v_y - v_y_hat)
@@ -62,6 +67,8 @@ class RuntimeGains:
     WT: FloatArray
     E: FloatArray
     E_is_zero: bool
+    K_rows: np.ndarray
+    K_T: FloatArray
     n: int
     n_rules: int
     premise_low: FloatArray
@@ -84,11 +91,15 @@ class RuntimeGains:
             ]
         )
         vy_low, vy_high = aug.nts.bounds.lateral_speed_bounds
+        K = gains.output_gain
+        K_rows = np.flatnonzero(np.any(K != 0.0, axis=1))
         return cls(
             gains=gains,
             WT=np.ascontiguousarray(W.T),
             E=gains.E,
             E_is_zero=not np.any(gains.E),
+            K_rows=K_rows,
+            K_T=np.ascontiguousarray(K[K_rows].T),
             n=n,
             n_rules=r,
             premise_low=aug.nts.premise_low,
@@ -102,7 +113,7 @@ class RuntimeGains:
 class StepResult:
     """Output of one observer step for a batch.
 
-    x_hat : (nv, n) estimate of x_bar_k: [v_x, v_y, r, T_f, delta_f, ...]
+    x_hat : (nv, n) reported estimate of x_bar_k: [v_x, v_y, r, T_f, delta_f, ...] (with the output gain)
     in_domain : (nv,) the measured premise lay in the design box
     vy_in_bounds : (nv,) the estimated v_y lay in [v_y,min, v_y,max]
     """
@@ -188,6 +199,11 @@ def observer_step(rt: RuntimeGains, z: FloatArray, y: ArrayLike, u: ArrayLike) -
     np.multiply(v_x, r, out=Phi[width + 2])
     np.multiply(vy_sat, vy_sat, out=Phi[width + 5])
     z_next = (rt.WT @ Phi).T
+    if rt.K_rows.size:
+        # the reported estimate: x_hat_k + K (y_k - C_bar x_hat_k) on the rows K acts on
+        innovation = y - x_hat[:, ::2][:, :2]
+        x_hat = x_hat.copy()
+        x_hat[:, rt.K_rows] += innovation @ rt.K_T
     return z_next, StepResult(x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds)
 
 

@@ -13,19 +13,32 @@ variance of the weighted fault-estimation error, with inputs
 
 Error dynamics: e_{k+1} = (A_bar(h) + G_bar rho e_vy^T - L(h) C_bar) e_k + B(h) d_k,
 B_i = [D_bar sigma_w, -L_i Sigma_v, B_eta Sigma_eta], d white with unit
-covariance; performance z = C_z e, the fault errors divided by their scales.
+covariance.
+
+The observer state x_hat_k is a one-step prediction: it has seen y up to
+k - 1. An extended Kalman filter reports x_{k|k}, which has also seen y_k.
+The observer does the same for the faults it reports, with a constant gain
+K_f designed together with L_i:
+
+    f_hat_{k|k} = f_hat_k + K_f (y_k - C_bar x_hat_k),
+
+so the performance output is z_k = W_f (f_k - f_hat_{k|k}) = C_1 e_k + D_1 d_k,
+the errors of the reported fault estimates divided by their scales. K_f only
+maps the certified error to the output: it changes neither the error
+dynamics nor their stability certificate.
 
 With the slack R of Theorem 2 and X_i = R L_i, for every i, j (and rho, via
 Petersen's lemma as in synth.lmi):
 
-    [[P_i - C_z^T C_z, *], [R A(i, rho) - X_i C_bar, R + R^T - P_j]] > 0
-    [[Z, *], [R B_i, R + R^T - P_j]] >= 0,          R B_i = [R D_bar s_w, -X_i S_v, R B_eta S_eta]
+    [[alpha^2 P_i - C_1^T C_1, *], [R A(i, rho) - X_i C_bar, R + R^T - P_j]] > 0
+    [[Z - D_1^T D_1, *], [R B_i, R + R^T - P_j]] >= 0,   R B_i = [R D_bar s_w, -X_i S_v, R B_eta S_eta]
 
-and minimise trace Z. Then E[V_{k+1}] - E[V_k] <= -E|z_k|^2 + trace Z with
-V = e^T P(h) e, so the time-average E|z|^2 <= trace Z for every premise
-trajectory and every rho in S_rho: a guaranteed H2 cost. The first family also
-certifies stability (it implies the Theorem 2 LMI at alpha = 1), verified in
-numpy like every design.
+(written with Schur complements, affine in K_f) and minimise trace Z. Then
+E[V_{k+1}] - alpha^2 E[V_k] <= -E|z_k|^2 + trace Z with V = e^T P(h) e, so the
+time-average E|z|^2 <= trace Z for every premise trajectory and every rho in
+S_rho: a guaranteed H2 cost. The first family also certifies the decay rate
+alpha, verified in numpy like every design. When the yaw-rate bounds are
+symmetric the LMIs are posed on mirror-invariant points only (synth.symmetry).
 """
 
 from __future__ import annotations
@@ -48,6 +61,7 @@ from synth.lmi import _SOLVER_OPTIONS, _TIME_LIMIT_OPTION, DesignCoordinates, de
 from synth.model import FloatArray
 from synth.options import DesignOptions, NoiseModel
 from synth.params import OperatingBounds, VehicleParams
+from synth.symmetry import Parametrisation, columns_sign
 
 
 @dataclass(frozen=True)
@@ -109,42 +123,82 @@ _H2_TOLERANCES: dict[str, dict[str, float]] = {"CLARABEL": {"tol_gap_abs": 1e-6,
 
 
 class H2LMIs:
-    """The guaranteed-cost LMIs above, in design coordinates."""
+    """The guaranteed-cost LMIs above, in design coordinates, with the filtered fault output.
+
+    The reported fault estimate is filtered with the current measurement,
+    f_hat_{k|k} = f_hat_k + K_f (y_k - C_bar x_hat_k), so its weighted error is
+
+        z_k = C_z e_k - W_f K_f (C_bar e_k + v_k) = C_1 e_k + D_1 d_k,
+
+    with W_f = diag(1 / fault scales). K_f enters as K_s = W_f K_f Sigma_v
+    (dimensionless); C_1 = C_z - K_s Sigma_v^-1 C_bar and D_1 = [0, -K_s, 0] are
+    affine in it, so the design stays convex:
+
+        [[alpha^2 P_i, *, *], [R A(i, rho) - X_i C_bar, R + R^T - P_j, *], [C_1, 0, I]] > 0
+        [[Z, *, *], [R B_i, R + R^T - P_j, *], [D_1, 0, I]] >= 0.
+
+    K_s = 0 is the unfiltered design, so filtering can only lower the bound.
+    """
 
     def __init__(
-        self, dc: DesignCoordinates, inputs: NoiseInputs, *, lyapunov: str, margin: float, alpha: float
+        self,
+        dc: DesignCoordinates,
+        inputs: NoiseInputs,
+        *,
+        lyapunov: str,
+        margin: float,
+        alpha: float,
+        use_symmetry: bool = True,
     ) -> None:
         n, r = dc.n, dc.n_rules
         p = dc.C.shape[0]
         B_fixed = dc.T @ inputs.B_fixed
         C_z = inputs.C_z @ dc.T_inv
-        m = B_fixed.shape[1] + p
+        n_z = C_z.shape[0]
+        m_fixed = B_fixed.shape[1]
+        m = m_fixed + p
         n_P = r if lyapunov == "fuzzy" else 1
         self.dc = dc
-        self.P = [cp.Variable((n, n), symmetric=True, name=f"P{i + 1}") for i in range(n_P)]
-        self.R = cp.Variable((n, n), name="R")
-        self.X = [cp.Variable((n, p), name=f"X{i + 1}") for i in range(r)]
-        self.Z = cp.Variable((m, m), symmetric=True, name="Z")
+        self.symmetry = dc.mirror_symmetry() if use_symmetry else None
+        input_sign = fault_sign = None
+        if self.symmetry is not None:
+            fixed_sign = columns_sign(B_fixed, self.symmetry.state_sign)
+            fault_sign = columns_sign(C_z.T, self.symmetry.state_sign)
+            if fixed_sign is None or fault_sign is None:
+                self.symmetry = None
+            else:
+                input_sign = np.concatenate([fixed_sign, self.symmetry.output_sign])
+        var = Parametrisation(self.symmetry)
+        self.P = var.per_rule_square(n, r, "P", symmetric=True) if n_P > 1 else [var.square(n, "P", symmetric=True)]
+        self.R = var.square(n, "R")
+        self.X = var.per_rule_gain(n, r, "X")
+        self.Z = var.cost_matrix(input_sign, m, "Z")
+        out_sign = self.symmetry.output_sign if self.symmetry is not None else np.ones(p)
+        self.K_s = var.rectangular(fault_sign if fault_sign is not None else np.ones(n_z), out_sign, "K_s")
+        Sigma_v_inv = np.diag(1.0 / np.diag(inputs.Sigma_v))
+        C_1 = C_z - self.K_s @ Sigma_v_inv @ dc.C
+        D_1 = cp.hstack([np.zeros((n_z, m_fixed)), -self.K_s])
         sym_R = self.R + self.R.T
         rho_lo, rho_hi = dc.rho_vertices()
         rho_mid, rho_rad = 0.5 * (rho_lo + rho_hi), 0.5 * (rho_hi - rho_lo)
-        b = np.vstack([dc.rho_row.T, np.zeros((n, 1))])
-        CzTCz = C_z.T @ C_z
-        constraints: list[cp.Constraint] = [P_i >> margin * np.eye(n) for P_i in self.P]
-        for i in range(r):
+        b = np.vstack([dc.rho_row.T, np.zeros((n + n_z, 1))])
+        zeros_nz = np.zeros((n, n_z))
+        eye_z = np.eye(n_z)
+        distinct_P = var.representatives(n_P) if n_P > 1 else [0]
+        constraints: list[cp.Constraint] = [self.P[k] >> margin * np.eye(n) for k in distinct_P]
+        for i, j in var.pairs(r, n_P):
             P_i = self.P[i if n_P > 1 else 0]
+            P_j = self.P[j]
+            Q0 = self.R @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
+            L0 = cp.bmat([[alpha**2 * P_i, Q0.T, C_1.T], [Q0, sym_R - P_j, zeros_nz], [C_1, zeros_nz.T, eye_z]])
+            lam = cp.Variable(name=f"lambda_{i + 1}{j + 1}")
+            a = cp.vstack([np.zeros((n, 1)), rho_rad * (self.R @ dc.G), np.zeros((n_z, 1))])
+            block = cp.bmat([[L0 - lam * (b @ b.T), a], [a.T, cp.reshape(lam, (1, 1), order="C")]])
+            constraints.append(0.5 * (block + block.T) >> margin * np.eye(2 * n + n_z + 1))
             RB_i = cp.hstack([self.R @ B_fixed, -self.X[i] @ inputs.Sigma_v])
-            for j in range(n_P):
-                P_j = self.P[j]
-                Q0 = self.R @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
-                L0 = cp.bmat([[alpha**2 * P_i - CzTCz, Q0.T], [Q0, sym_R - P_j]])
-                lam = cp.Variable(name=f"lambda_{i + 1}{j + 1}")
-                a = cp.vstack([np.zeros((n, 1)), rho_rad * (self.R @ dc.G)])
-                block = cp.bmat([[L0 - lam * (b @ b.T), a], [a.T, cp.reshape(lam, (1, 1), order="C")]])
-                constraints.append(0.5 * (block + block.T) >> margin * np.eye(2 * n + 1))
-                cost = cp.bmat([[self.Z, RB_i.T], [RB_i, sym_R - P_j]])
-                constraints.append(0.5 * (cost + cost.T) >> 0)
-        self.n_lmis = len(constraints) - n_P
+            cost = cp.bmat([[self.Z, RB_i.T, D_1.T], [RB_i, sym_R - P_j, zeros_nz], [D_1, zeros_nz.T, eye_z]])
+            constraints.append(0.5 * (cost + cost.T) >> 0)
+        self.n_lmis = len(constraints) - len(distinct_P)
         self.problem = cp.Problem(cp.Minimize(cp.trace(self.Z)), constraints)
         self.alpha = alpha
         self.B_fixed = B_fixed
@@ -166,18 +220,38 @@ class H2LMIs:
             return f"{solver} status {self.problem.status}"
         return None
 
+    def fault_filter_gain(self) -> FloatArray:
+        """K_s of the solution, (n_z, p): the weighted fault correction per unit-sigma innovation."""
+        return np.asarray(self.K_s.value, dtype=float)
+
+
+def output_matrices(lmis: H2LMIs, K_s: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """C_1 (n_z, n) and D_1 (n_z, m) of the filtered performance output, design coordinates."""
+    Sigma_v_inv = np.diag(1.0 / np.diag(lmis.Sigma_v))
+    C_1 = lmis.C_z - K_s @ Sigma_v_inv @ lmis.dc.C
+    D_1 = np.hstack([np.zeros((K_s.shape[0], lmis.B_fixed.shape[1])), -K_s])
+    return C_1, D_1
+
 
 def verify_h2_bound(
-    dc: DesignCoordinates, lmis: H2LMIs, N: FloatArray, H: FloatArray, P: FloatArray, R: FloatArray
+    dc: DesignCoordinates,
+    lmis: H2LMIs,
+    N: FloatArray,
+    H: FloatArray,
+    P: FloatArray,
+    R: FloatArray,
+    K_s: FloatArray,
 ) -> tuple[float, float]:
     """Recompute the guaranteed cost in numpy: (bound, min eigenvalue of the cost-weighted Lyapunov LMIs).
 
-    bound = max_ij trace(B_i^T R^T (R + R^T - P_j)^-1 R B_i) >= trace(B_i^T P_j B_i), valid when every
-    [[alpha^2 P_i - C_z^T C_z, (R N_i(rho))^T], [R N_i(rho), R + R^T - P_j]] is positive definite.
+    bound = max_ij trace(B_i^T R^T (R + R^T - P_j)^-1 R B_i) + |D_1|_F^2 >= trace(B_i^T P_j B_i + D_1^T D_1),
+    valid when every [[alpha^2 P_i - C_1^T C_1, (R N_i(rho))^T], [R N_i(rho), R + R^T - P_j]] is
+    positive definite.
     """
     r = N.shape[0]
     n_P = P.shape[0]
-    CzTCz = lmis.C_z.T @ lmis.C_z
+    C_1, D_1 = output_matrices(lmis, K_s)
+    C1TC1 = C_1.T @ C_1
     MG = dc.G @ dc.rho_row
     worst_eig = np.inf
     bound = 0.0
@@ -188,11 +262,11 @@ def verify_h2_bound(
             S_j = R + R.T - P[j]
             for rho in dc.rho_vertices():
                 RN = R @ (N[i] + rho * MG)
-                block = np.block([[lmis.alpha**2 * P_i - CzTCz, RN.T], [RN, S_j]])
+                block = np.block([[lmis.alpha**2 * P_i - C1TC1, RN.T], [RN, S_j]])
                 worst_eig = min(worst_eig, float(np.linalg.eigvalsh(0.5 * (block + block.T))[0]))
             RB = R @ B_i
             bound = max(bound, float(np.trace(RB.T @ scipy.linalg.solve(S_j, RB, assume_a="sym"))))
-    return bound, worst_eig
+    return bound + float(np.sum(D_1**2)), worst_eig
 
 
 def synthesize_robust(params: VehicleParams, bounds: OperatingBounds, options: DesignOptions) -> ObserverGains:
@@ -254,6 +328,7 @@ def _verified_gains(
     H = np.stack([np.linalg.solve(R, np.asarray(X_i.value)) for X_i in lmis.X])
     # E = 0: M = I, N_i = A_bar_i - H_i C_bar (eq. 43), L_i = H_i (eq. 44)
     N = dc.A - H @ dc.C
+    K_s = lmis.fault_filter_gain()
     mark = time.perf_counter()
     report = verify(
         aug.nts,
@@ -266,7 +341,7 @@ def _verified_gains(
         np.einsum("ab,ibc,cd->iad", dc.T_inv, N, dc.T),
         _MG_row_physical(aug),
     )
-    bound, cost_lmi_min = verify_h2_bound(dc, lmis, N, H, P, R)
+    bound, cost_lmi_min = verify_h2_bound(dc, lmis, N, H, P, R, K_s)
     if cost_lmi_min <= 0:
         raise VerificationFailed(f"a cost-weighted Lyapunov LMI fails in numpy (min eigenvalue {cost_lmi_min:.3e})")
     timings["verify_s"] = time.perf_counter() - mark
@@ -276,6 +351,10 @@ def _verified_gains(
     L_phys = np.einsum("ab,ibc->iac", dc.T_inv, H)
     M_phys = np.eye(n)
     E_phys = np.zeros((n, 2))
+    # the filtered fault output: K_f = W_f^-1 K_s Sigma_v^-1 on the rows of f_k
+    K_phys = np.zeros((n, 2))
+    fault_scales = np.array([options.noise.torque_fault_scale_nm, options.noise.steer_fault_scale_rad])
+    K_phys[N_STATES : N_STATES + N_FAULTS] = np.diag(fault_scales) @ K_s @ np.diag(1.0 / np.diag(lmis.Sigma_v))
     stats = lmis.problem.solver_stats
     certificate = Certificate(
         design=options.design,
@@ -301,7 +380,8 @@ def _verified_gains(
         solver_iterations=stats.num_iters if stats is not None else None,
         solves=1,
         timings_s={k: round(v, 6) for k, v in timings.items()},
-        content_hash=gains_hash(params, bounds, options, N_phys, L_phys, M_phys, E_phys),
+        content_hash=gains_hash(params, bounds, options, N_phys, L_phys, M_phys, E_phys, K_phys),
+        symmetry="mirror" if lmis.symmetry is not None else "none",
         performance={
             "h2_cost_bound": bound,
             "h2_cost_solver": float(lmis.problem.value),
@@ -309,9 +389,10 @@ def _verified_gains(
             "cost_lmi_min_eigenvalue": cost_lmi_min,
         },
         notes=[
-            "guaranteed H2 cost: time-average E|C_z e|^2 <= h2_cost_bound for white unit-covariance inputs "
+            "guaranteed H2 cost: time-average E|z|^2 <= h2_cost_bound for white unit-covariance inputs "
             "scaled by the noise model (sensor sigmas, wind RMS, fault drift rates), every premise trajectory "
-            "and every rho in S_rho; C_z = fault errors / (torque_fault_scale_nm, steer_fault_scale_rad)",
+            "and every rho in S_rho; z = errors of the filtered fault estimates f_hat + K (y - C x_hat) "
+            "divided by (torque_fault_scale_nm, steer_fault_scale_rad)",
         ],
     )
     return ObserverGains(
@@ -326,6 +407,7 @@ def _verified_gains(
         R=R,
         T=dc.T,
         certificate=certificate,
+        K=K_phys,
     )
 
 

@@ -19,3 +19,9 @@ def paper_gains() -> ObserverGains:
 def paper_gains_order1() -> ObserverGains:
     """A fast design for tests that only need some certified gains."""
     return synthesize(options=DesignOptions(design="paper", fault_order=1, optimise_decay_rate=False))
+
+
+@pytest.fixture(scope="session")
+def robust_gains_default() -> ObserverGains:
+    """The product's default design (robust H2, fault order 1, with the filtered fault output)."""
+    return synthesize(options=DesignOptions())

@@ -77,3 +77,23 @@ def test_phi_uses_the_saturated_lateral_speed(paper_gains_order1):
     h = g.model.nts.memberships(g.model.nts.premise(12.0, 0.1))
     linear = np.einsum("i,ijk->jk", h, g.N) @ (far - edge)[0]
     np.testing.assert_allclose(z_far[0] - z_edge[0], linear, rtol=1e-9, atol=1e-9)
+
+
+def test_the_reported_estimate_adds_the_output_gain_and_leaves_the_dynamics_alone(robust_gains_default):
+    """Robust gains: result.x_hat = x_hat + K (y - C_bar x_hat); z_{k+1} is what it would be without K."""
+    import dataclasses
+
+    g = robust_gains_default
+    assert np.any(g.output_gain)
+    rt = RuntimeGains.from_gains(g)
+    rt_unfiltered = RuntimeGains.from_gains(dataclasses.replace(g, K=None))
+    rng = np.random.default_rng(1)
+    y = np.column_stack([rng.uniform(6, 25, 4), rng.uniform(-0.4, 0.4, 4)])
+    u = np.column_stack([rng.uniform(0, 300, 4), rng.uniform(-0.05, 0.05, 4)])
+    z = initial_observer_state(rt, y, np.column_stack([y[:, 0] - 0.3, rng.normal(0, 0.2, 4), y[:, 1] + 0.02]))
+    z_next, result = observer_step(rt, z, y, u)
+    z_plain, plain = observer_step(rt_unfiltered, z, y, u)
+    np.testing.assert_array_equal(z_next, z_plain)
+    expected = plain.x_hat + (y - plain.x_hat[:, [0, 2]]) @ g.output_gain.T
+    np.testing.assert_allclose(result.x_hat, expected, rtol=1e-12, atol=1e-12)
+    assert not np.allclose(result.faults, plain.faults)
