@@ -21,8 +21,12 @@ gap                 seq jumped: missing samples counted; a gap longer than
                     ``long_gap_s`` re-initialises the observer at the new sample
 ==================  ==================================================================
 
-A rejected sample never reaches the observer; the vehicle's state is as if
-the sample had been lost.
+A rejected sample never reaches the observer, and the values of a sample are
+checked before its sequence number is believed: a non-finite or out-of-range
+sample moves nothing, not the vehicle's sequence cursor either (a corrupted
+sequence number must not make the vehicle's next good samples look late).
+The vehicle's state is as if the sample had been lost; only its counters and
+its last-seen time change.
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ from service.protocol import (
     vehicle_key,
 )
 from synth.gains import ObserverGains
+from synth.model import FloatArray
 from synth.observer import RuntimeGains
 
 RejectReason = Literal[
@@ -74,6 +79,12 @@ REJECT_REASONS: tuple[RejectReason, ...] = (
 )
 #: Rejects that count towards a vehicle's rejected-input burst alarm (duplicates and late samples do not).
 BURST_REASONS = frozenset({"malformed", "id_mismatch", "non_finite", "out_of_range"})
+
+
+def _limits_row(spec: ProfileSpec) -> tuple[float, float, float, float, float]:
+    """(v_x min, v_x max, |r| max, |T_d| max, |delta_d| max) of a profile's plausibility limits."""
+    lim = spec.limits
+    return (lim.vx_min_mps, lim.vx_max_mps, lim.r_abs_max_radps, lim.torque_abs_max_nm, lim.steer_abs_max_rad)
 
 
 def _classify(payload: bytes, vehicle_id: str) -> RejectReason:
@@ -178,12 +189,12 @@ class TickResult:
 class _Rows:
     """Samples of one profile collected during a tick, in arrival order."""
 
-    __slots__ = ("headers", "later", "restart", "slots", "vehicles")
+    __slots__ = ("later", "positions", "restart", "slots", "vehicles")
 
     def __init__(self) -> None:
         self.vehicles: list[Vehicle] = []
         self.slots: list[int] = []
-        self.headers: list[bytes] = []  # the 64-byte header of each sample, decoded at once
+        self.positions: list[int] = []  # where each sample sits in the tick's decoded headers
         self.later: list[tuple[int, int]] = []  # (position, round) of a vehicle's 2nd, 3rd... sample this tick
         self.restart: list[int] = []  # positions of the samples that restart their observer
 
@@ -212,18 +223,27 @@ class FleetEngine:
         self.stats: dict[str, int] = {"received": 0, "accepted": 0, "estimates": 0, "published": 0}
         self.stats.update({"missing": 0, "gaps": 0, "restarts": 0, "numerical_restarts": 0})
         self.rejected: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
+        #: plausibility limits of every profile, one row per bank ordinal (see _limits_row)
+        self._limits = np.zeros((0, 5))
+        self._ordinal: dict[str, int] = {}
 
     # ------------------------------------------------------------------ profiles and vehicles
+
+    def _refresh_limits(self) -> None:
+        self._ordinal = {name: k for k, name in enumerate(self.banks)}
+        self._limits = np.array([_limits_row(bank.spec) for bank in self.banks.values()]).reshape(-1, 5)
 
     def add_profile(self, name: str, spec: ProfileSpec) -> ProfileBank:
         if name in self.banks:
             raise FleetError(f"profile {name!r} exists")
         bank = ProfileBank(name, spec, self.config.history_samples)
         self.banks[name] = bank
+        self._refresh_limits()
         return bank
 
     def update_profile_spec(self, name: str, spec: ProfileSpec) -> None:
         self._bank(name).set_spec(spec)
+        self._refresh_limits()
 
     def activate(self, name: str, gains: ObserverGains, runtime: RuntimeGains | None = None) -> None:
         """Make ``gains`` the active gains of every vehicle of profile ``name``, atomically between ticks."""
@@ -299,6 +319,9 @@ class FleetEngine:
         received = 0
         unpack = unpack_measurement_sequence
         header_size = MEASUREMENT_HEADER_SIZE
+        # pass 1: well-formed frames of known vehicles, in arrival order
+        frames: list[tuple[Vehicle, int, int]] = []  # (vehicle, seq, flags)
+        headers: list[bytes] = []
         for key, payload in batch:
             received += 1
             vehicle = self._by_key.get(key)
@@ -315,6 +338,37 @@ class FleetEngine:
                 continue
             if not payload.endswith(vehicle.id_bytes):  # same length as expected: the id is the tail
                 self._reject(vehicle, "id_mismatch", now_mono, result)
+                continue
+            frames.append((vehicle, seq, flags))
+            headers.append(payload[:header_size])
+        self.stats["received"] += received
+        result.received = received
+        if not frames:
+            return result
+        # the values of every frame at once, checked against its profile's limits before its seq is believed
+        header = np.frombuffer(b"".join(headers), dtype=MEASUREMENT_HEADER_DTYPE)
+        values = np.column_stack([header["vx"], header["r"], header["torque"], header["steer"]])
+        ordinal = self._ordinal
+        lim = self._limits[[ordinal[v.bank.name] for v, _, _ in frames]]
+        finite = np.isfinite(values).all(axis=1)
+        with np.errstate(invalid="ignore"):
+            ok = (
+                finite
+                & (values[:, 0] >= lim[:, 0])
+                & (values[:, 0] <= lim[:, 1])
+                & (np.abs(values[:, 1]) <= lim[:, 2])
+                & (np.abs(values[:, 2]) <= lim[:, 3])
+                & (np.abs(values[:, 3]) <= lim[:, 4])
+            )
+        good = ok.tolist()
+        # pass 2: sequence bookkeeping of the plausible samples, in arrival order
+        for position, (vehicle, seq, flags) in enumerate(frames):
+            vehicle.last_seen_mono = now_mono
+            vehicle.last_seen_ns = now_ns
+            if vehicle.stale:
+                self._unstale(vehicle, now_ns, result)
+            if not good[position]:
+                self._reject(vehicle, "non_finite" if not finite[position] else "out_of_range", now_mono, result)
                 continue
             last = vehicle.last_seq
             restart = False
@@ -336,10 +390,6 @@ class FleetEngine:
                 if missing * vehicle.bank.spec.params.sample_period_s >= self.config.long_gap_s:
                     restart = True
             vehicle.last_seq = seq
-            vehicle.last_seen_mono = now_mono
-            vehicle.last_seen_ns = now_ns
-            if vehicle.stale:
-                self._unstale(vehicle, now_ns, result)
             if vehicle.bank.runtime is None:
                 self._reject(vehicle, "no_gains", now_mono, result)
                 continue
@@ -356,13 +406,13 @@ class FleetEngine:
                 rows.restart.append(len(rows.vehicles))
             rows.vehicles.append(vehicle)
             rows.slots.append(vehicle.slot)
-            rows.headers.append(payload[:header_size])
+            rows.positions.append(position)
         for vehicle in touched:
             vehicle.pending = 0
-        self.stats["received"] += received
-        result.received = received
+        seq_all = header["seq"].astype(np.int64)
+        t_ns_all = header["t_ns"].astype(np.int64)
         for name, rows in per_bank.items():
-            self._step_bank(self.banks[name], rows, now_mono, now_ns, result)
+            self._step_bank(self.banks[name], rows, values, seq_all, t_ns_all, now_mono, now_ns, result)
         return result
 
     def _resolve(self, key: str, payload: bytes, result: TickResult, now_mono: float) -> Vehicle | None:
@@ -419,33 +469,29 @@ class FleetEngine:
             )
             self._emit(change, result)
 
-    def _step_bank(self, bank: ProfileBank, rows: _Rows, now_mono: float, now_ns: int, result: TickResult) -> None:
-        header = np.frombuffer(b"".join(rows.headers), dtype=MEASUREMENT_HEADER_DTYPE)
-        values = np.column_stack([header["vx"], header["r"], header["torque"], header["steer"]])
-        seq = header["seq"].astype(np.int64)
-        t_ns = header["t_ns"].astype(np.int64)
+    def _step_bank(
+        self,
+        bank: ProfileBank,
+        rows: _Rows,
+        tick_values: FloatArray,
+        tick_seq: np.ndarray,
+        tick_t_ns: np.ndarray,
+        now_mono: float,
+        now_ns: int,
+        result: TickResult,
+    ) -> None:
+        """Step the validated samples of one profile, one round per sample index of a vehicle."""
+        at = np.array(rows.positions, dtype=np.int64)
+        values, seq, t_ns = tick_values[at], tick_seq[at], tick_t_ns[at]
         slots = np.array(rows.slots, dtype=np.int64)
         rounds = np.zeros(len(slots), dtype=np.int64)
         if rows.later:
-            at, rnd = np.array(rows.later, dtype=np.int64).T
-            rounds[at] = rnd
+            later_at, rnd = np.array(rows.later, dtype=np.int64).T
+            rounds[later_at] = rnd
         restart = np.zeros(len(slots), dtype=bool)
         restart[rows.restart] = True
-        limits = bank.spec.limits
-        finite = np.isfinite(values).all(axis=1)
-        with np.errstate(invalid="ignore"):
-            in_range = (
-                (values[:, 0] >= limits.vx_min_mps)
-                & (values[:, 0] <= limits.vx_max_mps)
-                & (np.abs(values[:, 1]) <= limits.r_abs_max_radps)
-                & (np.abs(values[:, 2]) <= limits.torque_abs_max_nm)
-                & (np.abs(values[:, 3]) <= limits.steer_abs_max_rad)
-            )
-        ok = finite & in_range
-        for i in np.flatnonzero(~ok):
-            self._reject(rows.vehicles[i], "non_finite" if not finite[i] else "out_of_range", now_mono, result)
         for rnd in range(int(rounds.max()) + 1 if len(rounds) else 0):
-            idx = np.flatnonzero(ok & (rounds == rnd))
+            idx = np.flatnonzero(rounds == rnd)
             if len(idx) == 0:
                 continue
             s = slots[idx]
@@ -459,8 +505,8 @@ class FleetEngine:
             self._after_step(
                 bank, rows, idx, s, out.x5, out.in_domain, out.vy_in_bounds, out.finite, seq, t_ns, values, result
             )
-        result.accepted += int(ok.sum())
-        self.stats["accepted"] += int(ok.sum())
+        result.accepted += len(slots)
+        self.stats["accepted"] += len(slots)
 
     def _after_step(
         self,

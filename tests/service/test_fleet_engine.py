@@ -77,6 +77,8 @@ BAD = {
 
 @pytest.mark.parametrize("case", sorted(BAD))
 def test_bad_values_are_rejected_counted_and_leave_the_state_intact(fast_gains, case):
+    """A rejected sample changes nothing but counters: not the observer, not the sequence cursor, even when
+    its sequence number is as corrupt as its values (a wild seq must not make the next good samples late)."""
     reason = case.rsplit("_", 1)[0] if case.endswith(("_inf", "_negative")) else case
     good = [constant_measurement("v", k) for k in range(20)]
     clean = make_engine(fast_gains)
@@ -88,10 +90,25 @@ def test_bad_values_are_rejected_counted_and_leave_the_state_intact(fast_gains, 
     result = dirty.process(pairs([bad]))
     assert result.estimates == [] and result.accepted == 0
     assert dirty.rejected[reason] == 1 and dirty.vehicles["v"].rejected[reason] == 1
-    # a later good sample (seq continues after the bad one) sees exactly the state the clean engine has
-    dirty.vehicles["v"].last_seq = 9
+    assert dirty.vehicles["v"].last_seq == 9
+    # the next good samples (seq 10...) see exactly the state the clean engine has, none is dropped or missing
     dirty_after = decoded(dirty.process(pairs(good[10:])))
     assert dirty_after == clean_after
+    assert dirty.stats["missing"] == 0 and dirty.rejected["out_of_order"] == 0
+
+
+def test_a_bad_sample_in_sequence_counts_as_one_missing_sample(fast_gains):
+    """A NaN sample at its proper seq is rejected; the observer continues as if it had been lost."""
+    good = [constant_measurement("v", k) for k in range(20)]
+    lost = make_engine(fast_gains)
+    lost.process(pairs(good[:10]))
+    lost_after = decoded(lost.process(pairs(good[11:])))
+    dirty = make_engine(fast_gains)
+    dirty.process(pairs(good[:10]))
+    dirty.process(pairs([BAD["non_finite"](10)]))
+    dirty_after = decoded(dirty.process(pairs(good[11:])))
+    assert dirty_after == lost_after
+    assert dirty.rejected["non_finite"] == 1 and dirty.stats["missing"] == 1
 
 
 def test_malformed_id_mismatch_and_unknown_vehicles(fast_gains):
