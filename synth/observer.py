@@ -34,6 +34,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from synth.augmented import VY_INDEX
+from synth.errors import BadParameters
+from synth.fuzzy import RULE_CORNERS
 from synth.gains import ObserverGains
 from synth.model import FloatArray
 
@@ -57,10 +59,22 @@ def g_feature_matrix(gains: ObserverGains) -> FloatArray:
 class RuntimeGains:
     """Gains stacked for the batched step: z_{k+1}^T = W^T Phi with one feature column per vehicle.
 
-    Phi = [h_1 [z; y]; ...; h_r [z; y]; v_x^2; r/v_x; v_x r; u; phi]   (r (n + 2) + 6, nv)
-    W   = [[N_1^T; L_1^T]; ...; [N_r^T; L_r^T]; (M T1 K)^T; (M T1 B)^T; (M G_bar)^T]   (r (n + 2) + 6, n)
+    The memberships of eq. (16) are products of two sector weights, a = a_0 + a_1 V_x and
+    b = b_0 + b_1 r: h = [a b, a (1 - b), (1 - a) b, (1 - a)(1 - b)]. Any rule blend is therefore
+    bilinear in the (clipped) premise:
 
-    so the whole of Algorithm 1, line 9, is two broadcast products and one GEMM.
+        sum_i h_i W_i = W_4 + a (W_2 - W_4) + b (W_3 - W_4) + a b (W_1 - W_2 - W_3 + W_4)
+                      = Q_0 + V_x Q_V + r Q_r + V_x r Q_Vr.
+
+    With x = [z; y] per vehicle and Q_i = [N_i, L_i]^T:
+
+    Phi = [x; V_x x; r x; V_x r x; v_x^2; r/v_x; v_x r; u; phi]                        (4 (n + 2) + 6, nv)
+    W   = [Q_0; Q_V; Q_r; Q_Vr; (M T1 K)^T; (M T1 B)^T; (M G_bar)^T]
+
+    so the whole of Algorithm 1, line 9, is a few broadcast products and one GEMM. With an
+    output gain K (robust design), W has more columns: the rows of the reported estimate that
+    K changes, x_hat + K (y - C_bar x_hat) = (I - K C_bar)(z - E y) + K y, a rule-independent
+    map of x; the same GEMM then yields z_{k+1} and the reported rows.
     """
 
     gains: ObserverGains
@@ -68,7 +82,6 @@ class RuntimeGains:
     E: FloatArray
     E_is_zero: bool
     K_rows: np.ndarray
-    K_T: FloatArray
     n: int
     n_rules: int
     premise_low: FloatArray
@@ -80,11 +93,25 @@ class RuntimeGains:
     def from_gains(cls, gains: ObserverGains) -> RuntimeGains:
         aug = gains.model
         r, n, _ = gains.N.shape
+        if r != len(RULE_CORNERS):
+            raise BadParameters(f"the runtime step needs the {len(RULE_CORNERS)} rules of eq. (16), got {r}")
         MT1 = gains.M @ aug.T1
-        rule_rows = np.concatenate([gains.N, gains.L], axis=2).transpose(0, 2, 1).reshape(r * (n + 2), n)
+        # Q_i = [N_i, L_i]^T, (n + 2, n): the rule's map of x = [z; y]
+        Q = np.concatenate([gains.N, gains.L], axis=2).transpose(0, 2, 1)
+        dQ_a, dQ_b, dQ_ab = Q[1] - Q[3], Q[2] - Q[3], Q[0] - Q[1] - Q[2] + Q[3]
+        # a = (V_hi - V_x) / (V_hi - V_lo) = a_0 + a_1 V_x, b = (r_hi - r) / (r_hi - r_lo) = b_0 + b_1 r
+        lo, hi = aug.nts.premise_low, aug.nts.premise_high
+        a_1, b_1 = -1.0 / (hi[0] - lo[0]), -1.0 / (hi[1] - lo[1])
+        a_0, b_0 = -hi[0] * a_1, -hi[1] * b_1
+        bilinear = [
+            Q[3] + a_0 * dQ_a + b_0 * dQ_b + a_0 * b_0 * dQ_ab,
+            a_1 * dQ_a + a_1 * b_0 * dQ_ab,
+            b_1 * dQ_b + a_0 * b_1 * dQ_ab,
+            a_1 * b_1 * dQ_ab,
+        ]
         W = np.vstack(
             [
-                rule_rows,
+                *bilinear,
                 (MT1 @ g_feature_matrix(gains)).T,
                 (MT1 @ aug.nts.B).T,
                 (gains.M @ aug.G_bar).T,
@@ -93,13 +120,19 @@ class RuntimeGains:
         vy_low, vy_high = aug.nts.bounds.lateral_speed_bounds
         K = gains.output_gain
         K_rows = np.flatnonzero(np.any(K != 0.0, axis=1))
+        if K_rows.size:
+            # reported rows: (I - K C)(z - E y) + K y = F_z z + F_y y, on the constant block of Phi
+            F_z = (np.eye(n) - K @ aug.C_bar)[K_rows]
+            F_y = K[K_rows] - F_z @ gains.E
+            output_cols = np.zeros((W.shape[0], K_rows.size))
+            output_cols[: n + 2] = np.concatenate([F_z, F_y], axis=1).T
+            W = np.hstack([W, output_cols])
         return cls(
             gains=gains,
             WT=np.ascontiguousarray(W.T),
             E=gains.E,
             E_is_zero=not np.any(gains.E),
             K_rows=K_rows,
-            K_T=np.ascontiguousarray(K[K_rows].T),
             n=n,
             n_rules=r,
             premise_low=aug.nts.premise_low,
@@ -165,45 +198,40 @@ def observer_step(rt: RuntimeGains, z: FloatArray, y: ArrayLike, u: ArrayLike) -
     y = np.asarray(y, dtype=float)
     nv = y.shape[0]
     n, n2 = rt.n, rt.n + 2
-    width = rt.n_rules * n2
+    width = 4 * n2
     Phi = np.empty((width + 6, nv))
-    yT = np.ascontiguousarray(y.T)  # contiguous rows: every loop below runs at unit stride
+    x = Phi[:n2]  # the constant block [z; y]: filled first, every loop at unit stride
+    x[:n] = z.T
+    x[n:] = y.T
+    zT, yT = x[:n], x[n:]
     Phi[width + 3 : width + 5] = np.asarray(u, dtype=float).T
-    zT = z.T
     # line 8: x_hat_k = z_k - E y_k
     x_hat = z if rt.E_is_zero else z - y @ rt.E.T
+    vy_hat = zT[VY_INDEX] if rt.E_is_zero else x_hat[:, VY_INDEX]
     # premise xi = [1/v_x, r], clipped to the design box, flagged when the clip moved it
     lo, hi = rt.premise_low, rt.premise_high
-    V_raw, r_raw = 1.0 / yT[0], yT[1]
-    V_x = np.minimum(np.maximum(V_raw, lo[0]), hi[0])
-    r = np.minimum(np.maximum(r_raw, lo[1]), hi[1])
-    in_domain = (V_x == V_raw) & (r == r_raw)
-    # memberships of eq. (16): products of the two sector weights
-    a = (hi[0] - V_x) * (1.0 / (hi[0] - lo[0]))
-    b = (hi[1] - r) * (1.0 / (hi[1] - lo[1]))
-    h = np.empty((4, nv))
-    np.multiply(a, b, out=h[0])
-    np.subtract(a, h[0], out=h[1])
-    np.subtract(b, h[0], out=h[2])
-    np.subtract(1.0 - a, h[2], out=h[3])
-    vy_hat = x_hat[:, VY_INDEX]
+    premise = np.empty((3, nv))  # [V_x, r, V_x r], the multipliers of the bilinear blend
+    v_x = np.minimum(np.maximum(yT[0], 1.0 / hi[0]), 1.0 / lo[0])
+    r = np.minimum(np.maximum(yT[1], lo[1]), hi[1], out=premise[1])
+    in_domain = (v_x == yT[0]) & (r == yT[1])
+    V_x = np.divide(1.0, v_x, out=premise[0])
+    np.multiply(V_x, r, out=premise[2])
     vy_sat = np.minimum(np.maximum(vy_hat, rt.vy_low), rt.vy_high)
     vy_in_bounds = vy_sat == vy_hat
-    # line 9 as W^T Phi: rule blend of [z, y], the monomials of g, u, and phi(sat(v_y_hat))
-    blend = Phi[:width].reshape(rt.n_rules, n2, nv)
-    np.multiply(h[:, None, :], zT[None, :, :], out=blend[:, :n])
-    np.multiply(h[:, None, :], yT[None, :, :], out=blend[:, n:])
-    v_x = 1.0 / V_x
+    # line 9 as W^T Phi: [x, V_x x, r x, V_x r x] (the rule blend), the monomials of g, u, phi(sat(v_y_hat))
+    np.multiply(premise[:, None, :], x[None, :, :], out=Phi[n2:width].reshape(3, n2, nv))
     np.multiply(v_x, v_x, out=Phi[width])
-    np.multiply(r, V_x, out=Phi[width + 1])
+    Phi[width + 1] = premise[2]  # r / v_x
     np.multiply(v_x, r, out=Phi[width + 2])
     np.multiply(vy_sat, vy_sat, out=Phi[width + 5])
-    z_next = (rt.WT @ Phi).T
+    out = rt.WT @ Phi
+    z_next = out[:n].T
     if rt.K_rows.size:
-        # the reported estimate: x_hat_k + K (y_k - C_bar x_hat_k) on the rows K acts on
-        innovation = y - x_hat[:, ::2][:, :2]
-        x_hat = x_hat.copy()
-        x_hat[:, rt.K_rows] += innovation @ rt.K_T
+        # the reported estimate x_hat_k + K (y_k - C_bar x_hat_k): its changed rows came out of the GEMM
+        reported = np.empty((n, nv))
+        reported[...] = zT if rt.E_is_zero else x_hat.T
+        reported[rt.K_rows] = out[n:]
+        x_hat = reported.T
     return z_next, StepResult(x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds)
 
 
