@@ -138,6 +138,10 @@ class Trace:
         self._last_point_ns = 0
         self._next_truth_ns = 0
         self._last_truth_ns = 0
+        #: estimates up to this time came from the engine's history (a backfill); live events for them,
+        #: still queued on the event bus when the backfill ran, are dropped rather than seen as a clock reset
+        self._backfilled_from_ns = 0
+        self._backfilled_until_ns = 0
 
     def _take(self, t_ns: int, next_ns: int, last_ns: int) -> int | None:
         """The next decimation time if the sample at ``t_ns`` is kept, else None."""
@@ -156,6 +160,8 @@ class Trace:
 
     def add_estimate(self, t_ns: int, x5: X5, measured: Measured | None) -> None:
         """One estimate [v_x, v_y, r, T_f, delta_f] and the measurement (v_x, r, T_d, delta_d) it answers."""
+        if self._backfilled_from_ns <= t_ns <= self._backfilled_until_ns:
+            return
         following = self._take(t_ns, self._next_point_ns, self._last_point_ns)
         if following is None:
             return
@@ -199,6 +205,8 @@ class Trace:
             return
         if not self.points:  # decimation goes on from the last point put in
             self._next_point_ns, self._last_point_ns = older._next_point_ns, older._last_point_ns
+            self._backfilled_until_ns = older._last_point_ns
+            self._backfilled_from_ns = round(float(older.points[0][0] or 0.0) * 1e9)
         self.points.extendleft(reversed(list(older.points)[-room:]))
 
     def history(self) -> dict[str, Any]:

@@ -210,3 +210,26 @@ def test_a_vehicle_opened_for_the_first_time_shows_the_estimates_the_engine_keep
     live = [p for name, data in frames(client) if name == "trace" for p in data["points"]]
     last = history["points"][-1][0]
     assert [round(p[0] - last, 3) for p in live] == [0.05, 0.1, 0.15, 0.2]  # the same grid goes on
+
+
+def test_live_estimates_already_in_a_backfill_do_not_restart_the_plot():
+    """A browser opens a vehicle: the trace is backfilled from the engine's history, then estimates that were
+    still queued on the event bus arrive, older than the backfill's last point. They are dropped; only a real
+    clock jump back (a sample older than everything kept) starts the plot again."""
+    from service.web.hub import Trace
+
+    period = 50_000_000  # 20 points a second
+    x5 = (10.0, 0.0, 0.0, 0.0, 0.0)
+    older = Trace("v", period, 1200)
+    for k in range(100):
+        older.add_estimate(1_000_000_000 + k * 10_000_000, x5, None)
+    trace = Trace("v", period, 1200)
+    trace.prepend(older)
+    assert trace.take_new() is None and len(trace.points) == 20
+    trace.add_estimate(1_000_000_000 + 95 * 10_000_000, x5, (10.0, 0.0))  # queued before the backfill ran
+    assert not trace.reset and len(trace.points) == 20
+    trace.add_estimate(1_000_000_000 + 100 * 10_000_000, x5, (10.0, 0.0))  # the next live sample
+    frame = trace.take_new()
+    assert frame is not None and not frame["history"] and len(frame["points"]) == 1
+    trace.add_estimate(500_000_000, x5, (10.0, 0.0))  # the vehicle's clock went back: start again
+    assert trace.reset and len(trace.points) == 1
