@@ -21,7 +21,7 @@ from typing import Any
 from fastapi import FastAPI
 
 from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine
-from service.jobs import Job, JobKind, SynthesisJobs
+from service.jobs import FINAL_STATES, Job, JobKind, SynthesisJobs
 from service.metrics import ServiceMetrics
 from service.profiles import DEFAULT_PROFILE_NAME, ProfileSpec, load_profiles_file
 from service.protocol import all_buckets, shard_buckets
@@ -189,6 +189,24 @@ class Service:
     def ready(self) -> bool:
         return self.transport_up and self.engine.ready
 
+    def missing_gains(self) -> dict[str, dict[str, str | None]]:
+        """Every profile without active gains, and why: its job is designing, or failed (with the reason)."""
+        out: dict[str, dict[str, str | None]] = {}
+        for name, bank in self.engine.banks.items():
+            if bank.ready:
+                continue
+            job = self.jobs.pending_for(name)
+            if job is not None and job.status not in FINAL_STATES:
+                out[name] = {"state": "designing", "job": job.id, "error": None, "reason": "designing"}
+                continue
+            job = self.jobs.latest_for(name)
+            if job is None:
+                reason = f"no design requested: PUT /profiles/{name} or POST /profiles/{name}/synthesis"
+                out[name] = {"state": "no_job", "job": None, "error": None, "reason": reason}
+            else:
+                out[name] = {"state": job.status, "job": job.id, "error": job.error, "reason": job.reason}
+        return out
+
     # ------------------------------------------------------------------ loops
 
     async def _ingest_loop(self) -> None:
@@ -263,10 +281,33 @@ class Service:
         log.info("profile %s: gains %s active (job %s)", job.profile, gains.version, job.id)
 
     def _persist_job(self, job: Job) -> None:
+        """Store a job at each change of state; time and report how it ended."""
         if self.storage is not None:
             self.storage.put_job(job.to_dict())
         if job.status in ("succeeded", "failed") and job.duration_s is not None:
             self.metrics.synthesis_seconds.observe(job.duration_s)
+        if job.status != "failed":
+            return
+        bank = self.engine.banks.get(job.profile)
+        if bank is not None and bank.version is not None:
+            log.warning(
+                "profile %s: design job %s failed (%s): %s; gains %s stay active",
+                job.profile,
+                job.id,
+                job.error,
+                job.reason,
+                bank.version,
+            )
+        else:
+            log.error(
+                "profile %s has no active gains: design job %s failed (%s): %s; /ready answers 503 until a design "
+                "of the profile succeeds (PUT /profiles/%s)",
+                job.profile,
+                job.id,
+                job.error,
+                job.reason,
+                job.profile,
+            )
 
     def status(self) -> dict[str, Any]:
         return {

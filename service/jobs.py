@@ -6,7 +6,9 @@ reason of the failure, rebuilds the gains with ``ObserverGains.from_dict``
 (hash check and re-verification, in a thread) and hands them to the
 activation callback. Requests for one profile are serialised and coalesced:
 while a job runs, a newer request replaces any queued one, which ends as
-``superseded``. A failed job leaves the active gains untouched.
+``superseded``. A failed job leaves the active gains untouched. A worker
+ends itself when the service process is gone, so a crash leaves no orphan
+solving for nobody.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import asyncio
 import contextlib
 import logging
 import multiprocessing
+import os
+import threading
 import time
 import uuid
 from collections.abc import Awaitable, Callable
@@ -31,6 +35,24 @@ log = logging.getLogger("agv_fe.service.jobs")
 JobStatus = Literal["queued", "running", "succeeded", "failed", "superseded", "interrupted"]
 JobKind = Literal["initial", "create", "update", "resynthesis"]
 FINAL_STATES = frozenset({"succeeded", "failed", "superseded", "interrupted"})
+#: How often a worker checks that the service process that started it still exists [s].
+PARENT_CHECK_INTERVAL_S = 0.5
+
+
+def exit_with_parent(parent_pid: int) -> None:
+    """Worker initializer: end this worker once ``parent_pid`` is gone (killed, crashed).
+
+    A worker blocks on its call queue, whose write end it holds itself, so it
+    would never see its parent die; an orphan is re-parented, which changes
+    ``os.getppid()``.
+    """
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_CHECK_INTERVAL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 def run_synthesis(params: dict[str, Any], bounds: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
@@ -115,7 +137,12 @@ class SynthesisJobs:
 
     def _pool(self) -> ProcessPoolExecutor:
         if self._executor is None:
-            self._executor = ProcessPoolExecutor(self._workers, mp_context=multiprocessing.get_context("spawn"))
+            self._executor = ProcessPoolExecutor(
+                self._workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=exit_with_parent,
+                initargs=(os.getpid(),),
+            )
         return self._executor
 
     def get(self, job_id: str) -> Job | None:
@@ -126,6 +153,10 @@ class SynthesisJobs:
         if profile in self._queued:
             return self._queued[profile][0]
         return self._running.get(profile)
+
+    def latest_for(self, profile: str) -> Job | None:
+        """The newest job of ``profile`` submitted since this process started, finished or not."""
+        return next((job for job in reversed(self._jobs.values()) if job.profile == profile), None)
 
     def busy(self) -> bool:
         return bool(self._running or self._queued)

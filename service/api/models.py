@@ -40,16 +40,46 @@ class Health(BaseModel):
     uptime_s: float
 
 
+class MissingGains(BaseModel):
+    """Why a profile has no active gains."""
+
+    state: Literal["designing", "failed", "interrupted", "superseded", "succeeded", "no_job"] = Field(
+        description="'designing' while its job is queued or runs; else how its latest job ended"
+    )
+    job: str | None = Field(description="the profile's synthesis job (GET /jobs/{id})")
+    error: str | None = Field(None, description="the failed job's error class, such as 'infeasible'")
+    reason: str | None = Field(description="'designing' while the job runs, else why the design failed")
+
+
 class Readiness(BaseModel):
     model_config = ConfigDict(
         json_schema_extra={
-            "examples": [{"ready": False, "transport": True, "profiles": {"default": None, "van": "3f9a1c0b7d2e"}}]
+            "examples": [
+                {
+                    "ready": False,
+                    "transport": True,
+                    "profiles": {"default": "3f9a1c0b7d2e", "van": None},
+                    "missing_gains": {
+                        "van": {
+                            "state": "failed",
+                            "job": "job-5c1d2e3f4a5b",
+                            "error": "infeasible",
+                            "reason": "The paper's design with exact wind decoupling ... is impossible.",
+                        }
+                    },
+                    "detail": "profile 'van' has no active gains: its design failed (infeasible): The paper's ...",
+                }
+            ]
         }
     )
 
     ready: bool = Field(description="every profile has active gains and Zenoh is up")
     transport: bool
     profiles: dict[str, str | None] = Field(description="active gain version per profile (null: none yet)")
+    missing_gains: dict[str, MissingGains] = Field(
+        default_factory=dict, description="every profile without active gains, and why"
+    )
+    detail: str | None = Field(None, description="why the service is not ready, in words (null when ready)")
 
 
 class VehicleStatus(BaseModel):

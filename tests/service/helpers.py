@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import json
+import os
+import re
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -68,6 +73,115 @@ def make_settings(tmp_path: Path, profiles: dict[str, dict[str, Any]] | None = N
     for key, value in overrides.items():
         data[key] = {**data[key], **value} if isinstance(value, dict) and isinstance(data.get(key), dict) else value
     return Settings.model_validate(data)
+
+
+def settings_env(settings: Settings) -> dict[str, str]:
+    """The environment that makes ``agv-fe serve`` build ``settings``: AGV_FE_* variables, nested with ``__``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AGV_FE_")}
+    dumped = settings.model_dump(mode="json", exclude={"auth": {"token"}})
+    if settings.auth.token is not None:
+        dumped["auth"]["token"] = settings.auth.token.get_secret_value()
+
+    def text(value: Any) -> str:
+        return json.dumps(value) if isinstance(value, bool | list | dict) else str(value)
+
+    for key, value in dumped.items():
+        if isinstance(value, dict):
+            env.update({f"AGV_FE_{key}__{k}".upper(): text(v) for k, v in value.items() if v is not None})
+        elif value is not None:
+            env[f"AGV_FE_{key}".upper()] = text(value)
+    return env
+
+
+class ServiceProcess:
+    """``agv-fe serve`` as a separate process, in its own session, so that a test can kill it as a crash would.
+
+    The process and the synthesis workers it spawns form one process group; :meth:`close` ends what is left of it.
+    Its log (stdout and stderr) goes to ``log_path``.
+    """
+
+    def __init__(self, settings: Settings, log_path: Path, *args: str) -> None:
+        self.settings = settings
+        self.log_path = log_path
+        self.args = args
+        self.url = f"http://127.0.0.1:{settings.http.port}"
+        self.http = httpx.Client(base_url=self.url, timeout=30.0)
+        self.auth = {"Authorization": f"Bearer {TOKEN}"}
+        self.process: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> ServiceProcess:
+        with self.log_path.open("ab") as log:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "agv_fe", "serve", *self.args],
+                env=settings_env(self.settings),
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        wait_for(self._answers, what=f"the service process to answer on {self.url}")
+        return self
+
+    def _answers(self) -> bool:
+        if self.process is None or self.process.poll() is not None:
+            raise AssertionError(f"the service process exited:\n{self.log()}")
+        try:
+            return self.http.get("/health", timeout=1.0).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    def wait_ready(self) -> None:
+        wait_for(lambda: self.http.get("/ready").status_code == 200, what="/ready")
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def get(self, path: str, **kw: Any) -> httpx.Response:
+        return self.http.get(path, **kw)
+
+    def kill(self) -> None:
+        """SIGKILL the service process, as a crash or the OOM killer would: no shutdown code runs."""
+        if self.process is None:
+            raise AssertionError("the service process was not started")
+        self.process.send_signal(signal.SIGKILL)
+        self.process.wait(WAIT_S)
+
+    def survivors(self) -> list[int]:
+        """Live processes (not zombies) left in the service's process group: its synthesis workers, if any."""
+        if self.process is None:
+            return []
+        pids = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                state, _ppid, pgrp = stat.read_text().rsplit(")", 1)[1].split()[:3]
+            except (OSError, ValueError):
+                continue  # the process ended while we looked
+            if int(pgrp) == self.process.pid and state != "Z":
+                pids.append(int(stat.parent.name))
+        return pids
+
+    def close(self) -> None:
+        """Stop the process if it still runs (SIGTERM, then SIGKILL), then any process left in its group."""
+        self.http.close()
+        if self.process is None:
+            return
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(WAIT_S)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(WAIT_S)
+        with suppress(ProcessLookupError):
+            os.killpg(self.process.pid, signal.SIGKILL)
+
+
+@contextmanager
+def service_process(settings: Settings, log_path: Path, *args: str) -> Iterator[ServiceProcess]:
+    server = ServiceProcess(settings, log_path, *args)
+    try:
+        yield server.start()
+    finally:
+        server.close()
 
 
 class RunningService:
@@ -210,3 +324,50 @@ def constant_measurement(
 
 def as_array(estimates: list[Estimate]) -> np.ndarray:
     return np.array([[e.vx, e.vy, e.r, e.torque_fault, e.steer_fault] for e in estimates])
+
+
+_METRIC_SAMPLE = re.compile(r"^([A-Za-z_:][A-Za-z0-9_:]*)(?:\{(.*)\})? (\S+)$")
+_METRIC_LABEL = re.compile(r'([A-Za-z_][A-Za-z0-9_]*)="((?:[^"\\]|\\.)*)"')
+
+
+@dataclass
+class Metrics:
+    """One Prometheus text scrape: each metric family's type, and each sample by name and labels."""
+
+    types: dict[str, str]
+    samples: dict[tuple[str, frozenset[tuple[str, str]]], float]
+
+    def value(self, name: str, **labels: str) -> float:
+        key = (name, frozenset(labels.items()))
+        if key not in self.samples:
+            raise AssertionError(f"no sample {name}{labels or ''} in the scrape")
+        return self.samples[key]
+
+    def buckets(self, name: str) -> list[tuple[float, float]]:
+        """(le, cumulative count) of histogram ``name``, in order of le."""
+        rows = [(float(dict(labels)["le"]), v) for (n, labels), v in self.samples.items() if n == f"{name}_bucket"]
+        return sorted(rows)
+
+
+def parse_metrics(text: str) -> Metrics:
+    """Parse the Prometheus text format (0.0.4); a line that is neither a comment nor a sample fails the test."""
+    types: dict[str, str] = {}
+    samples: dict[tuple[str, frozenset[tuple[str, str]]], float] = {}
+    for line in text.splitlines():
+        if line.startswith("# TYPE "):
+            _, _, name, kind = line.split(" ", 3)
+            types[name] = kind
+        elif line and not line.startswith("#"):
+            match = _METRIC_SAMPLE.match(line)
+            if match is None:
+                raise AssertionError(f"not a Prometheus sample: {line!r}")
+            name, label_text, value = match.groups()
+            labels = frozenset(_METRIC_LABEL.findall(label_text or ""))
+            samples[(name, labels)] = float(value)
+    return Metrics(types, samples)
+
+
+def job_done(server: RunningService | ServiceProcess, job_id: str) -> dict[str, Any] | None:
+    """The job once it has finished (succeeded, failed, superseded or interrupted), else None."""
+    job: dict[str, Any] = server.get(f"/jobs/{job_id}").json()
+    return job if job["status"] in ("succeeded", "failed", "superseded", "interrupted") else None

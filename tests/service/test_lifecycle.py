@@ -13,6 +13,7 @@ from tests.service.helpers import (
     FAST_DESIGN,
     constant_measurement,
     free_port,
+    job_done,
     make_settings,
     plant_measurements,
     probe,
@@ -25,11 +26,6 @@ pytestmark = pytest.mark.network
 #: Load of the resynthesis test: vehicles at 100 Hz, bounded in time and count.
 LOAD_VEHICLES = 20
 LOAD_MAX_S = 40.0
-
-
-def job_done(server, job_id):
-    job = server.get(f"/jobs/{job_id}").json()
-    return job if job["status"] in ("succeeded", "failed", "superseded", "interrupted") else None
 
 
 def test_resynthesis_under_load_misses_no_sample_and_infeasible_designs_keep_the_gains(tmp_path):

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Response, status
 from fastapi.responses import PlainTextResponse
 
 from service.api.deps import ServiceDep
-from service.api.models import Health, Readiness
+from service.api.models import Health, MissingGains, Readiness
 from service.fleet.engine import REJECT_REASONS
 from service.metrics import Exposition
 
@@ -22,17 +22,40 @@ async def health(service: ServiceDep) -> Health:
     "/ready",
     response_model=Readiness,
     summary="every profile has active gains and Zenoh is connected",
-    responses={503: {"model": Readiness, "description": "not ready yet (gains being designed)"}},
+    responses={
+        503: {
+            "model": Readiness,
+            "description": "not ready: the profiles without active gains and why (designing, or the failed "
+            "design's reason), or Zenoh is down",
+        }
+    },
 )
 async def ready(service: ServiceDep, response: Response) -> Readiness:
+    missing = {name: MissingGains.model_validate(why) for name, why in service.missing_gains().items()}
     answer = Readiness(
         ready=service.ready,
         transport=service.transport_up,
         profiles={name: bank.version for name, bank in service.engine.banks.items()},
+        missing_gains=missing,
     )
     if not answer.ready:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
+        answer.detail = _not_ready_detail(answer)
     return answer
+
+
+def _not_ready_detail(answer: Readiness) -> str:
+    causes = [] if answer.transport else ["the Zenoh transport is down"]
+    if not answer.profiles:
+        causes.append("no profile is configured")
+    for name, why in answer.missing_gains.items():
+        if why.state == "designing":
+            causes.append(f"profile {name!r} has no active gains: designing (job {why.job})")
+        elif why.state == "failed":
+            causes.append(f"profile {name!r} has no active gains: its design failed ({why.error}): {why.reason}")
+        else:
+            causes.append(f"profile {name!r} has no active gains: {why.reason or why.state}")
+    return "; ".join(causes)
 
 
 @router.get(

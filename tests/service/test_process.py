@@ -1,0 +1,120 @@
+"""`agv-fe serve` as a separate process: killed without warning, then restarted; started with a profile that
+cannot be designed."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from tests.service.helpers import (
+    FAST_DESIGN,
+    job_done,
+    make_settings,
+    plant_measurements,
+    probe,
+    running,
+    service_process,
+    wait_for,
+)
+
+pytestmark = pytest.mark.network
+
+ALARMS = {"torque_warn_nm": 10.0, "torque_fault_nm": 20.0, "raise_after_s": 0.2, "warmup_s": 1.0}
+HEAVY = {"mass_kg": 2100.0, "yaw_inertia_kgm2": 2600.0}
+HEAVY_ALARMS = {"torque_warn_nm": 60.0, "torque_fault_nm": 120.0}
+#: How long synthesis workers may outlive a killed service [s] (they check their parent every 0.5 s).
+ORPHAN_EXIT_S = 10.0
+
+
+def test_a_sigkill_loses_nothing_the_api_acknowledged(tmp_path):
+    settings = make_settings(tmp_path, {"default": {"design": FAST_DESIGN, "alarms": ALARMS}})
+    with service_process(settings, tmp_path / "service.log") as srv:
+        srv.wait_ready()
+        auth = srv.auth
+        # a new design for a profile (202), a new profile (202), then a change of thresholds only (200)
+        changed = srv.http.put(
+            "/profiles/default", json={"design": {**FAST_DESIGN, "fault_order": 2}, "alarms": ALARMS}, headers=auth
+        )
+        created = srv.http.put("/profiles/heavy", json={"params": HEAVY, "design": FAST_DESIGN}, headers=auth)
+        assert (changed.status_code, created.status_code) == (202, 202)
+        jobs = [wait_for(lambda r=r: job_done(srv, r.json()["job"]), what="job") for r in (changed, created)]
+        assert [j["status"] for j in jobs] == ["succeeded", "succeeded"]
+        heavy_spec = {"params": HEAVY, "design": FAST_DESIGN, "alarms": HEAVY_ALARMS}
+        thresholds = srv.http.put("/profiles/heavy", json=heavy_spec, headers=auth)
+        assert thresholds.status_code == 200 and thresholds.json()["applied"]
+        registered = srv.http.put("/vehicles/heavy-7", json={"profile": "heavy"}, headers=auth)
+        assert registered.status_code == 200
+        with probe(settings.zenoh.endpoint) as p:
+            for row in plant_measurements(["crash-1"], 900):  # a 30 N m torque bias from 5 s
+                p.put(row[0])
+            alarm = wait_for(
+                lambda: [a for a in srv.get("/alarms").json() if a["kind"] == "torque_fault"], what="torque alarm"
+            )[0]
+        profiles = {p["name"]: p for p in srv.get("/profiles").json()}
+        jobs_before = srv.get("/jobs").json()
+        acked = srv.http.post(f"/alarms/{alarm['id']}/ack", headers=auth, json={"by": "night shift"})
+        assert acked.status_code == 200 and acked.json()["acknowledged"]
+        srv.kill()  # at once: what the API answered must already be on disk
+        assert srv.process is not None and srv.process.returncode == -9
+        # the synthesis worker notices and ends too: a crash leaves no orphan behind
+        wait_for(lambda: not srv.survivors(), timeout=ORPHAN_EXIT_S, what="the synthesis workers to exit")
+    with running(settings) as again:  # a new process on the same data directory
+        after = {p["name"]: p for p in again.get("/profiles").json()}
+        assert set(after) == {"default", "heavy"}
+        for name in after:
+            for field in ("spec", "active_version", "gain_versions"):
+                assert after[name][field] == profiles[name][field], (name, field)
+        assert after["default"]["active_version"] == jobs[0]["gain_version"]
+        assert after["default"]["spec"]["design"]["fault_order"] == 2
+        assert after["heavy"]["active_version"] == jobs[1]["gain_version"]
+        heavy = after["heavy"]["spec"]
+        assert heavy["alarms"] | HEAVY_ALARMS == heavy["alarms"] and heavy["params"] | HEAVY == heavy["params"]
+        assert again.get("/jobs").json() == jobs_before  # nothing was redesigned
+        stored = again.get(f"/alarms/{alarm['id']}").json()
+        assert stored["acknowledged"] and stored["acknowledged_by"] == "night shift" and stored["latched"]
+        assert [e["state"] for e in stored["events"]][-1] == "acknowledged"
+        assert again.vehicle("heavy-7")["profile"] == "heavy"
+        assert again.vehicle("crash-1")["profile"] == "default"
+
+
+def test_a_failed_first_design_is_named_by_ready_logged_and_listed_in_jobs(tmp_path):
+    impossible = {**FAST_DESIGN, "design": "paper-decoupled"}
+    settings = make_settings(tmp_path, {"default": {"design": FAST_DESIGN}, "van": {"design": impossible}})
+    profiles_file = str(settings.profiles_file)
+    settings = settings.model_copy(update={"profiles_file": None})  # given by the flag instead
+    log = tmp_path / "service.log"
+    with service_process(settings, log, "--profiles", profiles_file) as srv:
+        # one worker: default's design runs first, van's waits for it
+        first = srv.get("/ready")
+        assert first.status_code == 503
+        assert first.json()["missing_gains"]["van"]["state"] == "designing"
+        assert "'van' has no active gains: designing" in first.json()["detail"]
+
+        def van_failed() -> dict[str, Any] | None:
+            body: dict[str, Any] = srv.get("/ready").json()
+            missing = body["missing_gains"]
+            return body if set(missing) == {"van"} and missing["van"]["state"] == "failed" else None
+
+        body = wait_for(van_failed, what="van's design to fail and default's to succeed")
+        answer = srv.get("/ready")
+        assert answer.status_code == 503 and answer.json() == body  # it stays so
+        van = body["missing_gains"]["van"]
+        assert van["error"] == "infeasible" and "unobservable" in van["reason"]
+        assert body["profiles"]["van"] is None and body["profiles"]["default"] is not None
+        assert body["detail"] == f"profile 'van' has no active gains: its design failed (infeasible): {van['reason']}"
+        failed = [j for j in srv.get("/jobs").json() if j["profile"] == "van"]
+        assert [(j["id"], j["status"], j["kind"], j["reason"]) for j in failed] == [
+            (van["job"], "failed", "initial", van["reason"])
+        ]
+        logged = wait_for(
+            lambda: [line for line in srv.log().splitlines() if " ERROR " in line and "profile van" in line],
+            what="an ERROR log line",
+        )
+        assert van["job"] in logged[0] and "infeasible" in logged[0] and "unobservable" in logged[0]
+        # a feasible design of the profile makes the service ready
+        fixed = srv.http.put("/profiles/van", json={"design": FAST_DESIGN}, headers=srv.auth)
+        assert fixed.status_code == 202
+        assert wait_for(lambda: job_done(srv, fixed.json()["job"]), what="the new job")["status"] == "succeeded"
+        ready = srv.get("/ready")
+        assert ready.status_code == 200 and ready.json()["missing_gains"] == {} and ready.json()["detail"] is None

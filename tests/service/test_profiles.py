@@ -1,0 +1,105 @@
+"""Several vehicle profiles in one real service: each vehicle observed with its own profile's gains; the metrics
+of that work."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.protocol import Measurement
+from synth.gains import ObserverGains
+from synth.observer import FuzzyObserver
+from tests.service.helpers import (
+    FAST_DESIGN,
+    RunningService,
+    as_array,
+    job_done,
+    make_settings,
+    parse_metrics,
+    plant_measurements,
+    probe,
+    running,
+    wait_for,
+)
+from tests.tolerances import BATCH_EQUALITY_ATOL
+
+pytestmark = pytest.mark.network
+
+#: A delivery van: heavier and slower to turn than the paper's car (Table 1).
+HEAVY = {"mass_kg": 2100.0, "yaw_inertia_kgm2": 2600.0}
+N_SAMPLES = 300
+#: Vehicle id -> profile.
+FLEET = {"car-1": "default", "van-1": "heavy"}
+
+
+def offline_estimates(gains: ObserverGains, samples: list[Measurement]) -> np.ndarray:
+    """Algorithm 1 run offline on one vehicle's samples: rows of (v_x, v_y, r, T_f, delta_f)."""
+    observer = FuzzyObserver(gains, np.array([[samples[0].vx_mps, samples[0].r_radps]]))
+    return np.array(
+        [observer.step([[m.vx_mps, m.r_radps]], [[m.torque_nm, m.steer_rad]]).x_hat[0, :5] for m in samples]
+    )
+
+
+def test_each_vehicle_is_observed_with_its_own_profiles_gains(tmp_path):
+    settings = make_settings(tmp_path)
+    with running(settings) as srv, probe(settings.zenoh.endpoint) as p:
+        created = srv.http.put("/profiles/heavy", json={"params": HEAVY, "design": FAST_DESIGN}, headers=srv.auth)
+        assert created.status_code == 202
+        job = wait_for(lambda: job_done(srv, created.json()["job"]), what="the heavy profile's design")
+        assert job["status"] == "succeeded"
+        for vehicle_id, profile in FLEET.items():
+            assigned = srv.http.put(f"/vehicles/{vehicle_id}", json={"profile": profile}, headers=srv.auth)
+            assert assigned.status_code == 200 and assigned.json()["profile"] == profile
+        samples = plant_measurements(list(FLEET), N_SAMPLES)  # the same drive for both vehicles
+        for row in samples:
+            for m in row:
+                p.put(m)
+        wait_for(lambda: all(len(p.estimates_of(v)) >= N_SAMPLES for v in FLEET), what="every estimate")
+        gains = {}
+        for profile in FLEET.values():
+            doc = srv.get(f"/profiles/{profile}/gains", params={"matrices": "true"}).json()
+            gains[profile] = ObserverGains.from_dict(doc)
+            assert doc["version"] == srv.get(f"/profiles/{profile}").json()["active_version"]
+        assert gains["heavy"].version == job["gain_version"] != gains["default"].version
+        assert gains["heavy"].params.mass_kg == HEAVY["mass_kg"]
+        for i, (vehicle_id, profile) in enumerate(FLEET.items()):
+            got = p.estimates_of(vehicle_id)
+            assert [e.seq for e in got] == list(range(N_SAMPLES))
+            assert {e.gain_version for e in got} == {gains[profile].version}
+            own = offline_estimates(gains[profile], [row[i] for row in samples])
+            np.testing.assert_allclose(as_array(got), own, atol=BATCH_EQUALITY_ATOL)
+            # the other profile's gains give other estimates of the same drive: the comparison tells them apart
+            other = next(g for name, g in gains.items() if name != profile)
+            mixed_up = offline_estimates(other, [row[i] for row in samples])
+            assert np.abs(as_array(got) - mixed_up).max() > 1e6 * BATCH_EQUALITY_ATOL
+        assert_metrics_show_the_work(srv, measurements=N_SAMPLES * len(FLEET))
+
+
+def assert_metrics_show_the_work(srv: RunningService, measurements: int) -> None:
+    """Step latency (tick time), queue depth (batch size) and synthesis durations are exposed, with values that
+    add up to what the service did."""
+    metrics = parse_metrics(srv.get("/metrics").text)
+    uptime_s = srv.get("/health").json()["uptime_s"]
+    for name in ("agv_fe_tick_seconds", "agv_fe_tick_batch_measurements", "agv_fe_synthesis_seconds"):
+        assert metrics.types[name] == "histogram", name
+        count, buckets = metrics.value(f"{name}_count"), metrics.buckets(name)
+        assert count > 0 and metrics.value(f"{name}_sum") > 0, name
+        cumulative = [n for _, n in buckets]
+        assert cumulative == sorted(cumulative) and buckets[-1] == (float("inf"), count), name
+    assert metrics.types["agv_fe_ingest_last_batch"] == "gauge"
+    assert metrics.value("agv_fe_ingest_last_batch") >= 1
+    # tick time: every tick took some time, all of them together less than the service has been up
+    assert 0 < metrics.value("agv_fe_tick_seconds_sum") < uptime_s
+    # batch size: each tick drained at least one measurement, and the ticks drained every measurement once
+    received = metrics.value("agv_fe_measurements_received_total")
+    assert received == measurements
+    assert metrics.value("agv_fe_tick_batch_measurements_sum") == received
+    assert metrics.value("agv_fe_tick_batch_measurements_count") <= received
+    # synthesis: one observation per finished design, each the duration its job reports
+    finished = [j for j in srv.get("/jobs").json() if j["status"] in ("succeeded", "failed")]
+    assert len(finished) == 2  # the default profile's first design and the heavy profile's
+    assert metrics.value("agv_fe_synthesis_seconds_count") == len(finished)
+    assert metrics.value("agv_fe_synthesis_seconds_sum") == pytest.approx(sum(j["duration_s"] for j in finished))
+    assert metrics.value("agv_fe_synthesis_jobs_total", status="succeeded") == 2
+    for profile in set(FLEET.values()):
+        assert metrics.value("agv_fe_vehicles", profile=profile) == 1
