@@ -147,10 +147,14 @@ class Service:
             for name, spec in initial.items():
                 storage.put_profile(name, spec.stored(), now)
             stored = storage.profiles()
+        # designs accepted (202) but not finished when the service stopped: each profile's latest is resumed
+        resume: dict[str, Job] = {}
         for interrupted in (j for j in storage.jobs(limit=1000) if j["status"] in ("queued", "running")):
             job = Job.from_dict(interrupted)
             job.status, job.error, job.reason = "interrupted", "restart", "the service restarted during the design"
             storage.put_job(job.to_dict())
+            if job.profile not in resume or job.created_t_ns > resume[job.profile].created_t_ns:
+                resume[job.profile] = job
         for profile in stored:
             spec = ProfileSpec.model_validate(profile.spec)
             self.engine.add_profile(profile.name, spec)
@@ -167,8 +171,16 @@ class Service:
                     )
                 else:
                     self.engine.activate(profile.name, gains, RuntimeGains.from_gains(gains))
-                    continue
-            self.jobs.submit(profile.name, spec, "initial")
+            earlier = resume.get(profile.name)
+            if earlier is not None:
+                log.warning(
+                    "profile %s: resuming the design of job %s, interrupted by a restart", profile.name, earlier.id
+                )
+                self.jobs.submit(
+                    profile.name, ProfileSpec.model_validate(earlier.spec), earlier.kind, resumes=earlier.id
+                )
+            elif self.engine.banks[profile.name].gains is None:
+                self.jobs.submit(profile.name, spec, "initial")
         for vehicle_id, profile_name, registered in storage.vehicles():
             if profile_name in self.engine.banks:
                 self.engine.register(vehicle_id, profile_name, registered)
@@ -263,6 +275,9 @@ class Service:
             self.engine.add_profile(name, spec)
             return self.jobs.submit(name, spec, "create")
         if bank.gains is not None and _same_design(bank.gains, spec):
+            # the latest request wins: a design still pending for the profile would overwrite this spec
+            for job in self.jobs.withdraw(name, "a later request kept the active design and changed only thresholds"):
+                log.info("profile %s: job %s withdrawn by a later request", name, job.id)
             self.db.put_profile(name, spec.stored(), time.time_ns())
             self.engine.update_profile_spec(name, spec)
             return None

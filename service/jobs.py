@@ -6,7 +6,9 @@ reason of the failure, rebuilds the gains with ``ObserverGains.from_dict``
 (hash check and re-verification, in a thread) and hands them to the
 activation callback. Requests for one profile are serialised and coalesced:
 while a job runs, a newer request replaces any queued one, which ends as
-``superseded``. A failed job leaves the active gains untouched. A worker
+``superseded``. A request that needs no design (the profile's active design
+with new thresholds) withdraws the profile's pending jobs: the latest
+accepted request wins. A failed job leaves the active gains untouched. A worker
 ends itself when the service process is gone, so a crash leaves no orphan
 solving for nobody.
 """
@@ -105,6 +107,10 @@ class Job:
     error: str | None = None
     reason: str | None = None
     superseded_by: str | None = None
+    #: the job that an interruption (a restart) made this one resume
+    resumes: str | None = None
+    #: set while running when a later request withdrew it: its gains are not activated
+    withdrawn: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -161,9 +167,26 @@ class SynthesisJobs:
     def busy(self) -> bool:
         return bool(self._running or self._queued)
 
-    def submit(self, profile: str, spec: ProfileSpec, kind: JobKind) -> Job:
+    def withdraw(self, profile: str, reason: str) -> list[Job]:
+        """A later request made the profile's pending designs pointless: the queued one is superseded at once,
+        the running one when it ends (its gains are not activated). Returns the jobs withdrawn."""
+        withdrawn: list[Job] = []
+        queued = self._queued.pop(profile, None)
+        if queued is not None:
+            old = queued[0]
+            old.status, old.reason, old.finished_t_ns = "superseded", reason, time.time_ns()
+            self.finished["superseded"] += 1
+            self._persist(old)
+            withdrawn.append(old)
+        running = self._running.get(profile)
+        if running is not None:
+            running.withdrawn, running.reason = True, reason
+            withdrawn.append(running)
+        return withdrawn
+
+    def submit(self, profile: str, spec: ProfileSpec, kind: JobKind, resumes: str | None = None) -> Job:
         """Queue a design of ``spec`` for ``profile``; a queued, not yet started job of the profile is superseded."""
-        job = Job(id=f"job-{uuid.uuid4().hex[:12]}", profile=profile, kind=kind, spec=spec.stored())
+        job = Job(id=f"job-{uuid.uuid4().hex[:12]}", profile=profile, kind=kind, spec=spec.stored(), resumes=resumes)
         self._jobs[job.id] = job
         previous = self._queued.pop(profile, None)
         if previous is not None:
@@ -193,7 +216,9 @@ class SynthesisJobs:
             outcome = await loop.run_in_executor(
                 self._pool(), run_synthesis, inputs["params"], inputs["bounds"], inputs["options"]
             )
-            if outcome["ok"]:
+            if outcome["ok"] and job.withdrawn:
+                job.status = "superseded"
+            elif outcome["ok"]:
                 gains = await asyncio.to_thread(ObserverGains.from_dict, outcome["gains"])
                 await self._activate(job, spec, gains)
                 job.status, job.gain_version = "succeeded", gains.version

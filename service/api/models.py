@@ -257,8 +257,9 @@ class JobInfo(BaseModel):
     gain_version: str | None = Field(description="the version activated by a succeeded job")
     certificate: dict[str, Any] | None = Field(description="certificate summary of the new gains")
     error: str | None = Field(description="infeasible, unverified, bad_parameters, solver_failed, ...")
-    reason: str | None = Field(description="why the design failed, in words")
+    reason: str | None = Field(description="why the design failed, was superseded or interrupted, in words")
     superseded_by: str | None
+    resumes: str | None = Field(None, description="the job, interrupted by a restart, whose design this one resumes")
 
 
 class ProfileInfo(BaseModel):

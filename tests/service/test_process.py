@@ -118,3 +118,49 @@ def test_a_failed_first_design_is_named_by_ready_logged_and_listed_in_jobs(tmp_p
         assert wait_for(lambda: job_done(srv, fixed.json()["job"]), what="the new job")["status"] == "succeeded"
         ready = srv.get("/ready")
         assert ready.status_code == 200 and ready.json()["missing_gains"] == {} and ready.json()["detail"] is None
+
+
+def test_a_design_accepted_before_a_crash_is_resumed_after_the_restart(tmp_path):
+    """202 means the design will happen: a SIGKILL during it leaves the job interrupted, and the restarted
+    service designs the same request again (a new job that says which one it resumes)."""
+    settings = make_settings(tmp_path, {"default": {"design": FAST_DESIGN}})
+    with service_process(settings, tmp_path / "service.log") as srv:
+        srv.wait_ready()
+        before = srv.get("/profiles/default").json()["active_version"]
+        accepted = srv.http.put(
+            "/profiles/default", json={"design": {**FAST_DESIGN, "fault_order": 2}}, headers=srv.auth
+        )
+        assert accepted.status_code == 202
+        srv.kill()  # the worker needs seconds to start and solve: the job is queued or running now
+    with running(settings) as again:
+        first = again.get(f"/jobs/{accepted.json()['job']}").json()
+        assert first["status"] == "interrupted" and first["error"] == "restart"
+        resumed = wait_for(
+            lambda: [j for j in again.get("/jobs").json() if j.get("resumes") == first["id"]], what="the resumed job"
+        )[0]
+        done = wait_for(lambda: job_done(again, resumed["id"]), what="the resumed design")
+        assert done["status"] == "succeeded" and done["spec"] == first["spec"]
+        profile = again.get("/profiles/default").json()
+        assert profile["active_version"] == done["gain_version"] != before
+        assert profile["spec"]["design"]["fault_order"] == 2
+
+
+def test_the_latest_request_wins_over_a_pending_design(tmp_path):
+    """A change of thresholds on the active design, sent while an earlier design of the profile is still
+    pending, withdraws that design: its gains are not activated and they cannot overwrite the thresholds."""
+    settings = make_settings(tmp_path, {"default": {"design": FAST_DESIGN, "alarms": ALARMS}})
+    with running(settings) as srv:
+        active = srv.get("/profiles/default").json()
+        redesign = srv.http.put(
+            "/profiles/default", json={"design": {**FAST_DESIGN, "fault_order": 2}, "alarms": ALARMS}, headers=srv.auth
+        )
+        assert redesign.status_code == 202
+        newer = {"design": FAST_DESIGN, "alarms": {**ALARMS, "torque_warn_nm": 15.0}}
+        applied = srv.http.put("/profiles/default", json=newer, headers=srv.auth)
+        assert applied.status_code == 200 and applied.json()["applied"]
+        job = wait_for(lambda: job_done(srv, redesign.json()["job"]), what="the withdrawn design")
+        assert job["status"] == "superseded" and "later request" in job["reason"]
+        after = srv.get("/profiles/default").json()
+        assert after["active_version"] == active["active_version"]
+        assert after["spec"]["alarms"]["torque_warn_nm"] == 15.0
+        assert after["spec"]["design"]["fault_order"] == active["spec"]["design"]["fault_order"]
