@@ -38,8 +38,13 @@ def synthesize(
     params: VehicleParams | None = None,
     bounds: OperatingBounds | None = None,
     options: DesignOptions | None = None,
+    *,
+    use_symmetry: bool = True,
 ) -> ObserverGains:
     """Design certified observer gains (Theorem 2, or the robust design).
+
+    ``use_symmetry``: pose the LMIs on mirror-invariant points when the data have the
+    left-right symmetry (synth.symmetry; lossless). False only to measure what it saves.
 
     Raises :class:`~synth.errors.Infeasible` when the design cannot exist (with
     the reason), :class:`~synth.errors.SolverFailed` when no solver returns a
@@ -52,7 +57,7 @@ def synthesize(
     if options.design == "robust":
         from synth.robust import synthesize_robust
 
-        return synthesize_robust(params, bounds, options)
+        return synthesize_robust(params, bounds, options, use_symmetry=use_symmetry)
     started = time.perf_counter()
     timings: dict[str, float] = {}
     aug = AugmentedModel.build(NTSModel.build(params, bounds), options.fault_order)
@@ -68,7 +73,12 @@ def synthesize(
         aug, difference=options.difference_coordinates, torque_fault_scale=options.torque_fault_scale
     )
     lmis = Theorem2LMIs(
-        dc, decoupled=options.decoupled, lyapunov=options.lyapunov, form=options.lmi_form, margin=options.margin
+        dc,
+        decoupled=options.decoupled,
+        lyapunov=options.lyapunov,
+        form=options.lmi_form,
+        margin=options.margin,
+        use_symmetry=use_symmetry,
     )
     timings["build_s"] = time.perf_counter() - mark
 

@@ -269,7 +269,9 @@ def verify_h2_bound(
     return bound + float(np.sum(D_1**2)), worst_eig
 
 
-def synthesize_robust(params: VehicleParams, bounds: OperatingBounds, options: DesignOptions) -> ObserverGains:
+def synthesize_robust(
+    params: VehicleParams, bounds: OperatingBounds, options: DesignOptions, *, use_symmetry: bool = True
+) -> ObserverGains:
     """Design the noise-aware observer; same guarantees and errors as :func:`synth.design.synthesize`."""
     if options.design != "robust":
         raise BadParameters(f"synthesize_robust needs design='robust', got {options.design!r}")
@@ -289,6 +291,7 @@ def synthesize_robust(params: VehicleParams, bounds: OperatingBounds, options: D
         lyapunov=options.lyapunov,
         margin=options.margin,
         alpha=options.robust_decay_rate,
+        use_symmetry=use_symmetry,
     )
     timings["build_s"] = time.perf_counter() - mark
 

@@ -24,7 +24,8 @@ def machine_description() -> str:
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {versions}"
 
 
-def report_header(title: str, command: str) -> str:
+def report_header(title: str, benchmark: str) -> str:
+    """Title, where and when it was measured, and the commands that rewrite the report."""
     try:
         commit = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
@@ -36,5 +37,6 @@ def report_header(title: str, command: str) -> str:
         f"# {title}\n\n"
         f"Measured {when} on {machine_description()}"
         f"{f', commit {commit}' if commit else ''}.\n\n"
-        f"Command: `{command}` (this file is rewritten by each run).\n\n"
+        f"Command: `make bench` runs every benchmark; `agv-fe bench --only {benchmark}` this one "
+        "(either rewrites this file).\n\n"
     )

@@ -35,7 +35,7 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
     memory = rows[0].state_bytes
     cert = robust.certificate
     lines = [
-        report_header("Accuracy: robust observer vs augmented-state EKF", "make bench (agv-fe bench --only accuracy)"),
+        report_header("Accuracy: robust observer vs augmented-state EKF", "accuracy"),
         f"Observer: the default 'robust' design (H2 guaranteed cost, fault order {robust.options.fault_order}, "
         f"fuzzy Lyapunov matrix, certified decay rate {cert.decay_rate:.4f}, guaranteed cost "
         f"{cert.performance['h2_cost_bound']:.3f}), gains version {robust.version}. EKF: augmented state with "

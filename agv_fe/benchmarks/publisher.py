@@ -166,7 +166,7 @@ def run(out_dir: Path, sizes: tuple[int, ...] = SIZES, run_s: float = RUN_S) -> 
 
 def _report(results: list[SizeResult], run_s: float) -> str:
     lines = [
-        report_header("Publisher pacing and capacity", "make bench (agv-fe bench --only publisher)"),
+        report_header("Publisher pacing and capacity", "publisher"),
         f"Each row: one process simulates N vehicles (RK4, 10 sub-steps of 1 ms) and publishes them at 100 Hz "
         f"for {run_s:g} s through one zenoh client session to a router process that subscribes to all "
         "measurements; ground truth at 10 Hz. Rate = samples published per vehicle / elapsed. Lateness = "
