@@ -9,6 +9,10 @@ publication; a receiver process subscribes to every estimate and takes
 latency = arrival - stamp (one machine, one clock). N grows until a step
 fails: the generator cannot hold 100 Hz, the service misses or rejects a
 sample, or an estimate does not arrive.
+
+Two sweeps: the default (an estimate published for every sample) and
+estimates decimated to every 10th sample (setting ingest.estimate_every_n),
+which is what a fleet that only needs 10 Hz of estimates would run.
 """
 
 from __future__ import annotations
@@ -30,10 +34,11 @@ import httpx
 
 from agv_fe.benchmarks import report_header
 
-FLEET_SIZES = (100, 250, 500, 750, 1000, 1250, 1500)
+FLEET_SIZES = (100, 250, 500, 750, 1000, 1250, 1500, 2000)
 STEP_S = 10.0
 WARMUP_S = 2.0
-ESTIMATE_EVERY_N = 10
+#: The sweeps: publish an estimate for every sample (the service's default), then for every 10th.
+ESTIMATE_MODES = (1, 10)
 #: The fleet size of the latency target, and how many steps measure it (the sweep's and repeats after it):
 #: one 10 s step on a shared machine is one sample of a noisy figure.
 TARGET_VEHICLES = 1000
@@ -146,7 +151,7 @@ def _metric(text: str, name: str) -> float:
     return total
 
 
-def _step(endpoint: str, http: httpx.Client, pid: int, n: int) -> dict[str, Any]:
+def _step(endpoint: str, http: httpx.Client, pid: int, n: int, every_n: int) -> dict[str, Any]:
     ctx = multiprocessing.get_context("spawn")
     gen_q, rec_q = ctx.Queue(), ctx.Queue()
     ready = ctx.Event()
@@ -155,10 +160,12 @@ def _step(endpoint: str, http: httpx.Client, pid: int, n: int) -> dict[str, Any]
     ready.wait(30)
     before = http.get("/metrics").text
     cpu0 = _cpu_s(pid)
+    receiver_cpu0 = _cpu_s(receiver.pid) if receiver.pid is not None else 0.0
     generator = ctx.Process(target=_generator, args=(endpoint, n, STEP_S, gen_q))
     generator.start()
     gen = gen_q.get(timeout=STEP_S * 10 + 60)
     cpu1 = _cpu_s(pid)
+    receiver_cpu1 = _cpu_s(receiver.pid) if receiver.pid is not None else 0.0
     generator.join(30)
     rec = rec_q.get(timeout=STEP_S + 120)
     receiver.join(30)
@@ -179,7 +186,7 @@ def _step(endpoint: str, http: httpx.Client, pid: int, n: int) -> dict[str, Any]
     settled = min(stamps, default=0) + int(WARMUP_S * 1e9)
     lat = sorted(x for x, t in zip(everything, stamps, strict=True) if t >= settled)
     warm = sorted(everything)
-    expected_estimates = gen["sent"] // ESTIMATE_EVERY_N
+    expected_estimates = gen["sent"] // every_n
     rate = gen["sent"] / gen["elapsed_s"]
     pct = lambda q: lat[min(len(lat) - 1, int(q * len(lat)))] / 1e6 if lat else float("nan")  # noqa: E731
     result = {
@@ -199,6 +206,8 @@ def _step(endpoint: str, http: httpx.Client, pid: int, n: int) -> dict[str, Any]
         "max_ms": lat[-1] / 1e6 if lat else float("nan"),
         "p99_all_ms": warm[min(len(warm) - 1, int(0.99 * len(warm)))] / 1e6 if warm else float("nan"),
         "service_cpu": (cpu1 - cpu0) / gen["elapsed_s"],
+        "receiver_cpu": (receiver_cpu1 - receiver_cpu0) / gen["elapsed_s"],
+        "estimate_every_n": every_n,
     }
     result["zero_loss"] = (
         result["accepted"] == result["sent"]
@@ -213,7 +222,7 @@ def _step(endpoint: str, http: httpx.Client, pid: int, n: int) -> dict[str, Any]
 ENGINE_TICKS = 300
 
 
-def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...]) -> list[dict[str, Any]]:
+def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: int) -> list[dict[str, Any]]:
     """The fleet engine in this process, no Zenoh: microseconds of ingest work per measurement.
 
     The same gains as the service, the same estimate decimation; each tick carries one sample per
@@ -229,7 +238,7 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...]) -> list[dic
     pack = struct.Struct("<Qq").pack_into
     rows = []
     for n in sizes:
-        engine = FleetEngine(EngineConfig(estimate_every_n=ESTIMATE_EVERY_N, history_samples=50))
+        engine = FleetEngine(EngineConfig(estimate_every_n=every_n, history_samples=50))
         engine.add_profile("default", ProfileSpec())
         engine.activate("default", gains)
         ids = [f"bench-{i:05d}" for i in range(n)]
@@ -251,18 +260,25 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...]) -> list[dic
                 elapsed += time.perf_counter() - start
         us = elapsed / (ENGINE_TICKS * n) * 1e6
         rows.append({"vehicles": n, "us_per_msg": us, "cores_at_100hz": us * 1e-6 * n * RATE_HZ})
-        print(f"  engine alone, {n} vehicles: {us:.2f} us per measurement", flush=True)
+        print(f"  engine alone, {n} vehicles, every {every_n}: {us:.2f} us per measurement", flush=True)
     return rows
 
 
-def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES) -> Path:
+def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES, modes: tuple[int, ...] = ESTIMATE_MODES) -> Path:
+    sweeps = [_sweep(sizes, every_n) for every_n in modes]
+    return _report(out_dir, sweeps, sizes)
+
+
+def _sweep(sizes: tuple[int, ...], every_n: int) -> dict[str, Any]:
+    """One service, fleet sizes in turn until one fails, then the target size again; and the engine alone."""
     http_port, zenoh_port = _free_port(), _free_port()
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"
+    print(f" estimates for every {'' if every_n == 1 else f'{every_n}th '}sample", flush=True)
     with tempfile.TemporaryDirectory() as data_dir:
         env = {
             **os.environ,
             "AGV_FE_AUTH__TOKEN": "bench",
-            "AGV_FE_INGEST__ESTIMATE_EVERY_N": str(ESTIMATE_EVERY_N),
+            "AGV_FE_INGEST__ESTIMATE_EVERY_N": str(every_n),
             "AGV_FE_ZENOH__ESTIMATE_CONGESTION": "block",
         }
         cmd = [sys.executable, "-m", "agv_fe", "serve", "--http-port", str(http_port), "--zenoh-endpoint", endpoint,
@@ -285,19 +301,19 @@ def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES) -> Path:
             gains_doc = http.get("/profiles/default/gains", params={"matrices": "true"}).json()
             design = gains_doc["options"]
             for n in sizes:
-                row = _step(endpoint, http, proc.pid, n)
+                row = _step(endpoint, http, proc.pid, n, every_n)
                 rows.append(row)
                 print(
                     f"  {n} vehicles: {row['rate_msg_s']:.0f} msg/s, zero loss {row['zero_loss']}, "
                     f"paced {row['paced']}, p50 {row['p50_ms']:.2f} ms, p99 {row['p99_ms']:.2f} ms, "
-                    f"service CPU {row['service_cpu']:.2f}",
+                    f"service CPU {row['service_cpu']:.2f}, receiver CPU {row['receiver_cpu']:.2f}",
                     flush=True,
                 )
                 if not (row["zero_loss"] and row["paced"]):
                     break
             if any(r["vehicles"] == TARGET_VEHICLES and r["zero_loss"] and r["paced"] for r in rows):
                 for _ in range(TARGET_STEPS - 1):
-                    again = _step(endpoint, http, proc.pid, TARGET_VEHICLES)
+                    again = _step(endpoint, http, proc.pid, TARGET_VEHICLES, every_n)
                     repeats.append(again)
                     print(f"  {TARGET_VEHICLES} vehicles again: p50 {again['p50_ms']:.2f} ms, "
                           f"p99 {again['p99_ms']:.2f} ms, zero loss {again['zero_loss']}", flush=True)  # fmt: skip
@@ -308,53 +324,74 @@ def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES) -> Path:
                 proc.wait(60)
             except subprocess.TimeoutExpired:
                 proc.kill()
-    engine = _engine_alone(gains_doc, tuple(r["vehicles"] for r in rows))
-    return _report(out_dir, rows, design, engine, repeats)
+    engine = _engine_alone(gains_doc, tuple(r["vehicles"] for r in rows), every_n)
+    return {"estimate_every_n": every_n, "design": design, "service": rows, "target_repeats": repeats, "engine": engine}
 
 
-def _report(
-    out_dir: Path,
-    rows: list[dict[str, Any]],
-    design: dict[str, Any],
-    engine: list[dict[str, Any]],
-    repeats: list[dict[str, Any]] | None = None,
-) -> Path:
-    sustained = [r for r in rows if r["zero_loss"] and r["paced"]]
-    best = max((r["vehicles"] for r in sustained), default=0)
+def _largest(rows: list[dict[str, Any]], sizes: tuple[int, ...]) -> str:
+    """The largest sustained fleet in words: 'at least N' when the sweep ended without a failure."""
+    sustained = [r["vehicles"] for r in rows if r["zero_loss"] and r["paced"]]
+    if not sustained:
+        return "none of the sizes tried"
+    best = max(sustained)
+    failed = any(not (r["zero_loss"] and r["paced"]) for r in rows)
+    return f"{best:,} vehicles" if failed else f"at least {best:,} vehicles (the largest size tried)"
+
+
+def _mode_name(every_n: int) -> str:
+    return "an estimate for every sample (the default)" if every_n == 1 else f"an estimate for every {every_n}th sample"
+
+
+def _report(out_dir: Path, sweeps: list[dict[str, Any]], sizes: tuple[int, ...] = FLEET_SIZES) -> Path:
+    design = sweeps[0]["design"] if sweeps else {}
     lines = [
-        report_header("Service capacity and latency", "make bench (agv-fe bench --only service_load)"),
-        f"Largest fleet sustained at 100 Hz per vehicle with zero loss: **{best} vehicles**.\n",
+        report_header("Service capacity and latency", "service_load"),
+        "Largest fleet at 100 Hz per vehicle with zero loss (every sample accepted, no gap, every estimate "
+        "delivered):\n",
+        *(f"* publishing {_mode_name(sw['estimate_every_n'])}: **{_largest(sw['service'], sizes)}**" for sw in sweeps),
+        "",
         f"Setup: `agv-fe serve` (embedded Zenoh router on 127.0.0.1, default profile: design "
         f"'{design.get('design')}', fault order {design.get('fault_order')}, {design.get('lyapunov')} P), "
-        f"estimate published for every {'' if ESTIMATE_EVERY_N == 1 else f'{ESTIMATE_EVERY_N}th '}sample, "
         f"estimate and measurement congestion control BLOCK. Load generator and latency receiver in two more "
-        f"processes on the same 2-core machine. {STEP_S:.0f} s per step.\n",
-        "| vehicles | target msg/s | achieved msg/s | samples sent | accepted | missing | rejected "
-        "| estimates received / expected | p50 [ms] | p99 [ms] | max [ms] | p99 incl. first 2 s [ms] "
-        "| service CPU [cores] | result |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"processes on the same 2-core machine; the receiver subscribes to every estimate. {STEP_S:.0f} s per "
+        "step; the sweep stops at the first size that fails.\n",
     ]
-    for r in rows:
-        verdict = "sustained" if r["zero_loss"] and r["paced"] else ("generator behind" if not r["paced"] else "loss")
-        lines.append(
-            f"| {r['vehicles']} | {r['target_msg_s']:.0f} | {r['rate_msg_s']:.0f} | {r['sent']} | {r['accepted']} "
-            f"| {r['missing']} | {r['rejected']} | {r['estimates_received']} / {r['estimates_expected']} "
-            f"| {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | {r['max_ms']:.1f} | {r.get('p99_all_ms', float('nan')):.1f} "
-            f"| {r['service_cpu']:.2f} | {verdict} |"
-        )
-    lines += [
-        "",
-        "The fleet engine alone, in one process without Zenoh (same gains and estimate decimation, one "
-        f"sample per vehicle per tick, {ENGINE_TICKS} ticks): the service's own ingest work.",
-        "",
-        "| vehicles | us per measurement | cores needed at 100 Hz |",
-        "|---|---|---|",
-        *(f"| {e['vehicles']} | {e['us_per_msg']:.2f} | {e['cores_at_100hz']:.3f} |" for e in engine),
-    ]
+    for sw in sweeps:
+        every_n, rows, engine, repeats = sw["estimate_every_n"], sw["service"], sw["engine"], sw["target_repeats"]
+        lines += [
+            f"## Publishing {_mode_name(every_n)}"
+            + ("" if every_n == 1 else f" (`AGV_FE_INGEST__ESTIMATE_EVERY_N={every_n}`)")
+            + "\n",
+            "| vehicles | target msg/s | achieved msg/s | samples sent | accepted | missing | rejected "
+            "| estimates received / expected | p50 [ms] | p99 [ms] | max [ms] | p99 incl. first 2 s [ms] "
+            "| service CPU [cores] | receiver CPU [cores] | result |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in rows:
+            verdict = (
+                "sustained" if r["zero_loss"] and r["paced"] else ("generator behind" if not r["paced"] else "loss")
+            )
+            lines.append(
+                f"| {r['vehicles']} | {r['target_msg_s']:.0f} | {r['rate_msg_s']:.0f} | {r['sent']} | {r['accepted']} "
+                f"| {r['missing']} | {r['rejected']} | {r['estimates_received']} / {r['estimates_expected']} "
+                f"| {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | {r['max_ms']:.1f} "
+                f"| {r.get('p99_all_ms', float('nan')):.1f} | {r['service_cpu']:.2f} "
+                f"| {r.get('receiver_cpu', float('nan')):.2f} | {verdict} |"
+            )
+        lines += [
+            "",
+            "The fleet engine alone, in one process without Zenoh (same gains and estimate decimation, one "
+            f"sample per vehicle per tick, {ENGINE_TICKS} ticks): the service's own ingest work.",
+            "",
+            "| vehicles | us per measurement | cores needed at 100 Hz |",
+            "|---|---|---|",
+            *(f"| {e['vehicles']} | {e['us_per_msg']:.2f} | {e['cores_at_100hz']:.3f} |" for e in engine),
+            "",
+            _against_target(rows, engine, repeats),
+        ]
     path = out_dir / "service_load.md"
-    text = "\n".join(lines) + "\n\n" + ANALYSIS + "\n" + _against_target(rows, engine, repeats)
-    data = {"service": rows, "target_repeats": repeats, "engine": engine}
-    path.write_text(text + "\n```json\n" + json.dumps(data, indent=1) + "\n```\n")
+    text = "\n".join(lines) + "\n" + ANALYSIS
+    path.write_text(text + "\n```json\n" + json.dumps(sweeps, indent=1) + "\n```\n")
     return path
 
 
@@ -370,9 +407,10 @@ service's embedded router, the ingest tick (validation, one vectorised observer 
 queued sample, alarm detectors, JSON encoding) and the estimate `put`.
 
 A step is *sustained* when the generator held 100 Hz per vehicle (at least 99 % of the target rate),
-the service accepted every sample (no gap, no reject) and every estimate reached the receiver.
-Three Python processes share two cores here, so the generator and the receiver take CPU the service
-would otherwise have; a service on its own machine carries more.
+the service accepted every sample (no gap, no reject) and every estimate reached the receiver;
+latency is judged separately, against its own target. Three Python processes share two cores here,
+so the generator and the receiver (which decodes every estimate: see its CPU column) take CPU the
+service would otherwise have; a service on its own machine carries more.
 """
 
 
@@ -400,12 +438,14 @@ def _against_target(
     if len(steps) > 1:
         p99s = [r["p99_ms"] for r in steps]
         clean = all(r["zero_loss"] and r["paced"] for r in steps)
-        median = sorted(p99s)[len(p99s) // 2]
+        met = sum(1 for r in steps if r["zero_loss"] and r["paced"] and r["p99_ms"] < TARGET_P99_MS)
+        with_warmup = [r.get("p99_all_ms", float("nan")) for r in steps]
         parts.append(
             f"Over {len(steps)} steps of {TARGET_VEHICLES:,} vehicles (the sweep's and {len(steps) - 1} more), "
-            f"p99 was {', '.join(f'{x:.1f}' for x in p99s)} ms, median {median:.1f} ms"
-            f"{'' if clean else ' (not every step was clean)'}: the target is "
-            f"{'met' if clean and median < TARGET_P99_MS else 'not met'} by the median."
+            f"p99 was {', '.join(f'{x:.1f}' for x in p99s)} ms"
+            f"{'' if clean else ' (not every step was clean)'}: under {TARGET_P99_MS:.0f} ms in {met} of "
+            f"{len(steps)} steps. Counting the first 2 s of each step, when its vehicles register, p99 was "
+            f"{', '.join(f'{x:.1f}' for x in with_warmup)} ms."
         )
     e = next((x for x in engine if big is not None and x["vehicles"] == big["vehicles"]), None)
     if e is not None:

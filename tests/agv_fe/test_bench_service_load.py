@@ -9,26 +9,35 @@ pytestmark = pytest.mark.network
 
 
 def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
-    """A short step of 10 vehicles against a real `agv-fe serve`: the table, the engine alone and the verdict
-    all come from the run's own figures."""
+    """Short steps of 10 vehicles against a real `agv-fe serve`, with an estimate for every sample (the default)
+    and for every 10th: the tables, the engine alone and the verdicts all come from the run's own figures."""
     monkeypatch.setattr(bench, "STEP_S", 3.0)
     monkeypatch.setattr(bench, "WARMUP_S", 1.0)
     monkeypatch.setattr(bench, "ENGINE_TICKS", 30)
-    path = bench.run(tmp_path, sizes=(10,))
+    path = bench.run(tmp_path, sizes=(10,), modes=(1, 10))
     text = path.read_text()
-    data = json.loads(text.rsplit("```json\n", 1)[1].split("\n```")[0])
-    (row,) = data["service"]
-    (engine,) = data["engine"]
-    assert row["vehicles"] == 10 and row["sent"] == 3000 and row["zero_loss"] and row["paced"]
-    assert row["estimates_received"] == row["estimates_expected"] == 300
-    assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
-    assert engine["vehicles"] == 10 and engine["us_per_msg"] > 0
-    assert "Largest fleet sustained at 100 Hz per vehicle with zero loss: **10 vehicles**" in text
-    verdict = text.split("**Against the targets (this run).**", 1)[1].split("\n", 1)[0]
-    assert f"p99 {row['p99_ms']:.1f} ms" in verdict
-    assert f"{engine['us_per_msg']:.2f} us per measurement" in verdict
-    held = re.search(r"held up to ([\d,]+) vehicles", verdict)
-    assert (held is not None) == (row["p99_ms"] < 10.0)
+    sweeps = json.loads(text.rsplit("```json\n", 1)[1].split("\n```")[0])
+    assert [sw["estimate_every_n"] for sw in sweeps] == [1, 10]
+    for sweep, expected in zip(sweeps, (3000, 300), strict=True):
+        (row,) = sweep["service"]
+        (engine,) = sweep["engine"]
+        assert row["vehicles"] == 10 and row["sent"] == 3000 and row["zero_loss"] and row["paced"]
+        assert row["estimates_received"] == row["estimates_expected"] == expected
+        assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
+        assert row["receiver_cpu"] > 0
+        assert engine["vehicles"] == 10 and engine["us_per_msg"] > 0
+        assert f"{engine['us_per_msg']:.2f} us per measurement" in text
+    # the sweep stopped at its largest size without a failure: a lower bound, said as such
+    assert "every sample (the default): **at least 10 vehicles (the largest size tried)**" in text
+    assert "every 10th sample: **at least 10 vehicles (the largest size tried)**" in text
+    verdicts = text.split("**Against the targets (this run).**")[1:]
+    assert len(verdicts) == 2
+    for sweep, verdict in zip(sweeps, verdicts, strict=True):
+        (row,) = sweep["service"]
+        line = verdict.split("\n", 1)[0]
+        assert f"p99 {row['p99_ms']:.1f} ms" in line
+        held = re.search(r"held up to ([\d,]+) vehicles", line)
+        assert (held is not None) == (row["p99_ms"] < 10.0)
 
 
 def test_the_verdict_says_when_the_latency_target_is_missed():
@@ -43,7 +52,17 @@ def test_the_verdict_says_when_the_latency_target_is_missed():
     assert "not met" in bench._against_target(rows[1:], engine)
     again = [{**rows[2], "p99_ms": 8.0}, {**rows[2], "p99_ms": 9.0}]
     repeated = bench._against_target(rows, engine, again)
-    assert "Over 3 steps of 1,000 vehicles" in repeated and "200.0, 8.0, 9.0 ms, median 9.0 ms" in repeated
-    assert "the target is met by the median" in repeated
+    assert "Over 3 steps of 1,000 vehicles" in repeated and "p99 was 200.0, 8.0, 9.0 ms" in repeated
+    assert "under 10 ms in 2 of 3 steps" in repeated
     lossy = [{**again[0], "zero_loss": False}, again[1]]
-    assert "not every step was clean): the target is not met" in bench._against_target(rows, engine, lossy)
+    assert "(not every step was clean): under 10 ms in 1 of 3 steps" in bench._against_target(rows, engine, lossy)
+
+
+def test_the_largest_fleet_is_a_lower_bound_when_nothing_failed():
+    ok = {"zero_loss": True, "paced": True}
+    assert bench._largest([{"vehicles": 100, **ok}, {"vehicles": 250, **ok}], (100, 250)) == (
+        "at least 250 vehicles (the largest size tried)"
+    )
+    failed = [{"vehicles": 100, **ok}, {"vehicles": 250, "zero_loss": False, "paced": True}]
+    assert bench._largest(failed, (100, 250, 500)) == "100 vehicles"
+    assert bench._largest([{"vehicles": 100, "zero_loss": False, "paced": False}], (100,)) == "none of the sizes tried"
