@@ -5,7 +5,9 @@ data directory) and the fleet (`agv-fe fleet`, a client of that router) run as
 child processes in their own sessions; the terminal dashboard runs in the
 foreground. Ctrl-C (or the end of ``--duration``) stops the fleet first, which
 writes its per-vehicle summary (injected faults against what the service
-estimated and alarmed), then the service. Nothing is left running.
+estimated and alarmed), then the service. SIGTERM and SIGHUP (the terminal
+closed) stop it the same way: the children are in sessions of their own, so
+no signal of the terminal reaches them, and nothing is left running.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ DEFAULT_ZENOH_PORT = 7447
 #: The fleet of an open-ended demo runs this long unless stopped earlier [s].
 OPEN_ENDED_S = 24 * 3600.0
 READY_TIMEOUT_S = 180.0
+#: Signals that stop the demo in order, as Ctrl-C does: `kill` (SIGTERM) and a closed terminal (SIGHUP) too.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def register(sub: Any) -> None:
@@ -127,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
     url = f"http://127.0.0.1:{http_port}"
     summary_path = Path(args.summary_json) if args.summary_json else data_dir / "fleet-summary.json"
     stop = threading.Event()
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}
     service_log = (data_dir / "service.log").open("w")
     fleet_log = (data_dir / "fleet.log").open("w")
     service: subprocess.Popen[bytes] | None = None
@@ -186,13 +190,14 @@ def run(args: argparse.Namespace) -> int:
     except CommandError as exc:
         return fail(exc)
     finally:
-        if fleet is not None:
-            _stop(fleet, signal.SIGKILL, timeout_s=10)
+        if fleet is not None:  # still running after an error (a closed terminal fails every print): its summary
+            _stop(fleet, signal.SIGINT, timeout_s=60)
         if service is not None:
             _stop(service, signal.SIGTERM, timeout_s=30)
         service_log.close()
         fleet_log.close()
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _set_when_done(process: subprocess.Popen[bytes], stop: threading.Event) -> None:

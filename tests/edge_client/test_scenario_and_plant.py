@@ -63,6 +63,31 @@ def test_sensor_noise_has_the_requested_sigma():
     np.testing.assert_allclose(err.std(axis=0), [0.05, 0.005], rtol=0.1)
 
 
+def test_sensor_bias_offsets_every_measurement_by_exactly_the_bias(tmp_path):
+    """Noise fields of a scenario file, sigma 0: y_k = C x_k + bias, bit for bit, for each vehicle of a batch."""
+    scenario_file = tmp_path / "biased.yaml"
+    scenario_file.write_text(
+        "name: biased\n"
+        "duration_s: 4\n"
+        "initial_speed_mps: 12\n"
+        "speed_profile: [{t_s: 0, speed_mps: 12}, {t_s: 4, speed_mps: 16}]\n"
+        "manoeuvres: [{kind: slalom, start_s: 0.5, duration_s: 3, amplitude_rad: 0.03, period_s: 2}]\n"
+        "noise: {vx_sigma_mps: 0, r_sigma_radps: 0, vx_bias_mps: 0.3, r_bias_radps: -0.02}\n"
+    )
+    biased = load_scenario(scenario_file)
+    assert biased.noise == SensorNoise(vx_bias_mps=0.3, r_bias_radps=-0.02)
+    other = biased.model_copy(update={"noise": SensorNoise(vx_bias_mps=-0.5, r_bias_radps=0.01)})
+    plant = PlantSimulator([biased, other, biased.model_copy(update={"noise": SensorNoise()})])
+    bias = np.array([[0.3, -0.02], [-0.5, 0.01], [0.0, 0.0]])
+    samples = [plant.step() for _ in range(int(plant.n_samples[0]))]
+    for smp in samples:  # sigma 0 adds a signed zero: the offset is exact, no tolerance
+        np.testing.assert_array_equal(smp.y, smp.x[:, [0, 2]] + bias)
+    # the bias is on the sensor only: the true initial state is the scenario's
+    np.testing.assert_array_equal(samples[0].x[0], [12.0, 0.0, 0.0])
+    # the drive turned, so the yaw-rate bias was checked on a moving r, not only on r = 0
+    assert np.abs(np.array([smp.x[0, 2] for smp in samples])).max() > 0.05
+
+
 def test_scenario_file_round_trip_and_errors(tmp_path):
     good = tmp_path / "s.json"
     good.write_text(builtin_scenario("paper-2").model_dump_json())
