@@ -111,10 +111,13 @@ class VehicleSummary:
     first_alarm_after_onset_s: float | None
     false_alarms: int
     other_alarms: tuple[str, ...]
+    #: the run reached the fault's onset (a run stopped early may end before a fault begins)
+    fault_started: bool = True
 
     @property
     def faulty(self) -> bool:
-        return self.onset_s is not None
+        """A fault was injected and had begun before the run ended."""
+        return self.onset_s is not None and self.fault_started
 
     @property
     def detected(self) -> bool:
@@ -202,6 +205,10 @@ def summarize(
         after_onset = [e for e in fault_raised if onset_ns is not None and e.received_ns >= onset_ns]
         first = min((e.received_ns for e in after_onset), default=None)
         injected = "; ".join(describe_fault(f) for f in member.scenario.faults) or "healthy"
+        ran_s = (record.sent + record.lost) * period_s  # vehicle time the run covered, sent or not
+        started = onset is None or onset < ran_s
+        if not started:
+            injected += f" (not begun: the run ended at {ran_s:.1f} s)"
         vehicles.append(
             VehicleSummary(
                 vehicle_id=member.vehicle_id,
@@ -219,6 +226,7 @@ def summarize(
                 first_alarm_after_onset_s=None if first is None or onset_ns is None else (first - onset_ns) / 1e9,
                 false_alarms=false_alarms,
                 other_alarms=tuple(sorted({e.alarm.kind for e in raised if e.alarm.kind not in FAULT_ALARM_KINDS})),
+                fault_started=started,
             )
         )
     return FleetSummary(report=report, vehicles=vehicles)

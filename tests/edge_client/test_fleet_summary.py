@@ -124,3 +124,17 @@ def test_progress_line_fits_80_columns_and_says_when_the_link_is_down():
     assert len(progress(linked=480)) <= 80 and progress(linked=480).endswith("link 480/500 rtt 12/346ms")
     assert "buf 100k" in progress(buffered=99_999, sent=10, lost=10)
     assert "rtt -/-ms" in progress(rtt_p50_ms=math.nan, rtt_p99_ms=math.nan, sent=10, lost=0)
+
+
+def test_a_fault_that_had_not_begun_when_the_run_stopped_is_not_counted_as_missed():
+    """Ctrl-C before a fault's onset: the vehicle is reported with its fault 'not begun', not as a missed fault."""
+    members = [
+        member("later", (BiasFault(channel="torque", onset_s=8.0, magnitude=100.0),)),
+        member("begun", (BiasFault(channel="steer", onset_s=3.0, magnitude=0.02),)),
+    ]
+    records = [VehicleRecord(m.vehicle_id, sent=500) for m in members]  # stopped after 5 s
+    summary = summarize(members, report_for(records), np.zeros((2, 2)), deadline_ns)
+    later, begun = summary.vehicles
+    assert not later.fault_started and not later.faulty and "not begun: the run ended at 5.0 s" in later.injected
+    assert begun.fault_started and begun.faulty and not begun.detected
+    assert "faulty vehicles alarmed 0/1" in " ".join(summary.totals_line().split())
