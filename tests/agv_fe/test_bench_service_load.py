@@ -50,12 +50,12 @@ def test_the_verdict_says_when_the_latency_target_is_missed():
     assert "1,000 vehicles at 100 Hz ran with zero loss (p50 50.0 ms, p99 200.0 ms" in verdict
     assert "held up to 100 vehicles" in verdict and "2.50 us per measurement, 0.25 of a core" in verdict
     assert "not met" in bench._against_target(rows[1:], engine)
-    again = [{**rows[2], "p99_ms": 8.0}, {**rows[2], "p99_ms": 9.0}]
-    repeated = bench._against_target(rows, engine, again)
-    assert "Over 3 steps of 1,000 vehicles" in repeated and "p99 was 200.0, 8.0, 9.0 ms" in repeated
-    assert "under 10 ms in 2 of 3 steps" in repeated
-    lossy = [{**again[0], "zero_loss": False}, again[1]]
-    assert "(not every step was clean): under 10 ms in 1 of 3 steps" in bench._against_target(rows, engine, lossy)
+    hold = {**rows[2], "duration_s": 30.0, "p50_ms": 5.0, "p99_windows_ms": [8.0, 12.5, 9.0]}
+    held = bench._against_target(rows, engine, hold)
+    assert "Held at 1,000 vehicles for 30 s, p99 per 10 s window was 8.0, 12.5, 9.0 ms" in held
+    assert "under 10 ms in 2 of 3 windows" in held
+    lossy = bench._against_target(rows, engine, {**hold, "zero_loss": False})
+    assert "(not cleanly: loss or pacing)" in lossy and "under 10 ms in 0 of 3 windows" in lossy
 
 
 def test_the_largest_fleet_is_a_lower_bound_when_nothing_failed():
