@@ -505,11 +505,16 @@ class DashboardHub:
         trace.prepend(older)
 
     def _refresh_follow(self) -> None:
-        """Follow the viewed vehicles, then those with latched alarms (faults first), then the recently viewed."""
+        """Follow the viewed vehicles, then those with latched fault or out-of-domain alarms, then the recently
+        viewed. A latched STALE or rejected-input alarm alone does not make a vehicle worth a plot history:
+        following costs an event per sample, and a fleet that once went silent would keep follow_max
+        vehicles followed for nothing."""
         self._follow_dirty = False
         vehicles = self.engine.vehicles
         follow: dict[str, None] = dict.fromkeys(c.vehicle for c in self.clients if c.vehicle in vehicles)
-        latched = sorted(self.engine.alarms.latched(), key=lambda r: (r.kind not in _FAULT_KINDS, -r.updated_t_ns))
+        latched = sorted(
+            (r for r in self.engine.alarms.latched() if r.kind in _FAULT_KINDS), key=lambda r: -r.updated_t_ns
+        )
         recent = sorted((t for t in self.traces.values() if t.viewed_mono > 0), key=lambda t: -t.viewed_mono)
         for vehicle_id in [r.vehicle for r in latched] + [t.vehicle for t in recent]:
             if len(follow) >= self.settings.follow_max:

@@ -233,3 +233,20 @@ def test_live_estimates_already_in_a_backfill_do_not_restart_the_plot():
     assert frame is not None and not frame["history"] and len(frame["points"]) == 1
     trace.add_estimate(500_000_000, x5, (10.0, 0.0))  # the vehicle's clock went back: start again
     assert trace.reset and len(trace.points) == 1
+
+
+def test_a_vehicle_that_only_went_stale_is_not_followed(fast_gains):
+    """Following costs an event per sample; a latched STALE alarm (cleared or not) is no reason to keep a plot."""
+    clock = {"mono": 0.0}
+    engine = FleetEngine(EngineConfig(), monotonic=lambda: clock["mono"])
+    engine.add_profile("default", ProfileSpec.model_validate({"design": FAST_DESIGN, "alarms": ALARMS}))
+    engine.activate("default", fast_gains)
+    hub = make_hub(engine, follow_max=8)
+    feed(engine, [constant_measurement("s", k) for k in range(5)])
+    clock["mono"] = 10.0  # silent for 10 s: STALE
+    engine.housekeeping()
+    assert {r.kind for r in engine.alarms.latched()} == {"stale"}
+    feed(engine, [constant_measurement("s", 5)])  # back: the STALE alarm clears, stays latched until acknowledged
+    hub.tick(now=1.0)
+    assert [r.kind for r in engine.alarms.latched()] == ["stale"]
+    assert hub.followed == frozenset() and engine.events.audience("estimate") == set()
