@@ -280,9 +280,36 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: in
     return rows
 
 
+def _calibration_us(vehicles: int = 1000, steps: int = 300) -> float:
+    """Median time of one observer step for ``vehicles`` in this process [us]: how fast the machine is right now.
+
+    The sweeps share two cores with whatever else the host runs; the same in-process figure before and
+    after them shows whether the machine's speed changed during the run.
+    """
+    import numpy as np
+
+    from synth.design import synthesize
+    from synth.observer import FuzzyObserver
+    from synth.options import DesignOptions
+
+    rng = np.random.default_rng(0)
+    y = np.column_stack([rng.uniform(6.0, 28.0, vehicles), rng.uniform(-0.4, 0.4, vehicles)])
+    u = np.column_stack([rng.uniform(0.0, 300.0, vehicles), rng.uniform(-0.05, 0.05, vehicles)])
+    observer = FuzzyObserver(synthesize(options=DesignOptions()), y)
+    times = []
+    for _ in range(steps):
+        started = time.perf_counter()
+        observer.step(y, u)
+        times.append(time.perf_counter() - started)
+    return sorted(times)[len(times) // 2] * 1e6
+
+
 def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES, modes: tuple[int, ...] = ESTIMATE_MODES) -> Path:
+    before = _calibration_us()
     sweeps = [_sweep(sizes, every_n) for every_n in modes]
-    return _report(out_dir, sweeps, sizes)
+    after = _calibration_us()
+    print(f"  machine speed: observer step at 1,000 vehicles {before:.1f} us before, {after:.1f} us after", flush=True)
+    return _report(out_dir, sweeps, sizes, (before, after))
 
 
 def _sweep(sizes: tuple[int, ...], every_n: int) -> dict[str, Any]:
@@ -357,7 +384,12 @@ def _mode_name(every_n: int) -> str:
     return "an estimate for every sample (the default)" if every_n == 1 else f"an estimate for every {every_n}th sample"
 
 
-def _report(out_dir: Path, sweeps: list[dict[str, Any]], sizes: tuple[int, ...] = FLEET_SIZES) -> Path:
+def _report(
+    out_dir: Path,
+    sweeps: list[dict[str, Any]],
+    sizes: tuple[int, ...] = FLEET_SIZES,
+    calibration_us: tuple[float, float] | None = None,
+) -> Path:
     design = sweeps[0]["design"] if sweeps else {}
     lines = [
         report_header("Service capacity and latency", "service_load"),
@@ -371,6 +403,18 @@ def _report(out_dir: Path, sweeps: list[dict[str, Any]], sizes: tuple[int, ...] 
         f"processes on the same 2-core machine; the receiver subscribes to every estimate. {STEP_S:.0f} s per "
         "step; the sweep stops at the first size that fails.\n",
     ]
+    if calibration_us is not None:
+        before, after = calibration_us
+        lines.append(
+            f"Machine speed during this run: one observer step for 1,000 vehicles, in the benchmark's own process, "
+            f"took {before:.1f} us before the sweeps and {after:.1f} us after"
+            + (
+                " (the host's speed changed during the run by more than 15 %: compare figures with care)."
+                if max(before, after) > 1.15 * min(before, after)
+                else "."
+            )
+            + "\n"
+        )
     for sw in sweeps:
         every_n, rows, engine, hold = sw["estimate_every_n"], sw["service"], sw["engine"], sw["target_hold"]
         lines += [

@@ -15,6 +15,7 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
     monkeypatch.setattr(bench, "WARMUP_S", 1.0)
     monkeypatch.setattr(bench, "ENGINE_TICKS", 30)
     path = bench.run(tmp_path, sizes=(10,), modes=(1, 10))
+    assert "Machine speed during this run: one observer step for 1,000 vehicles" in path.read_text()
     text = path.read_text()
     sweeps = json.loads(text.rsplit("```json\n", 1)[1].split("\n```")[0])
     assert [sw["estimate_every_n"] for sw in sweeps] == [1, 10]
