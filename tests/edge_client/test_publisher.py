@@ -13,7 +13,7 @@ from edge_client.sources import SimulatedSource
 from edge_client.transport import ChannelSubscription, Subscription, TransportOptions, close_session, open_session
 from service.protocol import FLAG_SEQUENCE_RESTART, GroundTruth, Measurement, fleet_selector, parse_vehicle_key
 from tests.edge_client.conftest import free_port
-from tests.tolerances import PUBLISH_OVERRUN_FRACTION, PUBLISH_RATE_RTOL
+from tests.tolerances import PUBLISH_MAX_LAG_MS, PUBLISH_RATE_RTOL
 
 pytestmark = pytest.mark.network
 
@@ -69,7 +69,9 @@ def test_50_vehicles_at_100_hz_for_10_s(router):
         )
         assert report.sample_rate_hz == pytest.approx(100.0, rel=PUBLISH_RATE_RTOL)
         assert report.pacing.ticks == 1000 and report.sent == 50 * 1000
-        assert report.pacing.overruns <= PUBLISH_OVERRUN_FRACTION * report.pacing.ticks
+        # overruns (ticks finished after the next deadline) depend on the host's speed, not on the publisher:
+        # they are printed above; the schedule itself never slips (the rate above, the timestamps below)
+        assert report.pacing.max_lag_ms < PUBLISH_MAX_LAG_MS
         assert report.lost == 0 and report.unsent_at_end == 0
         assert tokens == set(source.vehicle_ids)
         with counter.lock:
