@@ -215,7 +215,7 @@ class Theorem2LMIs:
         else:
             self.P = [var.square(n, "P", symmetric=True)]
         self.R = var.square(n, "R")
-        self.X = var.per_rule_gain(n, r, "X")
+        self.X = var.per_rule_gain(n, p, r, "X")
         if decoupled:
             U, V = _decoupling_in(dc)
             self.U, self.V = U, V
@@ -223,7 +223,7 @@ class Theorem2LMIs:
             # eq. (35): Psi = R + (R U + Z V) C_bar
             RE = self.R @ U + self.Z @ V
         else:
-            self.W = var.gain(n, "W")
+            self.W = var.gain(n, p, "W")
             RE = self.W
         self.RE = RE
         Psi = self.R + RE @ dc.C
@@ -248,12 +248,11 @@ class Theorem2LMIs:
                 rho_mid, rho_rad = 0.5 * (rho_lo + rho_hi), 0.5 * (rho_hi - rho_lo)
                 Q0 = Psi @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
                 L0 = cp.bmat([[self.alpha_sq * P_i, Q0.T], [Q0, sym_R - P_j]])
-                lam = cp.Variable(name=f"lambda_{i + 1}{j + 1}")
-                self.multipliers.append(lam)
                 b = np.vstack([dc.rho_row.T, np.zeros((n, 1))])
                 a = cp.vstack([np.zeros((n, 1)), rho_rad * (Psi @ dc.G)])
-                block = cp.bmat([[L0 - lam * (b @ b.T), a], [a.T, cp.reshape(lam, (1, 1), order="C")]])
-                constraints.append(_sym(block) >> margin * np.eye(2 * n + 1))
+                block, lam = petersen_block(L0, a, b, f"lambda_{i + 1}{j + 1}")
+                self.multipliers.append(lam)
+                constraints.append(block >> margin * np.eye(2 * n + 1))
         self.n_lmis = len(constraints) - len(distinct_P) - 1
         started = time.perf_counter()
         self.problem = cp.Problem(cp.Minimize(0), constraints)
@@ -298,6 +297,18 @@ class Theorem2LMIs:
         )
 
 
+def petersen_block(L0: cp.Expression, a: cp.Expression, b: FloatArray, name: str) -> tuple[cp.Expression, cp.Variable]:
+    """[[L0 - lambda b b^T, a], [a^T, lambda]] (symmetrised) and its multiplier lambda.
+
+    Petersen's lemma: this is positive definite for some lambda > 0 exactly when
+    L0 + t (a b^T + b a^T) > 0 for every t in [-1, 1], i.e. the LMI at both ends of
+    the scalar uncertainty that a b^T carries (here rho about the centre of S_rho).
+    """
+    lam = cp.Variable(name=name)
+    block = cp.bmat([[L0 - lam * (b @ b.T), a], [a.T, cp.reshape(lam, (1, 1), order="C")]])
+    return _sym(block), lam
+
+
 def _sym(block: cp.Expression) -> cp.Expression:
     return 0.5 * (block + block.T)
 
@@ -326,4 +337,5 @@ __all__ = [
     "decoupling_matrices",
     "design_coordinates",
     "gains_from_solution",
+    "petersen_block",
 ]

@@ -57,7 +57,7 @@ from synth.errors import BadParameters, SolverFailed, VerificationFailed
 from synth.existence import check_detectability
 from synth.fuzzy import NTSModel
 from synth.gains import ObserverGains, gains_hash
-from synth.lmi import _SOLVER_OPTIONS, _TIME_LIMIT_OPTION, DesignCoordinates, design_coordinates
+from synth.lmi import _SOLVER_OPTIONS, _TIME_LIMIT_OPTION, DesignCoordinates, design_coordinates, petersen_block
 from synth.model import FloatArray
 from synth.options import DesignOptions, NoiseModel
 from synth.params import OperatingBounds, VehicleParams
@@ -171,7 +171,7 @@ class H2LMIs:
         var = Parametrisation(self.symmetry)
         self.P = var.per_rule_square(n, r, "P", symmetric=True) if n_P > 1 else [var.square(n, "P", symmetric=True)]
         self.R = var.square(n, "R")
-        self.X = var.per_rule_gain(n, r, "X")
+        self.X = var.per_rule_gain(n, p, r, "X")
         self.Z = var.cost_matrix(input_sign, m, "Z")
         out_sign = self.symmetry.output_sign if self.symmetry is not None else np.ones(p)
         self.K_s = var.rectangular(fault_sign if fault_sign is not None else np.ones(n_z), out_sign, "K_s")
@@ -191,10 +191,9 @@ class H2LMIs:
             P_j = self.P[j]
             Q0 = self.R @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
             L0 = cp.bmat([[alpha**2 * P_i, Q0.T, C_1.T], [Q0, sym_R - P_j, zeros_nz], [C_1, zeros_nz.T, eye_z]])
-            lam = cp.Variable(name=f"lambda_{i + 1}{j + 1}")
             a = cp.vstack([np.zeros((n, 1)), rho_rad * (self.R @ dc.G), np.zeros((n_z, 1))])
-            block = cp.bmat([[L0 - lam * (b @ b.T), a], [a.T, cp.reshape(lam, (1, 1), order="C")]])
-            constraints.append(0.5 * (block + block.T) >> margin * np.eye(2 * n + n_z + 1))
+            block, _ = petersen_block(L0, a, b, f"lambda_{i + 1}{j + 1}")
+            constraints.append(block >> margin * np.eye(2 * n + n_z + 1))
             RB_i = cp.hstack([self.R @ B_fixed, -self.X[i] @ inputs.Sigma_v])
             cost = cp.bmat([[self.Z, RB_i.T, D_1.T], [RB_i, sym_R - P_j, zeros_nz], [D_1, zeros_nz.T, eye_z]])
             constraints.append(0.5 * (cost + cost.T) >> 0)

@@ -188,9 +188,8 @@ class Parametrisation:
                 out[sigma[i]] = S @ out[i] @ S
         return [out[i] for i in range(n_rules)]
 
-    def per_rule_gain(self, n: int, n_rules: int, name: str) -> list[cp.Expression]:
+    def per_rule_gain(self, n: int, p: int, n_rules: int, name: str) -> list[cp.Expression]:
         """X_1..X_r, (n, p) each, with X_sigma(i) = S X_i S_y (X_i = R H_i of eq. 40)."""
-        p = 2
         if self.symmetry is None:
             return [cp.Variable((n, p), name=f"{name}{i + 1}") for i in range(n_rules)]
         S, S_y, sigma = self.symmetry.S, self.symmetry.S_y, self.symmetry.rule_map
@@ -199,16 +198,16 @@ class Parametrisation:
             if i in out:
                 continue
             if sigma[i] == i:
-                out[i] = self.gain(n, f"{name}{i + 1}")
+                out[i] = self.gain(n, p, f"{name}{i + 1}")
             else:
                 out[i] = cp.Variable((n, p), name=f"{name}{i + 1}")
                 out[sigma[i]] = S @ out[i] @ S_y
         return [out[i] for i in range(n_rules)]
 
-    def gain(self, n: int, name: str) -> cp.Expression:
+    def gain(self, n: int, p: int, name: str) -> cp.Expression:
         """An (n, p) matrix with S M S_y = M (W = R E, or a rule-independent gain)."""
         if self.symmetry is None:
-            return cp.Variable((n, 2), name=name)
+            return cp.Variable((n, p), name=name)
         return self._invariant(self.symmetry.state_sign, self.symmetry.output_sign, name)
 
     def rectangular(self, rows_sign: FloatArray, cols_sign: FloatArray, name: str) -> cp.Expression:
