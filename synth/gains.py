@@ -33,6 +33,14 @@ from synth.params import OperatingBounds, VehicleParams
 GAINS_FORMAT = "agv-fe-gains/1"
 
 
+def _hashed_options(options: DesignOptions) -> dict[str, Any]:
+    """The options in the hash; ``robust_cost`` only when not its default, so earlier designs keep their hash."""
+    data = options.model_dump(mode="json")
+    if data.get("robust_cost") == "joint":
+        del data["robust_cost"]
+    return data
+
+
 def gains_hash(
     params: VehicleParams,
     bounds: OperatingBounds,
@@ -51,7 +59,7 @@ def gains_hash(
         "format": GAINS_FORMAT,
         "params": params.model_dump(),
         "bounds": bounds.model_dump(),
-        "options": options.model_dump(mode="json"),
+        "options": _hashed_options(options),
     }
     arrays = {"N": N, "L": L, "M": M, "E": E}
     if K is not None and np.any(K):

@@ -98,6 +98,14 @@ class DesignOptions(BaseModel):
         description="decay rate the 'robust' design must certify on top of its cost (0.995 per 10 ms "
         "sample = a 2 s time constant)",
     )
+    robust_cost: Literal["joint", "h2"] = Field(
+        "joint",
+        description="how the 'robust' design bounds its cost. 'joint' (default): one LMI per rule pair certifies "
+        "both the cost and the decay rate; its bound adds (1 - robust_decay_rate^2) E[e^T P e], which penalises "
+        "slow error modes, so faults are tracked faster and with more noise than by a Kalman filter. 'h2': the "
+        "H2 cost bounded on its own (rate 1) and the decay rate certified by separate LMIs; steady-state noise "
+        "close to the Kalman filter's, slower transients (docs/math.md, section 10)",
+    )
 
     @model_validator(mode="before")
     @classmethod

@@ -39,6 +39,15 @@ time-average E|z|^2 <= trace Z for every premise trajectory and every rho in
 S_rho: a guaranteed H2 cost. The first family also certifies the decay rate
 alpha, verified in numpy like every design. When the yaw-rate bounds are
 symmetric the LMIs are posed on mirror-invariant points only (synth.symmetry).
+
+Summing that inequality shows what this 'joint' bound pays for certifying
+alpha in the same LMI: trace Z >= E|z|^2 + (1 - alpha^2) E[V]. The optimum
+therefore also penalises the Lyapunov energy of the error, which is largest in
+the slow modes, and tracks the faults faster (and with more noise) than the
+H2-optimal filter. ``robust_cost='h2'`` poses the first family at rate 1 (a
+bound on E|z|^2 alone) and certifies alpha with the same LMIs without the
+output row, [[alpha^2 P_i, *], [R A(i, rho) - X_i C_bar, R + R^T - P_j]] > 0,
+sharing P, R and X_i (docs/math.md, section 10).
 """
 
 from __future__ import annotations
@@ -149,6 +158,7 @@ class H2LMIs:
         margin: float,
         alpha: float,
         use_symmetry: bool = True,
+        separate_decay: bool = False,
     ) -> None:
         n, r = dc.n, dc.n_rules
         p = dc.C.shape[0]
@@ -190,16 +200,25 @@ class H2LMIs:
             P_i = self.P[i if n_P > 1 else 0]
             P_j = self.P[j]
             Q0 = self.R @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
-            L0 = cp.bmat([[alpha**2 * P_i, Q0.T, C_1.T], [Q0, sym_R - P_j, zeros_nz], [C_1, zeros_nz.T, eye_z]])
+            # 'joint': the cost LMI at rate alpha also certifies the decay rate; 'h2': the cost LMI at
+            # rate 1 and a decay LMI (the same without the output row) at alpha
+            cost_rate = 1.0 if separate_decay else alpha
+            L0 = cp.bmat([[cost_rate**2 * P_i, Q0.T, C_1.T], [Q0, sym_R - P_j, zeros_nz], [C_1, zeros_nz.T, eye_z]])
             a = cp.vstack([np.zeros((n, 1)), rho_rad * (self.R @ dc.G), np.zeros((n_z, 1))])
             block, _ = petersen_block(L0, a, b, f"lambda_{i + 1}{j + 1}")
             constraints.append(block >> margin * np.eye(2 * n + n_z + 1))
+            if separate_decay:
+                L0 = cp.bmat([[alpha**2 * P_i, Q0.T], [Q0, sym_R - P_j]])
+                block, _ = petersen_block(L0, a[: 2 * n], b[: 2 * n], f"mu_{i + 1}{j + 1}")
+                constraints.append(block >> margin * np.eye(2 * n + 1))
             RB_i = cp.hstack([self.R @ B_fixed, -self.X[i] @ inputs.Sigma_v])
             cost = cp.bmat([[self.Z, RB_i.T, D_1.T], [RB_i, sym_R - P_j, zeros_nz], [D_1, zeros_nz.T, eye_z]])
             constraints.append(0.5 * (cost + cost.T) >> 0)
         self.n_lmis = len(constraints) - len(distinct_P)
         self.problem = cp.Problem(cp.Minimize(cp.trace(self.Z)), constraints)
         self.alpha = alpha
+        #: the rate in the cost LMIs: alpha ('joint') or 1 ('h2', the decay rate certified separately)
+        self.cost_rate = 1.0 if separate_decay else alpha
         self.B_fixed = B_fixed
         self.C_z = C_z
         self.Sigma_v = inputs.Sigma_v
@@ -261,7 +280,7 @@ def verify_h2_bound(
             S_j = R + R.T - P[j]
             for rho in dc.rho_vertices():
                 RN = R @ (N[i] + rho * MG)
-                block = np.block([[lmis.alpha**2 * P_i - C1TC1, RN.T], [RN, S_j]])
+                block = np.block([[lmis.cost_rate**2 * P_i - C1TC1, RN.T], [RN, S_j]])
                 worst_eig = min(worst_eig, float(np.linalg.eigvalsh(0.5 * (block + block.T))[0]))
             RB = R @ B_i
             bound = max(bound, float(np.trace(RB.T @ scipy.linalg.solve(S_j, RB, assume_a="sym"))))
@@ -291,6 +310,7 @@ def synthesize_robust(
         margin=options.margin,
         alpha=options.robust_decay_rate,
         use_symmetry=use_symmetry,
+        separate_decay=options.robust_cost == "h2",
     )
     timings["build_s"] = time.perf_counter() - mark
 
@@ -395,6 +415,12 @@ def _verified_gains(
             "scaled by the noise model (sensor sigmas, wind RMS, fault drift rates), every premise trajectory "
             "and every rho in S_rho; z = errors of the filtered fault estimates f_hat + K (y - C x_hat) "
             "divided by (torque_fault_scale_nm, steer_fault_scale_rad)",
+            f"cost form '{options.robust_cost}': "
+            + (
+                "cost and decay rate certified by the same LMIs"
+                if options.robust_cost == "joint"
+                else "H2 cost LMIs at rate 1, decay rate certified by LMIs of its own"
+            ),
         ],
     )
     return ObserverGains(

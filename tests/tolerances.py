@@ -8,6 +8,8 @@ SIMPLEX_ATOL = 1e-12
 PLANT_STEP_ATOL = 1e-9
 #: Fault estimate RMSE after 3 s on noise-free paper scenarios, fraction of the fault amplitude.
 CONVERGENCE_FRACTION = 0.10
+#: The 'h2' cost form against the Kalman filter of the same model at a frozen premise (measured: 1.01).
+FROZEN_H2_FORM_COST_RTOL = 1.03
 #: A batch step equals the same vehicles stepped one at a time.
 BATCH_EQUALITY_ATOL = 1e-9
 

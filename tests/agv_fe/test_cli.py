@@ -35,6 +35,14 @@ def test_synth_prints_a_summary_and_writes_loadable_gains(tmp_path):
     assert data["certificate"]["verified"] and data["options"]["fault_order"] == 1
 
 
+def test_synth_robust_cost_flag_selects_the_h2_cost_form(tmp_path):
+    out = agv_fe("synth", "--robust-cost", "h2", "--out", str(tmp_path / "g.json"))
+    assert out.returncode == 0, out.stderr
+    data = json.loads((tmp_path / "g.json").read_text())
+    assert data["options"]["robust_cost"] == "h2" and data["certificate"]["verified"]
+    assert any("'h2'" in note for note in data["certificate"]["notes"])
+
+
 def test_bad_params_file_names_the_field(tmp_path):
     params = tmp_path / "p.json"
     params.write_text(json.dumps({"params": {"mass_kg": -5}, "bounds": {"vx_min_mps": 40}}))

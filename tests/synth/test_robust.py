@@ -4,10 +4,12 @@ import pytest
 from edge_client.library import builtin_scenario
 from edge_client.scenario import REALISTIC_NOISE
 from edge_client.simulation import estimate, observer_factory, simulate_plant
+from synth.analysis import frozen_comparison
 from synth.design import synthesize
 from synth.gains import ObserverGains
 from synth.options import DesignOptions, NoiseModel
 from synth.robust import noise_inputs
+from tests.tolerances import FROZEN_H2_FORM_COST_RTOL
 
 
 @pytest.fixture(scope="session")
@@ -43,29 +45,60 @@ def test_robust_gains_keep_the_error_dynamics_stable_over_the_premise_grid(robus
     assert radius < robust_gains.certificate.decay_rate
 
 
-def test_h2_bound_covers_the_exact_cost_at_frozen_premises(robust_gains):
+@pytest.fixture(scope="session")
+def h2_form_gains() -> ObserverGains:
+    return synthesize(options=DesignOptions(robust_cost="h2"))
+
+
+def _premise_grid(g: ObserverGains) -> list[tuple[float, float]]:
+    nts = g.model.nts
+    return [
+        (1.0 / V, r)
+        for V in np.linspace(nts.premise_low[0], nts.premise_high[0], 7)
+        for r in np.linspace(nts.premise_low[1], nts.premise_high[1], 5)
+    ]
+
+
+@pytest.mark.parametrize("form", ["joint", "h2"])
+def test_h2_bound_covers_the_exact_cost_at_frozen_premises(form, robust_gains, h2_form_gains):
     """At every frozen premise the exact steady-state cost of the reported (filtered) fault estimates,
-    from the Lyapunov equation, is below the guaranteed bound."""
-    import scipy.linalg
+    from the Lyapunov equation, is below the guaranteed bound; the Kalman filter of the same model is
+    the best linear filter there, so its cost is lower still."""
+    g = robust_gains if form == "joint" else h2_form_gains
+    bound = g.certificate.performance["h2_cost_bound"]
+    for v_x, r in _premise_grid(g):
+        observer, kalman = frozen_comparison(g, v_x, r)
+        assert kalman.cost <= observer.cost <= bound
+
+
+def test_the_h2_cost_form_is_certified_and_near_the_kalman_filter_where_joint_is_not(robust_gains, h2_form_gains):
+    """'joint' pays for its decay rate with a faster, noisier torque-fault loop (measured: 42 % more noise-only
+    error than the Kalman filter at every frozen premise); 'h2' bounds the cost alone and certifies the same
+    decay rate separately: a lower bound, and a cost within a few percent of the Kalman filter's."""
+    joint, h2 = robust_gains, h2_form_gains
+    assert h2.certificate.verified and h2.certificate.decay_rate >= joint.certificate.decay_rate - 1e-6
+    assert h2.certificate.performance["h2_cost_bound"] < joint.certificate.performance["h2_cost_bound"]
+    assert h2.version != joint.version
+    assert any("'h2'" in note for note in h2.certificate.notes)
+    for v_x, r in _premise_grid(h2):
+        obs_joint, kalman = frozen_comparison(joint, v_x, r)
+        obs_h2, _ = frozen_comparison(h2, v_x, r)
+        assert obs_h2.cost <= FROZEN_H2_FORM_COST_RTOL * kalman.cost
+        assert obs_joint.cost > FROZEN_H2_FORM_COST_RTOL * kalman.cost
+        assert obs_h2.torque_noise_nm < obs_joint.torque_noise_nm
+        assert obs_h2.slowest_pole > obs_joint.slowest_pole
+
+
+def test_the_default_cost_form_keeps_the_hash_of_designs_made_before_it_existed(robust_gains):
+    """The hash leaves out robust_cost at its default, so stored gain versions stay valid."""
+    from synth.gains import gains_hash
 
     g = robust_gains
-    aug = g.model
-    ni = noise_inputs(aug, g.options.noise)
-    bound = g.certificate.performance["h2_cost_bound"]
-    K = g.output_gain
-    # reported error C_z (e - K (C e + v)): C_1 = C_z (I - K C), D_1 = -C_z K Sigma_v
-    C_1 = ni.C_z @ (np.eye(aug.n) - K @ aug.C_bar)
-    D_1 = -ni.C_z @ K @ ni.Sigma_v
-    costs = []
-    for V in np.linspace(aug.nts.premise_low[0], aug.nts.premise_high[0], 7):
-        for r in np.linspace(aug.nts.premise_low[1], aug.nts.premise_high[1], 5):
-            h = aug.nts.memberships(np.array([V, r]))
-            N = np.einsum("i,ijk->jk", h, g.N)
-            L = np.einsum("i,ijk->jk", h, g.L)
-            B = np.hstack([ni.B_fixed, -L @ ni.Sigma_v])
-            W = scipy.linalg.solve_discrete_lyapunov(N, B @ B.T)
-            costs.append(np.trace(C_1 @ W @ C_1.T) + np.sum(D_1**2))
-    assert max(costs) <= bound
+    assert g.options.robust_cost == "joint"
+    args = (g.params, g.bounds, g.options, g.N, g.L, g.M, g.E, g.K)
+    assert gains_hash(*args) == g.certificate.content_hash
+    changed = g.options.model_copy(update={"robust_cost": "h2"})
+    assert gains_hash(g.params, g.bounds, changed, *args[3:]) != g.certificate.content_hash
 
 
 def test_the_robust_design_filters_the_reported_faults_with_the_current_measurement(robust_gains):
@@ -128,6 +161,9 @@ def test_one_operating_point_design_equals_the_kalman_filter_from_scipy():
     filter_cost = float(np.trace(ni.C_z @ P_filtered @ ni.C_z.T))
     assert filter_cost < 0.99 * predictor_cost
     assert g.certificate.performance["h2_cost_bound"] == pytest.approx(filter_cost, rel=0.005)
+    # and synth.analysis finds the same Kalman filter cost there
+    _, kalman = frozen_comparison(g, 12.00005, 0.10005)
+    assert kalman.cost == pytest.approx(filter_cost, rel=1e-5)  # the DARE above adds 1e-12 I to Q
 
 
 def test_robust_gains_round_trip_through_json_with_their_output_gain(robust_gains):
