@@ -7,26 +7,46 @@ from pathlib import Path
 
 from agv_fe.benchmarks import report_header
 from edge_client.evaluation import RMSE_AFTER_S, RMSE_LATE_S, DetectionRule, compare, step_cost_us
-from edge_client.library import EVALUATION_SCENARIOS
+from edge_client.library import EVALUATION_SCENARIOS, builtin_scenario
+from edge_client.scenario import Scenario, SensorNoise
 from edge_client.simulation import ekf_factory, observer_factory
+from synth.analysis import frozen_comparison
 from synth.design import synthesize
 from synth.options import DesignOptions
 
 SEEDS = 5
 BATCH = 1000
 COST_REPEATS = 5
+#: Speeds of the frozen-premise table [m/s] (r = 0).
+FROZEN_SPEEDS = (5.0, 10.0, 25.0, 30.0)
+
+
+def _noise_free(name: str, seed: int) -> Scenario:
+    return builtin_scenario(name, noise=SensorNoise(), seed=seed)
+
+
+def _noise_part(noisy: float, noise_free: float) -> float:
+    """RMS of the part of the error that sensor noise adds (the two parts are nearly uncorrelated)."""
+    return float(max(noisy**2 - noise_free**2, 0.0) ** 0.5)
 
 
 def run(out_dir: Path, seeds: int = SEEDS) -> Path:
     robust = synthesize(options=DesignOptions(design="robust"))
+    h2_form = synthesize(options=DesignOptions(design="robust", robust_cost="h2"))
     paper = synthesize(options=DesignOptions(design="paper"))
     rule = DetectionRule()
-    factories = {"observer": observer_factory(robust), "EKF": ekf_factory(robust), "paper": observer_factory(paper)}
+    factories = {
+        "observer": observer_factory(robust),
+        "EKF": ekf_factory(robust),
+        "paper": observer_factory(paper),
+        "h2": observer_factory(h2_form),
+    }
     rows = []
+    clean = []
     for name in EVALUATION_SCENARIOS:
         print(f"  {name} ...", flush=True)
-        c = compare(name, factories, seeds, rule, batch=10)
-        rows.append(c)
+        rows.append(compare(name, factories, seeds, rule, batch=10))
+        clean.append(compare(name, factories, 1, rule, batch=10, scenario_factory=_noise_free))
     costs = [step_cost_us({k: factories[k] for k in ("observer", "EKF")}, BATCH) for _ in range(COST_REPEATS)]
     ratios = [c["EKF"] / c["observer"] for c in costs]
     obs_us = statistics.median(c["observer"] for c in costs)
@@ -67,6 +87,47 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
         ]
         cells.append(f"{late[0]:.3f} / {late[1]:.3f}")
         lines.append("| " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        f"## Where the torque-fault error comes from (window from t = {RMSE_LATE_S:g} s)\n",
+        "The same scenarios without sensor noise (seed 0) give the error the estimator makes on the signal "
+        "itself (tracking lag, model error); the noise part is sqrt(noisy^2 - noise-free^2). 'h2' is the "
+        "robust design with `robust_cost='h2'` (cost bounded alone, decay rate certified separately), run on "
+        "the same data.\n",
+        "| scenario | T_f noise-free obs / EKF [N m] | T_f noise part obs / EKF [N m] "
+        f"| 'h2' T_f ratio from {RMSE_AFTER_S:g} s / from {RMSE_LATE_S:g} s "
+        f"| 'h2' noise part [N m] | 'h2' delta_f ratio from {RMSE_AFTER_S:g} s |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c, z in zip(rows, clean, strict=True):
+        late = {e: c.median(e, "rmse_late", "T_f") or float("nan") for e in ("observer", "EKF", "h2")}
+        free = {e: z.median(e, "rmse_late", "T_f") or float("nan") for e in ("observer", "EKF", "h2")}
+        noise = {e: _noise_part(late[e], free[e]) for e in late}
+        h2_3s = (c.median("h2", "rmse", "T_f") or float("nan")) / (c.median("EKF", "rmse", "T_f") or float("nan"))
+        h2_d = (c.median("h2", "rmse", "delta_f") or float("nan")) / (
+            c.median("EKF", "rmse", "delta_f") or float("nan")
+        )
+        lines.append(
+            f"| {c.scenario} | {free['observer']:.3g} / {free['EKF']:.3g} | {noise['observer']:.3g} / "
+            f"{noise['EKF']:.3g} | {h2_3s:.3f} / {late['h2'] / late['EKF']:.3f} | {noise['h2']:.3g} | {h2_d:.3f} |"
+        )
+    lines += [
+        "",
+        "At a frozen premise (r = 0, v_y = 0) the error dynamics are linear and time-invariant; the steady "
+        "state of each estimator under the design's noise model, against the Kalman filter of the same "
+        "linear model (`synth.analysis.frozen_comparison`, the best any linear filter can do there):\n",
+        "| v_x [m/s] | T_f RMS, sensor noise only: default / 'h2' / Kalman [N m] "
+        "| weighted cost: default / 'h2' / Kalman | slowest pole: default / 'h2' / Kalman |",
+        "|---|---|---|---|",
+    ]
+    for v_x in FROZEN_SPEEDS:
+        obs, kal = frozen_comparison(robust, v_x)
+        h2o, _ = frozen_comparison(h2_form, v_x)
+        lines.append(
+            f"| {v_x:g} | {obs.torque_noise_nm:.2f} / {h2o.torque_noise_nm:.2f} / {kal.torque_noise_nm:.2f} "
+            f"| {obs.cost:.3f} / {h2o.cost:.3f} / {kal.cost:.3f} "
+            f"| {obs.slowest_pole:.4f} / {h2o.slowest_pole:.4f} / {kal.slowest_pole:.4f} |"
+        )
     lines += [
         "",
         "## Detection (|estimate| above "
@@ -119,23 +180,31 @@ ANALYSIS = """* **Against the paper's design.** The stability-only gains amplify
      guaranteed cost equals the steady-state cost of the Kalman filter to 0.5 % (a test checks it
      against scipy). Before it, the recorded run (commit f8ed895) had worst ratios of 1.038 (T_f)
      and 1.035 (delta_f).
-  2. *Where the torque ratio is still above 1.* Urban is within one percent of 1. Paper-1 is not,
-     and its gap is steady-state noise, not a transient. In the window from 8 s (last column) the
-     observer's torque-fault error is about 30 % above the EKF's. In the window from 3 s, the
-     observer's faster response to the fault step at 5 s hides most of that. Measured in this
-     session (5 seeds each, ratios of medians, window from 8 s), the gap stays when the cause is
-     removed:
-     - the paper's wrong initial state (both estimators started from the first measurement instead):
-       1.29. From 3 s the ratio then drops from 1.03 to 0.995, so the initial state explains the
-       3 s window's excess but not the steady state;
-     - the sinusoidal steering fault: 1.37; the turns: 1.26;
-     - noise entering through the measured premise (g and h evaluated at the true v_x and r): no
-       change;
-     - the drag damping in the EKF's Jacobian, or its model-error floor in Q: no change.
-     At frozen premises the designed gains give a torque-fault error 5 % above the Kalman
-     filter's of the same model (5.10 against 4.85 N m RMS at every speed), the price of the
-     certified decay rate. That does not account for 30 %. The cause is open.
-  3. *The decay-rate knob trades paper-1 against urban.* robust_decay_rate 0.993 gave paper-1 1.009
+  2. *Why the torque ratio is above 1 on paper-1 and urban: the default cost form.* Summing the
+     default ('joint') LMI over time gives trace Z >= E|z|^2 + (1 - alpha^2) E[e^T P e]: certifying
+     the decay rate alpha in the same inequality adds a penalty on the error's Lyapunov energy,
+     which is largest in the slow modes. The optimum therefore tracks the faults faster than the
+     H2-optimal filter. At every frozen premise (second table above) its slowest pole is faster
+     than the Kalman filter's and its torque-fault error from sensor noise alone is about 40 %
+     higher, while its total cost is about 10 % higher. The simulations show both sides. Without
+     noise the default observer's torque error is below the EKF's on every scenario (faster
+     tracking); with noise its noise part is about a third higher on the 6-11 m/s scenarios
+     (paper-1, urban), which is what tips them over 1. On the highway the two noise parts are
+     equal (the linear analysis does not cover what dominates there), and faster tracking wins.
+     Ruled out before this was found (5 seeds, window from 8 s): the paper's wrong initial state,
+     the steering fault, the turns, noise through the measured premise, and the EKF's drag
+     Jacobian and model-error floor.
+  3. *The 'h2' cost form removes the penalty* and certifies the same decay rate with LMIs of its
+     own (docs/math.md, section 10). At every frozen premise its cost is within about 1 % of the
+     Kalman filter's, and in the simulations its noise part falls to the EKF's. What it cannot do
+     with one constant gain is the EKF's start: the EKF begins with a large covariance, converges
+     fast and then settles to the steady-state gain. On paper-1, where both estimators start from
+     the paper's wrong initial state (v_x 5 m/s off), the 'h2' form's slower transient dominates
+     the window from 3 s; on the highway it loses the tracking advantage. Neither form meets the
+     target on every scenario. The default stays 'joint' (better from 3 s on 3 of 4 scenarios, and
+     earlier detection); 'h2' is for fleets whose faults are steady and who want the least noise
+     (`agv-fe synth --robust-cost h2`, or `robust_cost` in a profile's design options).
+  4. *The decay-rate knob trades paper-1 against urban.* robust_decay_rate 0.993 gave paper-1 1.009
      and urban 1.041; 0.997 gave paper-1 1.27 and urban 0.992 (window from 3 s). The default stays
      at 0.995. Weighting the torque channel more (torque_fault_scale_nm 5 or 7 instead of 10) left
      the torque ratios unchanged. Minimising the mean of the per-rule-pair costs instead of their
