@@ -78,6 +78,27 @@ def test_keys_buckets_and_shards():
     assert sum(len(s) for s in shards) == len(all_buckets())
 
 
+def test_the_fast_estimate_encoder_writes_the_estimate_model_to_15_digits():
+    """encode_estimate skips pydantic; its JSON must decode to the same Estimate, for any finite float."""
+    import json
+    import math
+
+    from service.protocol import encode_estimate
+
+    values = [10.0, -0.0, 1e-300, -3.25e-7, 29.700000000000003, 1.2345678901234567e8, -math.pi, 5e-324]
+    for k in range(len(values)):
+        x = [values[(k + j) % len(values)] for j in range(5)]
+        payload = encode_estimate("truck-7", 1042, 1_700_000_010_420_000_000, *x, k % 2 == 0, "3f9a1c0b7d2e", "WARN")
+        json.loads(payload)  # plain JSON, no NaN or Infinity tokens
+        e = Estimate.decode(payload)
+        assert (e.vehicle, e.seq, e.t_ns, e.in_domain, e.gain_version, e.level) == (
+            "truck-7", 1042, 1_700_000_010_420_000_000, k % 2 == 0, "3f9a1c0b7d2e", "WARN"
+        )  # fmt: skip
+        got = [e.vx, e.vy, e.r, e.torque_fault, e.steer_fault]
+        for a, b in zip(got, x, strict=True):
+            assert math.isclose(a, b, rel_tol=1e-14, abs_tol=0.0) or a == b
+
+
 def test_json_messages_round_trip():
     e = Estimate(
         vehicle="v1",
