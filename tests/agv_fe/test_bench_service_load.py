@@ -44,11 +44,11 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
 def test_the_verdict_says_when_the_latency_target_is_missed():
     rows = [
         {"vehicles": n, "zero_loss": True, "paced": True, "p50_ms": p50, "p99_ms": p99, "service_cpu": 0.5}
-        for n, p50, p99 in ((100, 4.0, 8.0), (250, 6.0, 12.0), (1000, 50.0, 200.0))
+        for n, p50, p99 in ((100, 4.0, 8.0), (250, 6.0, 12.0), (1000, 50.0, 80.0))
     ]
     engine = [{"vehicles": 1000, "us_per_msg": 2.5, "cores_at_100hz": 0.25}]
     verdict = bench._against_target(rows, engine)
-    assert "1,000 vehicles at 100 Hz ran with zero loss (p50 50.0 ms, p99 200.0 ms" in verdict
+    assert "1,000 vehicles at 100 Hz ran with zero loss (p50 50.0 ms, p99 80.0 ms" in verdict
     assert "held up to 100 vehicles" in verdict and "2.50 us per measurement, 0.25 of a core" in verdict
     assert "not met" in bench._against_target(rows[1:], engine)
     hold = {**rows[2], "duration_s": 30.0, "p50_ms": 5.0, "p99_windows_ms": [8.0, 12.5, 9.0]}
@@ -57,6 +57,10 @@ def test_the_verdict_says_when_the_latency_target_is_missed():
     assert "under 10 ms in 2 of 3 windows" in held
     lossy = bench._against_target(rows, engine, {**hold, "zero_loss": False})
     assert "(not cleanly: loss or pacing)" in lossy and "under 10 ms in 0 of 3 windows" in lossy
+    slow = {**rows[2], "p99_ms": 165.0}
+    behind = bench._against_target([*rows[:2], slow], engine, {**hold, "p99_ms": 2000.0})
+    assert "ran with zero loss but fell behind (p50 50.0 ms, p99 165.0 ms" in behind
+    assert "for 30 s (falling behind)" in behind
 
 
 def test_the_largest_fleet_is_a_lower_bound_when_nothing_failed():
@@ -66,4 +70,8 @@ def test_the_largest_fleet_is_a_lower_bound_when_nothing_failed():
     )
     failed = [{"vehicles": 100, **ok}, {"vehicles": 250, "zero_loss": False, "paced": True}]
     assert bench._largest(failed, (100, 250, 500)) == "100 vehicles"
+    # zero loss at a growing latency is falling behind, not sustained
+    behind = [{"vehicles": 100, **ok, "p99_ms": 9.0}, {"vehicles": 250, **ok, "p99_ms": 165.0}]
+    assert bench._largest(behind, (100, 250)) == "100 vehicles"
+    assert [bench._verdict(r) for r in behind] == ["sustained", "falling behind"]
     assert bench._largest([{"vehicles": 100, "zero_loss": False, "paced": False}], (100,)) == "none of the sizes tried"
