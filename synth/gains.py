@@ -9,6 +9,10 @@ and the output gain K of the robust design, which reports the fault
 estimates filtered with the current measurement, x_hat_k + K (y_k - C_bar x_hat_k)
 (zero for the paper's designs; see synth.robust).
 
+A switched robust design (``DesignOptions.switching``) carries a second,
+quiet gain set (N, L, K) beside the default one; both share M, E and the
+Lyapunov multipliers P_i, R, so both are verified against the same P(h).
+
 The Lyapunov multipliers P_i, R are kept in the solver's coordinates
 (x' = T x_bar) where they are well conditioned, with T alongside, so that a
 stored design can be re-verified anywhere.
@@ -16,7 +20,7 @@ stored design can be re-verified anywhere.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import cached_property
 from typing import Any
 
@@ -34,11 +38,23 @@ GAINS_FORMAT = "agv-fe-gains/1"
 
 
 def _hashed_options(options: DesignOptions) -> dict[str, Any]:
-    """The options in the hash; ``robust_cost`` only when not its default, so earlier designs keep their hash."""
+    """The options in the hash; ``robust_cost`` and ``switching`` only when not their defaults, so earlier
+    designs keep their hash."""
     data = options.model_dump(mode="json")
     if data.get("robust_cost") == "joint":
         del data["robust_cost"]
+    if data.get("switching", ...) is None:
+        del data["switching"]
     return data
+
+
+@dataclass(frozen=True)
+class GainSet:
+    """The quiet gain set of a switched design, physical coordinates: N (r, n, n), L (r, n, 2), K (n, 2)."""
+
+    N: FloatArray
+    L: FloatArray
+    K: FloatArray
 
 
 def gains_hash(
@@ -50,10 +66,12 @@ def gains_hash(
     M: FloatArray,
     E: FloatArray,
     K: FloatArray | None = None,
+    quiet: GainSet | None = None,
 ) -> str:
     """Content hash of runtime gains and everything they were designed for.
 
-    A zero (or absent) output gain K is left out, so gains designed before K existed keep their hash.
+    A zero (or absent) output gain K is left out, so gains designed before K existed keep their hash;
+    so is an absent quiet set.
     """
     meta = {
         "format": GAINS_FORMAT,
@@ -64,6 +82,8 @@ def gains_hash(
     arrays = {"N": N, "L": L, "M": M, "E": E}
     if K is not None and np.any(K):
         arrays["K"] = K
+    if quiet is not None:
+        arrays.update({"N_quiet": quiet.N, "L_quiet": quiet.L, "K_quiet": quiet.K})
     return content_hash(arrays, meta)
 
 
@@ -73,7 +93,8 @@ class ObserverGains:
 
     N : (r, n, n); L : (r, n, 2); M : (n, n); E : (n, 2)   physical coordinates
     K : (n, 2) output gain (None: zero)                     physical coordinates
-    P : (r or 1, n, n); R : (n, n)                          design coordinates
+    quiet : the quiet set of a switched design (None: one set)  physical coordinates
+    P : (r or 1, n, n); R : (n, n)                          design coordinates, shared by both sets
     T : (n, n)                                              x_design = T x_bar
     """
 
@@ -89,6 +110,18 @@ class ObserverGains:
     T: FloatArray
     certificate: Certificate
     K: FloatArray | None = None
+    quiet: GainSet | None = None
+
+    @property
+    def switched(self) -> bool:
+        """True for a switched design: a fast set (N, L, K) and a quiet set sharing P(h)."""
+        return self.quiet is not None
+
+    def quiet_gains(self) -> ObserverGains:
+        """The quiet set as gains of its own (same model, P, R and certificate), for the runtime and analysis."""
+        if self.quiet is None:
+            raise ValueError("these gains have no quiet set (not a switched design)")
+        return replace(self, N=self.quiet.N, L=self.quiet.L, K=self.quiet.K, quiet=None)
 
     @property
     def output_gain(self) -> FloatArray:
@@ -107,7 +140,7 @@ class ObserverGains:
 
     def content_hash(self) -> str:
         """Recompute the content hash of these gains (see :func:`gains_hash`)."""
-        return gains_hash(self.params, self.bounds, self.options, self.N, self.L, self.M, self.E, self.K)
+        return gains_hash(self.params, self.bounds, self.options, self.N, self.L, self.M, self.E, self.K, self.quiet)
 
     def to_dict(self, *, matrices: bool = True) -> dict[str, Any]:
         """A JSON-ready dict; ``matrices=False`` leaves out the arrays (summary only)."""
@@ -125,6 +158,9 @@ class ObserverGains:
             }
             if self.K is not None:
                 data["matrices"]["K"] = np.asarray(self.K).tolist()
+            if self.quiet is not None:
+                for name in ("N", "L", "K"):
+                    data["matrices"][f"{name}_quiet"] = np.asarray(getattr(self.quiet, name)).tolist()
         return data
 
     @classmethod
@@ -148,7 +184,14 @@ class ObserverGains:
             T=mats["T"],
             certificate=Certificate(**data["certificate"]),
             K=mats.get("K"),
+            quiet=_quiet_from(mats),
         )
+        if (gains.quiet is None) != (gains.options.switching is None):
+            raise VerificationFailed(
+                "a switched design needs both the switching rule in its options and the quiet gain set; "
+                f"this document has {'no' if gains.options.switching is None else 'a'} rule and "
+                f"{'no' if gains.quiet is None else 'a'} quiet set"
+            )
         recomputed = gains.content_hash()
         if recomputed != gains.certificate.content_hash:
             raise VerificationFailed(
@@ -174,7 +217,9 @@ class ObserverGains:
         return self.M @ aug.G_bar @ row
 
     def reverify(self) -> None:
-        """Re-run the numpy verification of the stored design; raise if it fails."""
+        """Re-run the numpy verification of the stored design (both sets of a switched one); raise if it fails."""
+        if self.quiet is not None:
+            self.quiet_gains().reverify()
         N_design, MG_design = self.design_frame()
         verify(
             self.model.nts,
@@ -187,3 +232,13 @@ class ObserverGains:
             self.N,
             self.MG_row,
         )
+
+
+def _quiet_from(mats: dict[str, FloatArray]) -> GainSet | None:
+    names = ("N_quiet", "L_quiet", "K_quiet")
+    present = [k for k in names if k in mats]
+    if not present:
+        return None
+    if len(present) != len(names):
+        raise VerificationFailed(f"the gains document has {present} but a quiet set needs all of {list(names)}")
+    return GainSet(N=mats["N_quiet"], L=mats["L_quiet"], K=mats["K_quiet"])

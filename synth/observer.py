@@ -21,14 +21,20 @@ the letter of Algorithm 1, each keeping the certificate meaningful:
   in the convex hull S_rho (the saturation is 1-Lipschitz and moves towards
   v_y), so the DMVT bound of eq. (26) holds even when the estimate strays.
 
+A switched design (``DesignOptions.switching``) has a fast and a quiet gain
+set under one Lyapunov function; :func:`switched_step` picks one per vehicle
+and sample from an exponentially weighted statistic of the normalised
+innovation (synth.options.SwitchingRule). Any switching sequence keeps the
+certified decay rate.
+
 One implementation serves the replay tool, the simulators and the cloud
-service: :func:`observer_step` is stateless, :class:`FuzzyObserver` keeps the
-state of a fixed batch.
+service: :func:`observer_step` and :func:`switched_step` are stateless,
+:class:`FuzzyObserver` keeps the state of a fixed batch.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -88,6 +94,14 @@ class RuntimeGains:
     premise_high: FloatArray
     vy_low: float
     vy_high: float
+    #: a switched design's quiet set (rows as WT) and both sets stacked; None for one gain set
+    WT_quiet: FloatArray | None = None
+    WT_pair: FloatArray | None = None
+    #: the switching rule (synth.options.SwitchingRule) in samples
+    switch_threshold: float = np.inf
+    switch_forgetting: float = 0.0
+    hold_samples: int = 0
+    start_samples: int = 0
 
     @classmethod
     def from_gains(cls, gains: ObserverGains) -> RuntimeGains:
@@ -95,41 +109,19 @@ class RuntimeGains:
         r, n, _ = gains.N.shape
         if r != len(RULE_CORNERS):
             raise BadParameters(f"the runtime step needs the {len(RULE_CORNERS)} rules of eq. (16), got {r}")
-        MT1 = gains.M @ aug.T1
-        # Q_i = [N_i, L_i]^T, (n + 2, n): the rule's map of x = [z; y]
-        Q = np.concatenate([gains.N, gains.L], axis=2).transpose(0, 2, 1)
-        dQ_a, dQ_b, dQ_ab = Q[1] - Q[3], Q[2] - Q[3], Q[0] - Q[1] - Q[2] + Q[3]
-        # a = (V_hi - V_x) / (V_hi - V_lo) = a_0 + a_1 V_x, b = (r_hi - r) / (r_hi - r_lo) = b_0 + b_1 r
-        lo, hi = aug.nts.premise_low, aug.nts.premise_high
-        a_1, b_1 = -1.0 / (hi[0] - lo[0]), -1.0 / (hi[1] - lo[1])
-        a_0, b_0 = -hi[0] * a_1, -hi[1] * b_1
-        bilinear = [
-            Q[3] + a_0 * dQ_a + b_0 * dQ_b + a_0 * b_0 * dQ_ab,
-            a_1 * dQ_a + a_1 * b_0 * dQ_ab,
-            b_1 * dQ_b + a_0 * b_1 * dQ_ab,
-            a_1 * b_1 * dQ_ab,
-        ]
-        W = np.vstack(
-            [
-                *bilinear,
-                (MT1 @ g_feature_matrix(gains)).T,
-                (MT1 @ aug.nts.B).T,
-                (gains.M @ aug.G_bar).T,
-            ]
-        )
+        rule = gains.options.switching
+        quiet = gains.quiet_gains() if gains.quiet is not None and rule is not None else None
+        K_rows = np.flatnonzero(np.any(gains.output_gain != 0.0, axis=1))
+        innovation_scale = None
+        if quiet is not None:
+            K_rows = np.union1d(K_rows, np.flatnonzero(np.any(quiet.output_gain != 0.0, axis=1)))
+            noise = gains.options.noise
+            innovation_scale = 1.0 / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
+        WT = np.ascontiguousarray(_stacked_gains(gains, K_rows, innovation_scale).T)
         vy_low, vy_high = aug.nts.bounds.lateral_speed_bounds
-        K = gains.output_gain
-        K_rows = np.flatnonzero(np.any(K != 0.0, axis=1))
-        if K_rows.size:
-            # reported rows: (I - K C)(z - E y) + K y = F_z z + F_y y, on the constant block of Phi
-            F_z = (np.eye(n) - K @ aug.C_bar)[K_rows]
-            F_y = K[K_rows] - F_z @ gains.E
-            output_cols = np.zeros((W.shape[0], K_rows.size))
-            output_cols[: n + 2] = np.concatenate([F_z, F_y], axis=1).T
-            W = np.hstack([W, output_cols])
-        return cls(
+        one_set = cls(
             gains=gains,
-            WT=np.ascontiguousarray(W.T),
+            WT=WT,
             E=gains.E,
             E_is_zero=not np.any(gains.E),
             K_rows=K_rows,
@@ -140,6 +132,63 @@ class RuntimeGains:
             vy_low=vy_low,
             vy_high=vy_high,
         )
+        if quiet is None or rule is None:
+            return one_set
+        WT_quiet = np.ascontiguousarray(_stacked_gains(quiet, K_rows, innovation_scale).T)
+        period = gains.params.sample_period_s
+        return replace(
+            one_set,
+            WT_quiet=WT_quiet,
+            WT_pair=np.vstack([WT, WT_quiet]),
+            switch_threshold=rule.threshold,
+            switch_forgetting=rule.forgetting,
+            hold_samples=round(rule.hold_s / period),
+            start_samples=round(rule.start_s / period),
+        )
+
+    @property
+    def switched(self) -> bool:
+        """Two gain sets (a switched design)."""
+        return self.WT_quiet is not None
+
+
+def _stacked_gains(gains: ObserverGains, K_rows: np.ndarray, innovation_scale: FloatArray | None) -> FloatArray:
+    """W of :class:`RuntimeGains`: the rule blend, g, u and phi columns, then the reported rows ``K_rows``
+    and, for a switched design, the normalised innovation (y - C x_hat) / sigma."""
+    aug = gains.model
+    n = gains.N.shape[1]
+    MT1 = gains.M @ aug.T1
+    # Q_i = [N_i, L_i]^T, (n + 2, n): the rule's map of x = [z; y]
+    Q = np.concatenate([gains.N, gains.L], axis=2).transpose(0, 2, 1)
+    dQ_a, dQ_b, dQ_ab = Q[1] - Q[3], Q[2] - Q[3], Q[0] - Q[1] - Q[2] + Q[3]
+    # a = (V_hi - V_x) / (V_hi - V_lo) = a_0 + a_1 V_x, b = (r_hi - r) / (r_hi - r_lo) = b_0 + b_1 r
+    lo, hi = aug.nts.premise_low, aug.nts.premise_high
+    a_1, b_1 = -1.0 / (hi[0] - lo[0]), -1.0 / (hi[1] - lo[1])
+    a_0, b_0 = -hi[0] * a_1, -hi[1] * b_1
+    bilinear = [
+        Q[3] + a_0 * dQ_a + b_0 * dQ_b + a_0 * b_0 * dQ_ab,
+        a_1 * dQ_a + a_1 * b_0 * dQ_ab,
+        b_1 * dQ_b + a_0 * b_1 * dQ_ab,
+        a_1 * b_1 * dQ_ab,
+    ]
+    W = np.vstack([*bilinear, (MT1 @ g_feature_matrix(gains)).T, (MT1 @ aug.nts.B).T, (gains.M @ aug.G_bar).T])
+    # maps of the constant block x = [z; y] of Phi, one column each
+    extra: list[FloatArray] = []
+    K = gains.output_gain
+    if K_rows.size:
+        # reported rows: (I - K C)(z - E y) + K y = F_z z + F_y y
+        F_z = (np.eye(n) - K @ aug.C_bar)[K_rows]
+        extra.append(np.concatenate([F_z, K[K_rows] - F_z @ gains.E], axis=1))
+    if innovation_scale is not None:
+        # nu = y - C (z - E y) = -C z + (I + C E) y, divided by the sensor sigmas
+        C = aug.C_bar
+        nu = np.concatenate([-C, np.eye(C.shape[0]) + C @ gains.E], axis=1)
+        extra.append(innovation_scale[:, None] * nu)
+    if extra:
+        cols = np.zeros((W.shape[0], sum(e.shape[0] for e in extra)))
+        cols[: n + 2] = np.vstack(extra).T
+        W = np.hstack([W, cols])
+    return W
 
 
 @dataclass(frozen=True)
@@ -149,11 +198,16 @@ class StepResult:
     x_hat : (nv, n) reported estimate of x_bar_k: [v_x, v_y, r, T_f, delta_f, ...] (with the output gain)
     in_domain : (nv,) the measured premise lay in the design box
     vy_in_bounds : (nv,) the estimated v_y lay in [v_y,min, v_y,max]
+    fast : (nv,) for a switched design, the fast gain set produced this step
     """
 
     x_hat: FloatArray
     in_domain: np.ndarray
     vy_in_bounds: np.ndarray
+    #: (nv,) the fast set ran (switched designs; None for one gain set)
+    fast: np.ndarray | None = None
+    #: (nv, 2) the innovation y_k - C x_hat_k divided by the sensor sigmas (switched designs; None otherwise)
+    innovation: FloatArray | None = None
 
     @property
     def state(self) -> FloatArray:
@@ -184,11 +238,15 @@ def initial_observer_state(rt: RuntimeGains, y: ArrayLike, x_hat0: ArrayLike | N
     return x0 + y @ rt.E.T
 
 
-def observer_step(rt: RuntimeGains, z: FloatArray, y: ArrayLike, u: ArrayLike) -> tuple[FloatArray, StepResult]:
+def observer_step(
+    rt: RuntimeGains, z: FloatArray, y: ArrayLike, u: ArrayLike, fast: np.ndarray | None = None
+) -> tuple[FloatArray, StepResult]:
     """One step of Algorithm 1 for a batch: returns (z_{k+1}, result at k).
 
     z : (nv, n) observer state; y : (nv, 2) measured [v_x [m/s], r [rad/s]];
     u : (nv, 2) demanded [T_d [N m], delta_d [rad]]. Inputs must be finite.
+    fast : (nv,) for a switched design, which vehicles use the fast set (None: all of them);
+    the features are shared, so a mixed batch costs one GEMM with both sets stacked.
 
     Internally the batch is laid out vehicles-last (structure of arrays), so
     every elementwise loop runs over the fleet; the returned z_{k+1} is the
@@ -224,23 +282,75 @@ def observer_step(rt: RuntimeGains, z: FloatArray, y: ArrayLike, u: ArrayLike) -
     Phi[width + 1] = premise[2]  # r / v_x
     np.multiply(v_x, r, out=Phi[width + 2])
     np.multiply(vy_sat, vy_sat, out=Phi[width + 5])
-    out = rt.WT @ Phi
+    n_fast = nv if fast is None else int(np.count_nonzero(fast))
+    if fast is None or n_fast == nv or rt.WT_quiet is None or rt.WT_pair is None:
+        out = rt.WT @ Phi
+    elif n_fast == 0:
+        out = rt.WT_quiet @ Phi
+    else:  # a mixed batch: both sets in one GEMM, each vehicle's column from its set
+        both = rt.WT_pair @ Phi
+        m = rt.WT.shape[0]
+        out = np.where(fast, both[:m], both[m:])
     z_next = out[:n].T
+    k = n + rt.K_rows.size
     if rt.K_rows.size:
         # the reported estimate x_hat_k + K (y_k - C_bar x_hat_k): its changed rows came out of the GEMM
         reported = np.empty((n, nv))
         reported[...] = zT if rt.E_is_zero else x_hat.T
-        reported[rt.K_rows] = out[n:]
+        reported[rt.K_rows] = out[n:k]
         x_hat = reported.T
-    return z_next, StepResult(x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds)
+    innovation = out[k:].T if rt.WT_quiet is not None else None
+    mask = None if rt.WT_quiet is None else (np.ones(nv, dtype=bool) if fast is None else fast)
+    return z_next, StepResult(
+        x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds, fast=mask, innovation=innovation
+    )
+
+
+def switched_step(
+    rt: RuntimeGains, z: FloatArray, stat: FloatArray, left: np.ndarray, y: ArrayLike, u: ArrayLike
+) -> tuple[FloatArray, FloatArray, np.ndarray, StepResult]:
+    """One step with the switching rule: returns (z_{k+1}, statistic s_k, fast samples left, result at k).
+
+    stat : (nv,) the statistic s_{k-1}; left : (nv,) samples the fast set still has to run, counting
+    this one (``rt.start_samples`` at a (re)start; 0 and a statistic of 0 are a settled vehicle).
+    For gains with one set this is :func:`observer_step`, with stat and left passed through.
+
+        fast set at k if left > 0;   nu_k = (y_k - C x_hat_k) / sigma   (out of the same GEMM)
+        s_k = lambda s_{k-1} + (1 - lambda) |nu_k|^2 / 2
+        left <- max(left - 1, 0), then max(left, hold) where s_k > threshold
+
+    so a statistic above the threshold at k puts the fast set on from k + 1 for ``hold`` samples.
+    """
+    if rt.WT_quiet is None:
+        z_next, result = observer_step(rt, z, y, u)
+        return z_next, stat, left, result
+    fast = left > 0
+    z_next, result = observer_step(rt, z, y, u, fast)
+    nu = result.innovation
+    assert nu is not None  # a switched runtime always reports it
+    nu_rows = nu.T  # (2, nv), contiguous: the GEMM's rows
+    energy = nu_rows[0] * nu_rows[0]
+    energy += nu_rows[1] * nu_rows[1]
+    energy *= 0.5 * (1.0 - rt.switch_forgetting)
+    stat = rt.switch_forgetting * stat
+    stat += energy
+    left = left - fast  # one sample of the fast set used, never below 0
+    exceeded = stat > rt.switch_threshold
+    if exceeded.any():
+        left[exceeded] = np.maximum(left[exceeded], rt.hold_samples)
+    return z_next, stat, left, result
 
 
 class FuzzyObserver:
-    """A fixed batch of observers sharing one gain set, with its state."""
+    """A fixed batch of observers sharing one design (one gain set, or a switched pair), with its state."""
 
     def __init__(self, gains: ObserverGains, y0: ArrayLike, x_hat0: ArrayLike | None = None) -> None:
         self.runtime = RuntimeGains.from_gains(gains)
         self.z = initial_observer_state(self.runtime, y0, x_hat0)
+        # the switching rule's per-vehicle state; empty for one gain set
+        rows = self.n_vehicles if self.runtime.switched else 0
+        self.stat: FloatArray = np.zeros(rows)
+        self.left: np.ndarray = np.full(rows, self.runtime.start_samples, dtype=np.int64)
 
     @property
     def n_vehicles(self) -> int:
@@ -248,5 +358,7 @@ class FuzzyObserver:
 
     def step(self, y: ArrayLike, u: ArrayLike) -> StepResult:
         """Consume y_k, u_k; return the estimate at k and advance to k + 1."""
-        self.z, result = observer_step(self.runtime, self.z, np.atleast_2d(y), np.atleast_2d(u))
+        self.z, self.stat, self.left, result = switched_step(
+            self.runtime, self.z, self.stat, self.left, np.atleast_2d(y), np.atleast_2d(u)
+        )
         return result

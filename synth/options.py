@@ -50,6 +50,35 @@ class NoiseModel(BaseModel):
     )
 
 
+class SwitchingRule(BaseModel):
+    """When a switched robust design uses its fast gain set instead of its quiet one.
+
+    The statistic is an exponentially weighted mean of the innovation energy,
+    s_k = forgetting * s_{k-1} + (1 - forgetting) * |nu_k|^2 / 2, with nu_k the
+    innovation y_k - C x_hat_k divided by the sensor sigmas (so s is about 1 when
+    the estimate is settled and the noise model is right). The fast set runs for
+    the first ``start_s`` after every (re)start and for ``hold_s`` after each
+    sample with s_k above ``threshold``; the quiet set otherwise. Both sets share
+    one Lyapunov function, so any switching sequence keeps the certified decay
+    rate (docs/switched-gains.md).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    threshold: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] = Field(
+        4.0, description="innovation statistic above which the fast set is used [dimensionless; 1 = noise level]"
+    )
+    forgetting: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = Field(
+        0.95, description="forgetting factor of the innovation statistic, per sample"
+    )
+    hold_s: Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)] = Field(
+        1.0, description="how long the fast set stays on after the statistic exceeded the threshold [s]"
+    )
+    start_s: Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)] = Field(
+        4.0, description="how long the fast set runs after an observer (re)starts [s]"
+    )
+
+
 class DesignOptions(BaseModel):
     """Options of an observer design.
 
@@ -106,6 +135,22 @@ class DesignOptions(BaseModel):
         "H2 cost bounded on its own (rate 1) and the decay rate certified by separate LMIs; steady-state noise "
         "close to the Kalman filter's, slower transients (docs/math.md, section 10)",
     )
+
+    switching: SwitchingRule | None = Field(
+        None,
+        description="'robust' design only: add a quiet gain set (the 'h2' cost form) that shares the Lyapunov "
+        "function of the default gains, and switch between the two at run time by this rule. None (default): "
+        "one gain set",
+    )
+
+    @model_validator(mode="after")
+    def _switching_needs_robust(self) -> DesignOptions:
+        if self.switching is not None and (self.design != "robust" or self.robust_cost != "joint"):
+            raise ValueError(
+                "switching needs design='robust' with robust_cost='joint' (the fast set); "
+                f"got design={self.design!r}, robust_cost={self.robust_cost!r}"
+            )
+        return self
 
     @model_validator(mode="before")
     @classmethod
