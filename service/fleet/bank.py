@@ -2,7 +2,7 @@
 
 Each vehicle of the profile owns a row (slot) of the arrays. One call of
 :meth:`ProfileBank.step` advances any subset of rows by one sample with the
-vectorised :func:`synth.observer.observer_step`, records the estimates in a
+vectorised :func:`synth.observer.switched_step`, records the estimates in a
 per-row ring buffer and feeds the alarm detectors. Gains are swapped with
 :meth:`ProfileBank.activate`, which re-starts every row from its last
 estimate at its next sample.
@@ -18,7 +18,7 @@ from service.fleet.alarms import LevelDetector
 from service.profiles import ProfileSpec
 from synth.gains import ObserverGains
 from synth.model import FloatArray
-from synth.observer import RuntimeGains, initial_observer_state, observer_step
+from synth.observer import RuntimeGains, initial_observer_state, switched_step
 
 #: Columns of the estimate rows kept per sample: v_x, v_y, r [m/s, m/s, rad/s], T_f [N m], delta_f [rad].
 ESTIMATE_COLUMNS = ("vx", "vy", "r", "torque_fault", "steer_fault")
@@ -59,6 +59,10 @@ class ProfileBank:
         self.free: list[int] = list(range(cap - 1, -1, -1))
         self.used = np.zeros(cap, dtype=bool)
         self.z = np.zeros((cap, 0))
+        # switching rule of a switched design: innovation statistic and fast samples left (unused otherwise)
+        self.switch_stat = np.zeros(cap)
+        self.fast_left = np.zeros(cap, dtype=np.int64)
+        self.last_fast = np.zeros(cap, dtype=bool)
         self.needs_init = np.ones(cap, dtype=bool)
         self.warm = np.full((cap, _N_EST), np.nan)
         self.started_t_ns = np.zeros(cap, dtype=np.int64)
@@ -170,6 +174,9 @@ class ProfileBank:
 
         self.used = pad(self.used, False)
         self.z = pad(self.z, 0.0)
+        self.switch_stat = pad(self.switch_stat, 0.0)
+        self.fast_left = pad(self.fast_left, 0)
+        self.last_fast = pad(self.last_fast, False)
         self.needs_init = pad(self.needs_init, True)
         self.warm = pad(self.warm, np.nan)
         self.started_t_ns = pad(self.started_t_ns, 0)
@@ -216,13 +223,21 @@ class ProfileBank:
             x0[:, 2] = y[restarted, 1]
             x0[has_warm] = warm[has_warm]
             self.z[rows] = initial_observer_state(rt, y[restarted], x0)
+            self.switch_stat[rows] = 0.0
+            self.fast_left[rows] = rt.start_samples
             self.needs_init[rows] = False
             self.warm[rows] = np.nan
             self.started_t_ns[rows] = t_ns[restarted]
             for detector in (self.torque, self.steer, self.domain):
                 detector.reset(rows, keep_level=True)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            z_next, res = observer_step(rt, self.z[slots], y, u)
+            z_next, stat, left, res = switched_step(
+                rt, self.z[slots], self.switch_stat[slots], self.fast_left[slots], y, u
+            )
+        if res.fast is not None:
+            self.switch_stat[slots] = stat
+            self.fast_left[slots] = left
+            self.last_fast[slots] = res.fast
         x5 = res.x_hat[:, :_N_EST]
         finite: np.ndarray = np.asarray(np.isfinite(x5).all(axis=1) & np.isfinite(z_next).all(axis=1))
         self.z[slots] = z_next
