@@ -117,6 +117,13 @@ def add_design_arguments(parser: argparse.ArgumentParser, *, default_design: str
         help="robust design: 'joint' (default) certifies cost and decay rate with the same LMIs and tracks faults "
         "faster; 'h2' bounds the H2 cost alone (decay rate certified separately): less steady-state noise",
     )
+    parser.add_argument(
+        "--switching",
+        action="store_true",
+        help="robust design: add a quiet gain set under the same Lyapunov function and switch to the default "
+        "(fast) set at start and after large innovations (the rule's defaults; set them in a profile's "
+        "'switching' options). Less noise in steady state, certified for any switching",
+    )
     parser.set_defaults(default_design=default_design)
 
 
@@ -134,6 +141,8 @@ def design_options(args: argparse.Namespace, profile: VehicleProfileFile) -> Des
     data.update({k: v for k, v in overrides.items() if v is not None})
     if args.no_decay_rate:
         data["optimise_decay_rate"] = False
+    if getattr(args, "switching", False) and data.get("switching") is None:
+        data["switching"] = {}
     options: DesignOptions = validate(DesignOptions, data, "design.")
     return options
 

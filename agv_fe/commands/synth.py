@@ -45,8 +45,10 @@ def format_summary(c: Any) -> str:
     where = c.spectral_radius_at
     speed, yaw_rate = where.get("speed_mps", float("nan")), where.get("yaw_rate_radps", float("nan"))
     worst = f"v_x = {speed:.1f} m/s, r = {yaw_rate:.2f} rad/s"
+    switched = "fast_set_h2_cost_bound" in c.performance
+    sets = ", switched: fast and quiet gain sets, one Lyapunov function" if switched else ""
     lines = [
-        f"design        {c.design}, fault order {c.fault_order}, {c.lyapunov} Lyapunov matrix",
+        f"design        {c.design}, fault order {c.fault_order}, {c.lyapunov} Lyapunov matrix{sets}",
         f"LMIs          {c.n_lmis_solved} solved ({c.lmi_form} form); "
         f"{c.n_lmis_verified} vertex LMIs verified in numpy, min eigenvalue {c.lmi_min_eigenvalue:.3g}",
         f"decay rate    {c.decay_rate:.4f} certified (error shrinks at least x{c.decay_rate:.4f} per sample)",

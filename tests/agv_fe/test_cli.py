@@ -43,6 +43,18 @@ def test_synth_robust_cost_flag_selects_the_h2_cost_form(tmp_path):
     assert any("'h2'" in note for note in data["certificate"]["notes"])
 
 
+def test_switching_flag_designs_two_gain_sets_that_simulate_runs(tmp_path):
+    out = agv_fe("synth", "--switching", "--out", str(tmp_path / "g.json"))
+    assert out.returncode == 0, out.stderr
+    assert "switched: fast and quiet gain sets" in out.stdout and "fast_set_h2_cost_bound" in out.stdout
+    data = json.loads((tmp_path / "g.json").read_text())
+    assert data["options"]["switching"]["threshold"] > 0 and "L_quiet" in data["matrices"]
+    sim = agv_fe("simulate", "--scenario", "paper-2", "--noise", "realistic", "--gains", str(tmp_path / "g.json"),
+                 "--out", str(tmp_path / "sim"))  # fmt: skip
+    assert sim.returncode == 0, sim.stderr
+    assert data["version"] in sim.stdout
+
+
 def test_bad_params_file_names_the_field(tmp_path):
     params = tmp_path / "p.json"
     params.write_text(json.dumps({"params": {"mass_kg": -5}, "bounds": {"vx_min_mps": 40}}))
