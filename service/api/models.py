@@ -96,6 +96,7 @@ class VehicleStatus(BaseModel):
                     "last_seen_ns": 1_700_000_120_030_000_000,
                     "seconds_since_seen": 0.004,
                     "gain_version": "3f9a1c0b7d2e",
+                    "gain_set": None,
                     "counters": _COUNTERS_EXAMPLE,
                     "rejected": _REJECTED_EXAMPLE,
                 }
@@ -112,6 +113,11 @@ class VehicleStatus(BaseModel):
     last_seen_ns: int | None = Field(description="service clock when the last measurement arrived [ns]")
     seconds_since_seen: float | None
     gain_version: str | None
+    gain_set: Literal["fast", "quiet"] | None = Field(
+        None,
+        description="switched designs: the gain set of the latest estimate (fast after a start or a large "
+        "innovation, quiet once settled); null for one gain set or before the first estimate",
+    )
     counters: dict[str, int] = Field(
         description="accepted samples, estimates computed and published, missing samples, gaps, observer restarts"
     )

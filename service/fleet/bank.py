@@ -157,6 +157,7 @@ class ProfileBank:
         self.warm[slot] = np.nan
         self.last_x5[slot] = np.nan
         self.last_in_domain[slot] = False
+        self.last_fast[slot] = False
         self.last_seq[slot] = -1
         self.last_t_ns[slot] = 0
         self.hist_count[slot] = 0
@@ -197,6 +198,12 @@ class ProfileBank:
             detector.grow(capacity)
         self.free.extend(range(capacity - 1, self.capacity - 1, -1))
         self.capacity = capacity
+
+    def gain_set(self, slot: int) -> str | None:
+        """'fast' or 'quiet': the set of the row's latest estimate (switched designs); None otherwise."""
+        if self.runtime is None or not self.runtime.switched or self.last_seq[slot] < 0:
+            return None
+        return "fast" if self.last_fast[slot] else "quiet"
 
     def sample_counts(self, slot: int) -> dict[str, int]:
         """Samples the row accepted, estimates it made and estimates it published."""

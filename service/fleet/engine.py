@@ -735,6 +735,7 @@ class FleetEngine:
             if vehicle.last_seen_mono is None
             else round(now_mono - vehicle.last_seen_mono, 3),
             "gain_version": vehicle.bank.version,
+            "gain_set": vehicle.bank.gain_set(vehicle.slot),
             "counters": dict(vehicle.counters),
             "rejected": dict(vehicle.rejected),
         }

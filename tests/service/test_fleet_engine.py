@@ -88,6 +88,11 @@ def test_a_switched_design_runs_in_the_engine_as_offline():
     assert True in modes and False in modes  # the rule ran both sets in these 80 samples
     a = sorted((e for e in got if e.vehicle == "a"), key=lambda e: e.seq)
     np.testing.assert_allclose(as_array(a), np.array(expected), atol=BATCH_EQUALITY_ATOL)
+    status = engine.vehicle_status(engine.vehicles["a"])
+    assert status["gain_set"] == ("fast" if modes[-1] else "quiet")
+    one_set = make_engine(synthesize(options=DesignOptions(design="robust", lyapunov="common")))
+    one_set.process(pairs(samples[0]))
+    assert one_set.vehicle_status(one_set.vehicles["a"])["gain_set"] is None
 
 
 BAD = {
