@@ -8,7 +8,7 @@ from pathlib import Path
 
 from agv_fe.benchmarks import report_header
 from synth.design import synthesize
-from synth.options import DesignOptions
+from synth.options import DesignOptions, SwitchingRule
 
 REPEATS = 5
 
@@ -47,6 +47,11 @@ CASES: list[tuple[str, DesignOptions, bool]] = [
     (
         "robust design, 'h2' cost form (cost LMIs at rate 1, separate decay-rate LMIs), fault order 1",
         DesignOptions(robust_cost="h2"),
+        True,
+    ),
+    (
+        "switched robust design: the default's gains plus a quiet set under one P(h) (two solves)",
+        DesignOptions(switching=SwitchingRule()),
         True,
     ),
     (
