@@ -486,6 +486,12 @@ service kept up: p99 under 100 ms, ten sample periods. Above that its queue grow
 The 10 ms latency target is judged separately. Three Python processes share two cores here,
 so the generator and the receiver (which decodes every estimate: see its CPU column) take CPU the
 service would otherwise have; a service on its own machine carries more.
+
+Tried and not adopted (2026-11-23, one service per run, 10 s steps, 1,000 vehicles, an estimate for
+every 10th sample): one Zenoh RX worker thread in the service instead of two
+(`ZENOH_RUNTIME='(rx: (worker_threads: 1))'`). In the runs with nothing else on the machine (three
+services with it, two without, two steps each): p99 6.8-8.9 ms with it, 7.7-9.1 ms without; service
+CPU 0.49-0.66 against 0.59-0.66 cores. No clear gain; the default runtime stays.
 """
 
 
