@@ -2,8 +2,9 @@
 
 Each vehicle of the profile owns a row (slot) of the arrays. One call of
 :meth:`ProfileBank.step` advances any subset of rows by one sample with the
-vectorised :func:`synth.observer.switched_step`, records the estimates in a
-per-row ring buffer and feeds the alarm detectors. Gains are swapped with
+vectorised :func:`synth.observer.observer_step` (``switched_step`` for a switched
+design), records the estimates in a per-row ring buffer and feeds the alarm
+detectors. Gains are swapped with
 :meth:`ProfileBank.activate`, which re-starts every row from its last
 estimate at its next sample.
 """
@@ -18,7 +19,7 @@ from service.fleet.alarms import LevelDetector
 from service.profiles import ProfileSpec
 from synth.gains import ObserverGains
 from synth.model import FloatArray
-from synth.observer import RuntimeGains, initial_observer_state, switched_step
+from synth.observer import RuntimeGains, initial_observer_state, observer_step, switched_step
 
 #: Columns of the estimate rows kept per sample: v_x, v_y, r [m/s, m/s, rad/s], T_f [N m], delta_f [rad].
 ESTIMATE_COLUMNS = ("vx", "vy", "r", "torque_fault", "steer_fault")
@@ -238,13 +239,15 @@ class ProfileBank:
             for detector in (self.torque, self.steer, self.domain):
                 detector.reset(rows, keep_level=True)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            z_next, stat, left, res = switched_step(
-                rt, self.z[slots], self.switch_stat[slots], self.fast_left[slots], y, u
-            )
-        if res.fast is not None:
-            self.switch_stat[slots] = stat
-            self.fast_left[slots] = left
-            self.last_fast[slots] = res.fast
+            if rt.switched:
+                z_next, stat, left, res = switched_step(
+                    rt, self.z[slots], self.switch_stat[slots], self.fast_left[slots], y, u
+                )
+                self.switch_stat[slots] = stat
+                self.fast_left[slots] = left
+                self.last_fast[slots] = res.fast
+            else:  # one gain set: no switching state to gather or scatter on the hot path
+                z_next, res = observer_step(rt, self.z[slots], y, u)
         x5 = res.x_hat[:, :_N_EST]
         finite: np.ndarray = np.asarray(np.isfinite(x5).all(axis=1) & np.isfinite(z_next).all(axis=1))
         self.z[slots] = z_next
