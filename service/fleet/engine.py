@@ -55,7 +55,7 @@ from service.protocol import (
     Measurement,
     ProtocolError,
     bucket_of,
-    encode_estimate,
+    encode_estimates,
     parse_vehicle_key,
     unpack_measurement_sequence,
     vehicle_key,
@@ -555,44 +555,43 @@ class FleetEngine:
             np.maximum(bank.torque.level[slots[pub]], bank.steer.level[slots[pub]]), bank.domain.level[slots[pub]]
         )
         version = bank.version or ""
-        want_events = self.events.wants("estimate")
-        audience = self.events.audience("estimate") if want_events else None  # None: every vehicle
-        for i, (vx, vy, r, tf, df), sq, tn, dom, lvl in zip(
-            idx[pub].tolist(),
-            x5[pub].tolist(),
-            seq[idx[pub]].tolist(),
-            t[pub].tolist(),
-            in_domain[pub].tolist(),
-            level.tolist(),
-            strict=True,
-        ):
-            vehicle = rows.vehicles[i]
-            name = "STALE" if vehicle.stale else LEVEL_NAMES[lvl]
-            result.estimates.append(
-                (vehicle.id, encode_estimate(vehicle.id, sq, tn, vx, vy, r, tf, df, dom, version, name))
-            )
-            if want_events and (audience is None or vehicle.id in audience):
-                self.events.publish(
-                    FleetEvent(
-                        "estimate",
-                        vehicle.id,
-                        Estimate.model_construct(
-                            vehicle=vehicle.id,
-                            seq=sq,
-                            t_ns=tn,
-                            vx=vx,
-                            vy=vy,
-                            r=r,
-                            torque_fault=tf,
-                            steer_fault=df,
-                            in_domain=dom,
-                            gain_version=version,
-                            level=name,
-                            v=1,
-                        ),
-                        tuple(values[i].tolist()),
-                    )
+        at = idx[pub].tolist()
+        published = [rows.vehicles[i] for i in at]
+        ids = [vehicle.id for vehicle in published]
+        levels = zip(published, level.tolist(), strict=True)
+        names = ["STALE" if vehicle.stale else LEVEL_NAMES[lvl] for vehicle, lvl in levels]
+        states, seqs, times = x5[pub].tolist(), seq[idx[pub]].tolist(), t[pub].tolist()
+        domains = in_domain[pub].tolist()
+        payloads = encode_estimates(ids, seqs, times, states, domains, version, names)
+        result.estimates.extend(zip(ids, payloads, strict=True))
+        if not self.events.wants("estimate"):
+            return
+        audience = self.events.audience("estimate")  # None: every vehicle
+        for j, vehicle_id in enumerate(ids):
+            if audience is not None and vehicle_id not in audience:
+                continue
+            vx, vy, r, tf, df = states[j]
+            self.events.publish(
+                FleetEvent(
+                    "estimate",
+                    vehicle_id,
+                    Estimate.model_construct(
+                        vehicle=vehicle_id,
+                        seq=seqs[j],
+                        t_ns=times[j],
+                        vx=vx,
+                        vy=vy,
+                        r=r,
+                        torque_fault=tf,
+                        steer_fault=df,
+                        in_domain=domains[j],
+                        gain_version=version,
+                        level=names[j],
+                        v=1,
+                    ),
+                    tuple(values[at[j]].tolist()),
                 )
+            )
 
     def _alarm_transitions(
         self, bank: ProfileBank, vehicle: Vehicle, t_ns: int, x5: np.ndarray, result: TickResult

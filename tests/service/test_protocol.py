@@ -78,25 +78,41 @@ def test_keys_buckets_and_shards():
     assert sum(len(s) for s in shards) == len(all_buckets())
 
 
-def test_the_fast_estimate_encoder_writes_the_estimate_model_to_15_digits():
-    """encode_estimate skips pydantic; its JSON must decode to the same Estimate, for any finite float."""
+def test_the_fast_estimate_encoder_writes_the_estimate_model_exactly():
+    """encode_estimates skips pydantic; each document must decode to the same Estimate, float for float."""
     import json
     import math
 
-    from service.protocol import encode_estimate
+    from service.protocol import encode_estimate, encode_estimates
 
     values = [10.0, -0.0, 1e-300, -3.25e-7, 29.700000000000003, 1.2345678901234567e8, -math.pi, 5e-324]
-    for k in range(len(values)):
-        x = [values[(k + j) % len(values)] for j in range(5)]
-        payload = encode_estimate("truck-7", 1042, 1_700_000_010_420_000_000, *x, k % 2 == 0, "3f9a1c0b7d2e", "WARN")
+    states = [[values[(k + j) % len(values)] for j in range(5)] for k in range(len(values))]
+    ids = [f"truck-{k}" if k % 3 else f"a.b_c-{k}" for k in range(len(states))]
+    seqs = [1042 + k for k in range(len(states))]
+    stamps = [1_700_000_010_420_000_000 + k for k in range(len(states))]
+    domains = [k % 2 == 0 for k in range(len(states))]
+    levels = ["OK", "WARN", "FAULT", "STALE"] * 2
+    payloads = encode_estimates(ids, seqs, stamps, states, domains, "3f9a1c0b7d2e", levels)
+    assert len(payloads) == len(states)
+    for k, payload in enumerate(payloads):
         json.loads(payload)  # plain JSON, no NaN or Infinity tokens
         e = Estimate.decode(payload)
         assert (e.vehicle, e.seq, e.t_ns, e.in_domain, e.gain_version, e.level) == (
-            "truck-7", 1042, 1_700_000_010_420_000_000, k % 2 == 0, "3f9a1c0b7d2e", "WARN"
+            ids[k], seqs[k], stamps[k], domains[k], "3f9a1c0b7d2e", levels[k]
         )  # fmt: skip
         got = [e.vx, e.vy, e.r, e.torque_fault, e.steer_fault]
-        for a, b in zip(got, x, strict=True):
-            assert math.isclose(a, b, rel_tol=1e-14, abs_tol=0.0) or a == b
+        assert got == states[k]
+        assert [math.copysign(1.0, a) for a in got] == [math.copysign(1.0, b) for b in states[k]]  # -0.0 kept
+        one = encode_estimate(ids[k], seqs[k], stamps[k], *states[k], domains[k], "3f9a1c0b7d2e", levels[k])  # type: ignore[arg-type]
+        assert one == payload
+    assert encode_estimates([], [], [], [], [], "3f9a1c0b7d2e", []) == []
+
+
+def test_the_fast_estimate_encoder_refuses_a_field_that_would_break_the_batch():
+    from service.protocol import encode_estimates
+
+    with pytest.raises(ValueError, match="contains"):
+        encode_estimates(["a},{b", "c"], [1, 2], [3, 4], [[0.0] * 5] * 2, [True, True], "00", ["OK", "OK"])
 
 
 def test_json_messages_round_trip():
