@@ -10,6 +10,7 @@ LMI designs in worker processes, gain re-verification in a thread.
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 import os
 import secrets
@@ -107,6 +108,9 @@ class Service:
         ]
         if self.settings.dashboard.enabled:
             self.dashboard.start(truth=self.transport)
+        if self.settings.ingest.gc_freeze:
+            gc.collect()
+            gc.freeze()
         log.info(
             "replica %s serving buckets %s on zenoh %s %s",
             self.replica_id,

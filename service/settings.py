@@ -90,6 +90,12 @@ class IngestSettings(_Section):
     housekeeping_interval_s: Annotated[float, Field(gt=0)] = Field(
         0.25, description="period of the stale-vehicle and reject-burst checks [s]"
     )
+    gc_freeze: bool = Field(
+        True,
+        description="once started, move every live object to the garbage collector's permanent generation "
+        "(gc.freeze): a full collection then no longer walks the libraries' objects, which stalled ingest "
+        "for tens of milliseconds (docs/benchmarks/service_load.md)",
+    )
 
 
 class ShardSettings(_Section):

@@ -168,3 +168,20 @@ def test_a_client_replica_reconnects_when_the_router_comes_back(tmp_path):
             assert srv.get("/ready").json()["ready"]
     finally:
         router.close()
+
+
+@pytest.mark.parametrize("freeze", [True, False])
+def test_the_started_service_freezes_its_heap_for_the_collector_by_setting(tmp_path, freeze):
+    """gc_freeze moves what start-up built to the permanent generation, so full collections stop walking it."""
+    import gc
+
+    gc.unfreeze()
+    try:
+        with running(make_settings(tmp_path, ingest={"gc_freeze": freeze})):
+            frozen = gc.get_freeze_count()
+        if freeze:
+            assert frozen > 10_000  # the libraries, the app, the gains: far more than a test leaves behind
+        else:
+            assert frozen == 0
+    finally:
+        gc.unfreeze()
