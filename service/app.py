@@ -240,9 +240,10 @@ class Service:
                 self.db.put_vehicles((v.id, v.profile, v.registered_t_ns) for v in result.new_vehicles)
             if result.alarms:
                 self.commit_alarms(result.alarms)
-            if result.estimates:
-                transport.publish_estimates(result.estimates)
-                metrics.estimates_out += len(result.estimates)
+            if result.estimate_batches:
+                sent, in_fleet = transport.publish_estimates(result.estimate_batches)
+                metrics.estimates_out += sent
+                metrics.fleet_estimates_out += in_fleet
             metrics.tick_seconds.observe(time.perf_counter() - started)
             metrics.tick_batch.observe(len(batch))
             metrics.last_batch = len(batch)
@@ -260,6 +261,7 @@ class Service:
             changes.extend(self.engine.housekeeping())
             if changes:
                 self.commit_alarms(changes)
+            self.metrics.estimates_unmatched = transport.refresh_matching()
 
     def commit_alarms(self, changes: list[AlarmChange]) -> None:
         """Store alarm changes (one transaction), then publish them."""

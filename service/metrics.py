@@ -83,6 +83,8 @@ class ServiceMetrics:
         self.tick_batch = Histogram(BATCH_BUCKETS)
         self.synthesis_seconds = Histogram(SYNTHESIS_BUCKETS_S)
         self.estimates_out = 0
+        self.fleet_estimates_out = 0
+        self.estimates_unmatched = 0
         self.alarms_out = 0
         self.last_batch = 0
         self.full_batches = 0

@@ -23,14 +23,17 @@ from __future__ import annotations
 
 import contextlib
 import json
-from collections.abc import Collection
-from typing import Any
+import time
+from collections.abc import Collection, Sequence
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from service.protocol import (
     all_buckets,
     bucket_selector,
+    encode_fleet_estimates,
+    fleet_estimates_key,
     fleet_selector,
     parse_vehicle_key,
     service_liveliness_key,
@@ -38,8 +41,16 @@ from service.protocol import (
 )
 from service.settings import ZenohSettings
 
+if TYPE_CHECKING:
+    from service.fleet.engine import EstimateBatch
+
 #: Ground-truth samples kept per followed vehicle between two drains (newest kept).
 TRUTH_RING_CAPACITY = 1024
+#: A new estimate publisher is taken as matched for this long: a client session learns of existing
+#: subscribers only after a round trip to its router, and reports "no match" until then [s].
+MATCH_SETTLE_S = 1.0
+#: Publishers whose matching status one refresh reads at most (1.3 us each, measured).
+MATCH_REFRESH_MAX = 2000
 
 
 class TransportError(Exception):
@@ -83,6 +94,10 @@ class Transport:
         self._alive: list[Any] = []
         self._token: Any = None
         self._estimate_pubs: dict[str, Any] = {}
+        self._declared_at: dict[str, float] = {}
+        self._unmatched: set[str] = set()  # vehicles whose estimate key no subscriber matched at the last refresh
+        self._refresh_from = 0
+        self._fleet_pub: Any = None
         self._alarm_pubs: dict[str, Any] = {}
         self._truth: dict[str, Any] = {}
         self._estimate_cc = (
@@ -114,6 +129,11 @@ class Transport:
                 for k in self.selectors("alive")
             ]
             self._token = session.liveliness().declare_token(service_liveliness_key(self.replica_id, self.prefix))
+            self._fleet_pub = session.declare_publisher(
+                fleet_estimates_key(self.replica_id, self.prefix),
+                congestion_control=self._estimate_cc,
+                encoding=zenoh.Encoding.APPLICATION_JSON,
+            )
         except zenoh.ZError as exc:
             self.close()
             raise TransportError(f"zenoh: cannot declare the service's subscriptions: {exc}") from exc
@@ -162,17 +182,61 @@ class Transport:
                 out.append((vehicle_id, sample.payload.to_bytes()))
         return out
 
-    def publish_estimates(self, items: list[tuple[str, bytes]]) -> None:
-        pubs = self._estimate_pubs
-        for vehicle_id, payload in items:
-            pub = pubs.get(vehicle_id)
-            if pub is None:
-                pub = pubs[vehicle_id] = self.session.declare_publisher(
-                    vehicle_key(vehicle_id, "estimate", self.prefix),
-                    congestion_control=self._estimate_cc,
-                    encoding=zenoh.Encoding.APPLICATION_JSON,
-                )
-            pub.put(payload)
+    def publish_estimates(self, batches: Sequence[EstimateBatch]) -> tuple[int, int]:
+        """Publish a tick's estimates; returns (per-vehicle messages, estimates in the fleet message).
+
+        Each vehicle's estimate goes to its own key unless no subscriber matched that key at the last
+        :meth:`refresh_matching` (then the document is not even cut out of its batch). The whole tick
+        goes as one :class:`~service.protocol.FleetEstimates` message when a subscriber matches the
+        replica's fleet key.
+        """
+        pubs, unmatched = self._estimate_pubs, self._unmatched
+        sent = 0
+        for batch in batches:
+            documents: list[bytes] | None = None
+            for j, vehicle_id in enumerate(batch.vehicle_ids):
+                if vehicle_id in unmatched:
+                    continue
+                pub = pubs.get(vehicle_id)
+                if pub is None:
+                    pub = pubs[vehicle_id] = self.session.declare_publisher(
+                        vehicle_key(vehicle_id, "estimate", self.prefix),
+                        congestion_control=self._estimate_cc,
+                        encoding=zenoh.Encoding.APPLICATION_JSON,
+                    )
+                    self._declared_at[vehicle_id] = time.monotonic()
+                if documents is None:
+                    documents = batch.documents()
+                pub.put(documents[j])
+                sent += 1
+        in_fleet = 0
+        if self._fleet_pub is not None and batches and self._fleet_pub.matching_status.matching:
+            self._fleet_pub.put(encode_fleet_estimates(self.replica_id, [b.array for b in batches]))
+            in_fleet = sum(len(b.vehicle_ids) for b in batches)
+        return sent, in_fleet
+
+    def refresh_matching(self, now: float | None = None) -> int:
+        """Re-read whether a subscriber matches each vehicle's estimate key (at most MATCH_REFRESH_MAX per
+        call, round robin); returns how many vehicles' estimates are currently skipped."""
+        now = time.monotonic() if now is None else now
+        items = list(self._estimate_pubs.items())
+        if not items:
+            return 0
+        start = self._refresh_from % len(items)
+        chunk = items[start : start + MATCH_REFRESH_MAX]
+        self._refresh_from = start + len(chunk)
+        for vehicle_id, pub in chunk:
+            if now - self._declared_at.get(vehicle_id, 0.0) < MATCH_SETTLE_S:
+                continue
+            try:
+                matched = pub.matching_status.matching
+            except zenoh.ZError:
+                matched = True  # unknown: keep publishing
+            if matched:
+                self._unmatched.discard(vehicle_id)
+            else:
+                self._unmatched.add(vehicle_id)
+        return len(self._unmatched)
 
     def publish_alarm(self, vehicle_id: str, payload: bytes) -> None:
         pub = self._alarm_pubs.get(vehicle_id)
@@ -188,7 +252,8 @@ class Transport:
     def close(self) -> None:
         """Undeclare everything and close the session (an unclosed session can hang the process at exit)."""
         entities = [*self._meas, *self._alive, *self._truth.values()]
-        for entity in [*entities, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
+        fleet = [self._fleet_pub] if self._fleet_pub is not None else []
+        for entity in [*entities, *fleet, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         if self._token is not None:
@@ -196,6 +261,7 @@ class Transport:
                 self._token.undeclare()
         self._meas, self._alive, self._token = [], [], None
         self._estimate_pubs, self._alarm_pubs, self._truth = {}, {}, {}
+        self._declared_at, self._unmatched, self._fleet_pub = {}, set(), None
         if self._session is not None:
             self._session.close()  # type: ignore[no-untyped-call]
             self._session = None

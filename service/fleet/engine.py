@@ -55,8 +55,9 @@ from service.protocol import (
     Measurement,
     ProtocolError,
     bucket_of,
-    encode_estimates,
+    encode_estimate_array,
     parse_vehicle_key,
+    split_estimate_array,
     unpack_measurement_sequence,
     vehicle_key,
 )
@@ -176,14 +177,35 @@ class Vehicle:
 
 
 @dataclass
+class EstimateBatch:
+    """Estimates of one profile step, encoded once: a JSON array of Estimate documents, one per vehicle id."""
+
+    vehicle_ids: list[str]
+    array: bytes
+
+    def documents(self) -> list[bytes]:
+        """One Estimate document per vehicle, in the order of ``vehicle_ids``."""
+        return split_estimate_array(self.array, len(self.vehicle_ids))
+
+
+@dataclass
 class TickResult:
     """What one tick produced: estimates to publish, alarm changes to store then publish, new vehicles to store."""
 
-    estimates: list[tuple[str, bytes]] = field(default_factory=list)
+    estimate_batches: list[EstimateBatch] = field(default_factory=list)
     alarms: list[AlarmChange] = field(default_factory=list)
     new_vehicles: list[Vehicle] = field(default_factory=list)
     received: int = 0
     accepted: int = 0
+
+    @property
+    def estimate_count(self) -> int:
+        return sum(len(b.vehicle_ids) for b in self.estimate_batches)
+
+    @property
+    def estimates(self) -> list[tuple[str, bytes]]:
+        """(vehicle id, Estimate document) of every estimate of the tick."""
+        return [pair for b in self.estimate_batches for pair in zip(b.vehicle_ids, b.documents(), strict=True)]
 
 
 class _Rows:
@@ -562,8 +584,8 @@ class FleetEngine:
         names = ["STALE" if vehicle.stale else LEVEL_NAMES[lvl] for vehicle, lvl in levels]
         states, seqs, times = x5[pub].tolist(), seq[idx[pub]].tolist(), t[pub].tolist()
         domains = in_domain[pub].tolist()
-        payloads = encode_estimates(ids, seqs, times, states, domains, version, names)
-        result.estimates.extend(zip(ids, payloads, strict=True))
+        array = encode_estimate_array(ids, seqs, times, states, domains, version, names)
+        result.estimate_batches.append(EstimateBatch(ids, array))
         if not self.events.wants("estimate"):
             return
         audience = self.events.audience("estimate")  # None: every vehicle

@@ -135,3 +135,42 @@ def test_json_messages_round_trip():
     assert Alarm.decode(a.encode()) == a
     with pytest.raises(ProtocolError, match="invalid Alarm"):
         Alarm.decode(b'{"v": 1, "vehicle": "v1"}')
+
+
+def test_a_fleet_message_joins_estimate_arrays_in_order_and_decodes():
+    from service.protocol import (
+        FleetEstimates,
+        encode_estimate_array,
+        encode_fleet_estimates,
+        fleet_estimates_key,
+        fleet_estimates_selector,
+        fleet_selector,
+    )
+
+    def array(ids: list[str], seq0: int) -> bytes:
+        n = len(ids)
+        states = [[float(k), 0.5, -0.25, 30.0 + k, 1e-3] for k in range(n)]
+        return encode_estimate_array(ids, range(seq0, seq0 + n), [7] * n, states, [True] * n, "ab12", ["OK"] * n)
+
+    message = encode_fleet_estimates("replica-1", [array(["a", "b"], 10), array([], 0), array(["c"], 20)])
+    decoded = FleetEstimates.decode(message)
+    assert decoded.replica == "replica-1"
+    assert [(e.vehicle, e.seq, e.torque_fault) for e in decoded.estimates] == [
+        ("a", 10, 30.0),
+        ("b", 11, 31.0),
+        ("c", 20, 30.0),
+    ]
+    assert FleetEstimates.decode(encode_fleet_estimates("replica-1", [])).estimates == []
+    with pytest.raises(ProtocolError):
+        FleetEstimates.decode(b'{"v":1,"replica":"r","estimates":[{"v":1}]}')
+    # the fleet key is outside every per-vehicle selector, and its selector matches every replica's key
+    key = fleet_estimates_key("replica-1")
+    assert key == "agv/v1/service/replica-1/estimates"
+    assert not zenoh_intersects(fleet_selector("estimate"), key)
+    assert zenoh_intersects(fleet_estimates_selector(), key)
+
+
+def zenoh_intersects(selector: str, key: str) -> bool:
+    import zenoh
+
+    return bool(zenoh.KeyExpr(selector).intersects(zenoh.KeyExpr(key)))

@@ -6,6 +6,7 @@ Assertions are on counts, order and equality, never on speed: the machine is sha
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -222,3 +223,76 @@ def test_unknown_vehicles_are_rejected_when_the_setting_says_so(tmp_path):
         wait_for(lambda: line in srv.get("/metrics").text, what="10 unknown-vehicle rejects")
         assert srv.get("/vehicles/stranger-1").status_code == 404
         assert p.estimates_of("stranger-1") == []
+
+
+def test_the_fleet_stream_carries_every_estimate_once_and_unwatched_keys_are_not_sent(server):
+    """One FleetEstimates message per tick holds every estimate; a vehicle key nobody subscribes to gets none."""
+    import zenoh
+
+    from service.protocol import FleetEstimates, fleet_estimates_selector
+    from service.transport import MATCH_SETTLE_S, open_session
+    from tests.service.helpers import parse_metrics
+
+    ids = ["fleet-a", "fleet-b", "fleet-c"]
+    session = open_session("client", server.settings.zenoh.endpoint)
+    fleet = session.declare_subscriber(fleet_estimates_selector(), zenoh.handlers.FifoChannel(1 << 16))
+    pubs = {
+        v: session.declare_publisher(vehicle_key(v, "meas"), congestion_control=zenoh.CongestionControl.BLOCK)
+        for v in ids
+    }
+    got: list[tuple[str, int]] = []
+    replicas: set[str] = set()
+
+    def drain() -> int:
+        while (s := fleet.try_recv()) is not None:
+            message = FleetEstimates.decode(s.payload.to_bytes())
+            replicas.add(message.replica)
+            got.extend((e.vehicle, e.seq) for e in message.estimates if e.vehicle in ids)
+        return len(got)
+
+    def send(seqs: range) -> None:
+        for k in seqs:
+            for v in ids:
+                pubs[v].put(constant_measurement(v, k).encode())
+
+    def counters() -> tuple[float, float, float]:
+        m = parse_metrics(server.get("/metrics").text)
+        return (
+            m.value("agv_fe_estimates_published_total"),
+            m.value("agv_fe_fleet_estimates_published_total"),
+            m.value("agv_fe_estimate_keys_unmatched"),
+        )
+
+    watcher = None
+    try:
+        time.sleep(0.3)  # the subscription reaches the router
+        send(range(200))
+        wait_for(lambda: drain() >= 600, what="600 estimates in fleet messages")
+        assert len(got) == len(set(got)) == 600  # each estimate exactly once
+        for v in ids:
+            assert [k for vid, k in got if vid == v] == list(range(200))  # in order
+        assert replicas == {server.service.replica_id}
+        # nobody subscribes to these vehicles' own keys: once the service has looked, it stops sending there
+        time.sleep(MATCH_SETTLE_S + 0.3)
+        wait_for(lambda: counters()[2] >= len(ids), what="the three keys seen unmatched")
+        per_vehicle0, in_fleet0, _ = counters()
+        send(range(200, 300))
+        wait_for(lambda: drain() >= 900, what="300 more estimates in fleet messages")
+        per_vehicle1, in_fleet1, _ = counters()
+        assert per_vehicle1 == per_vehicle0 and in_fleet1 - in_fleet0 >= 300
+        # a subscriber to one vehicle's key gets its estimates again within a few refreshes
+        watcher = session.declare_subscriber(vehicle_key("fleet-a", "estimate"), zenoh.handlers.FifoChannel(1 << 16))
+        seqs = iter(range(300, 100_000))
+
+        def watched() -> bool:
+            k = next(seqs)
+            send(range(k, k + 1))  # keep the vehicles sending while waiting
+            return watcher.try_recv() is not None
+
+        wait_for(watched, what="fleet-a's estimates on its own key")
+        per_vehicle2, _, unmatched2 = counters()
+        assert per_vehicle2 > per_vehicle1 and unmatched2 >= len(ids) - 1
+    finally:
+        for entity in [fleet, *pubs.values(), *([watcher] if watcher is not None else [])]:
+            entity.undeclare()
+        session.close()

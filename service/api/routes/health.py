@@ -95,7 +95,24 @@ async def metrics(service: ServiceDep) -> PlainTextResponse:
         [({}, engine.stats["restarts"])],
     )
     out.metric("agv_fe_estimates_total", "counter", "estimates computed", [({}, engine.stats["estimates"])])
-    out.metric("agv_fe_estimates_published_total", "counter", "estimates published on Zenoh", [({}, m.estimates_out)])
+    out.metric(
+        "agv_fe_estimates_published_total",
+        "counter",
+        "estimates published on Zenoh, each on its vehicle's key",
+        [({}, m.estimates_out)],
+    )
+    out.metric(
+        "agv_fe_fleet_estimates_published_total",
+        "counter",
+        "estimates published on Zenoh in the replica's one-message-per-tick fleet stream",
+        [({}, m.fleet_estimates_out)],
+    )
+    out.metric(
+        "agv_fe_estimate_keys_unmatched",
+        "gauge",
+        "vehicles whose estimate key no subscriber matched at the last check (their estimates are not sent)",
+        [({}, m.estimates_unmatched)],
+    )
     out.metric(
         "agv_fe_alarm_events_published_total", "counter", "alarm events stored and published", [({}, m.alarms_out)]
     )
