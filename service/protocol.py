@@ -38,11 +38,11 @@ import struct
 import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import orjson
-from pydantic import BaseModel, ConfigDict, Field, JsonValue
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, model_validator
 
 PROTOCOL_VERSION = 1
 DEFAULT_PREFIX = "agv"
@@ -266,7 +266,7 @@ ESTIMATE_EXAMPLE: dict[str, JsonValue] = {
 class Estimate(_Message):
     """The service's estimate for one measurement (JSON).
 
-    The service writes it with :func:`encode_estimates` (the same JSON, faster);
+    The service writes it with :meth:`EstimateBatch.documents` (the same JSON, faster);
     clients read it with :meth:`Estimate.decode`.
     """
 
@@ -284,79 +284,97 @@ class Estimate(_Message):
     level: Level = Field("OK", description="the vehicle's current alarm level")
 
 
-def encode_estimate_array(
-    vehicle_ids: Sequence[str],
-    seqs: Sequence[int],
-    t_ns: Sequence[int],
-    states: Sequence[Sequence[float]],
-    in_domain: Sequence[bool],
-    gain_version: str,
-    levels: Sequence[str],
-) -> bytes:
-    """A JSON array of :class:`Estimate` documents for a batch of vehicles, written without the models.
+@dataclass
+class EstimateBatch:
+    """Estimates of one gain version, as columns: what one profile step of the service produced.
 
-    ``states`` holds one (vx, vy, r, torque_fault, steer_fault) per vehicle. The caller guarantees
-    finite floats, valid vehicle ids and a hex gain version. One ``orjson.dumps`` call writes the
-    whole batch, floats as their shortest round-trip form: measured 0.7 us per estimate at 1,000
-    vehicles, against 2.4 us for %-formatting each estimate and 2.7 us for one ``orjson.dumps``
-    call each. The array is the ``estimates`` member of a :class:`FleetEstimates` message as it is;
-    :func:`split_estimate_array` cuts it into the per-vehicle messages.
+    vehicle_ids, levels : n each; seq, t_ns : (n,) int64; x5 : (n, 5) float64, columns vx, vy, r,
+    torque_fault, steer_fault; in_domain : (n,) bool. The caller guarantees finite floats, valid
+    vehicle ids and a hex gain version, so nothing needs escaping. The columns are written as they
+    are into the fleet stream (:func:`encode_fleet_estimates`); the per-vehicle documents are made
+    only for the vehicles someone listens to (:meth:`documents`).
     """
-    return orjson.dumps(
-        [
-            {
-                "v": 1,
-                "vehicle": vehicle,
-                "seq": seq,
-                "t_ns": t,
-                "vx": vx,
-                "vy": vy,
-                "r": r,
-                "torque_fault": tf,
-                "steer_fault": sf,
-                "in_domain": dom,
-                "gain_version": gain_version,
-                "level": level,
-            }
-            for vehicle, seq, t, (vx, vy, r, tf, sf), dom, level in zip(
-                vehicle_ids, seqs, t_ns, states, in_domain, levels, strict=True
-            )
-        ]
-    )
+
+    vehicle_ids: list[str]
+    seq: np.ndarray
+    t_ns: np.ndarray
+    x5: np.ndarray
+    in_domain: np.ndarray
+    levels: Sequence[str]
+    gain_version: str
+
+    def __len__(self) -> int:
+        return len(self.vehicle_ids)
+
+    def documents(self, rows: Sequence[int] | None = None) -> list[bytes]:
+        """The :class:`Estimate` document of each row (every row by default), in the order asked.
+
+        One ``orjson.dumps`` call writes them all as an array, which is then cut into documents: the cut
+        mark ``},{`` cannot occur inside these strings, and orjson never writes a raw newline. Floats are
+        written in their shortest round-trip form. Measured 1.0 us per estimate at 1,000 vehicles,
+        against 2.4 us for %-formatting each and 2.7 us for one ``orjson.dumps`` call each.
+        """
+        pick: Sequence[int] = range(len(self)) if rows is None else rows
+        if not len(pick):
+            return []
+        ids, levels, version = self.vehicle_ids, self.levels, self.gain_version
+        if rows is None:
+            seq, t_ns, states, domains = self.seq, self.t_ns, self.x5, self.in_domain
+        else:
+            at = np.asarray(rows, dtype=np.intp)
+            seq, t_ns, states, domains = self.seq[at], self.t_ns[at], self.x5[at], self.in_domain[at]
+        array = orjson.dumps(
+            [
+                {
+                    "v": 1,
+                    "vehicle": ids[i],
+                    "seq": sq,
+                    "t_ns": t,
+                    "vx": vx,
+                    "vy": vy,
+                    "r": r,
+                    "torque_fault": tf,
+                    "steer_fault": sf,
+                    "in_domain": dom,
+                    "gain_version": version,
+                    "level": levels[i],
+                }
+                for i, sq, t, (vx, vy, r, tf, sf), dom in zip(
+                    pick, seq.tolist(), t_ns.tolist(), states.tolist(), domains.tolist(), strict=True
+                )
+            ]
+        )
+        out = array[1:-1].replace(b"},{", b"}\n{").split(b"\n")
+        if len(out) != len(pick):  # a string held the cut mark: only possible if a caller broke the contract
+            raise ValueError("an estimate field contains '},{' or a newline")
+        return out
+
+    def group(self) -> dict[str, Any]:
+        """The batch as a :class:`FleetEstimateGroup` mapping, numpy columns left as they are for orjson."""
+        x5 = np.ascontiguousarray(self.x5.T)
+        return {
+            "gain_version": self.gain_version,
+            "vehicle": self.vehicle_ids,
+            "seq": np.ascontiguousarray(self.seq, dtype=np.int64),
+            "t_ns": np.ascontiguousarray(self.t_ns, dtype=np.int64),
+            "vx": x5[0],
+            "vy": x5[1],
+            "r": x5[2],
+            "torque_fault": x5[3],
+            "steer_fault": x5[4],
+            "in_domain": np.ascontiguousarray(self.in_domain, dtype=np.bool_),
+            "level": self.levels,
+        }
 
 
-def split_estimate_array(array: bytes, count: int) -> list[bytes]:
-    """The ``count`` documents of an array from :func:`encode_estimate_array`, one bytes each.
+def encode_fleet_estimates(replica_id: str, batches: Iterable[EstimateBatch]) -> bytes:
+    """A :class:`FleetEstimates` message: one column group per batch, written by one orjson call.
 
-    The cut mark ``},{`` cannot occur inside the documents' strings (vehicle ids, a hex version and a
-    level name), and orjson never writes a raw newline; a count that does not match is refused.
+    The columns go to orjson as numpy arrays (no Python float per value): measured 0.1 us per estimate
+    at 1,000 vehicles, against 0.7 us for the array of per-vehicle documents.
     """
-    if count == 0:
-        return []
-    out = array[1:-1].replace(b"},{", b"}\n{").split(b"\n")
-    if len(out) != count:  # a string held the cut mark: only possible if a caller broke the contract
-        raise ValueError("an estimate field contains '},{' or a newline")
-    return out
-
-
-def encode_estimates(
-    vehicle_ids: Sequence[str],
-    seqs: Sequence[int],
-    t_ns: Sequence[int],
-    states: Sequence[Sequence[float]],
-    in_domain: Sequence[bool],
-    gain_version: str,
-    levels: Sequence[str],
-) -> list[bytes]:
-    """One :class:`Estimate` document per vehicle (see :func:`encode_estimate_array`)."""
-    array = encode_estimate_array(vehicle_ids, seqs, t_ns, states, in_domain, gain_version, levels)
-    return split_estimate_array(array, len(vehicle_ids))
-
-
-def encode_fleet_estimates(replica_id: str, arrays: Iterable[bytes]) -> bytes:
-    """A :class:`FleetEstimates` message holding the documents of several estimate arrays, in order."""
-    members = b",".join(a[1:-1] for a in arrays if len(a) > 2)
-    return b'{"v":1,"replica":"%s","estimates":[%s]}' % (replica_id.encode(), members)
+    message = {"v": 1, "replica": replica_id, "groups": [b.group() for b in batches if len(b)]}
+    return orjson.dumps(message, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
 def encode_estimate(
@@ -372,25 +390,100 @@ def encode_estimate(
     gain_version: str,
     level: Level,
 ) -> bytes:
-    """The JSON of one :class:`Estimate` (see :func:`encode_estimates`)."""
-    return encode_estimates(
-        [vehicle_id], [seq], [t_ns], [(vx, vy, r, torque_fault, steer_fault)], [in_domain], gain_version, [level]
-    )[0]
+    """The JSON of one :class:`Estimate` (see :meth:`EstimateBatch.documents`)."""
+    batch = EstimateBatch(
+        [vehicle_id],
+        np.array([seq], dtype=np.int64),
+        np.array([t_ns], dtype=np.int64),
+        np.array([[vx, vy, r, torque_fault, steer_fault]], dtype=np.float64),
+        np.array([in_domain]),
+        [level],
+        gain_version,
+    )
+    return batch.documents()[0]
+
+
+class FleetEstimateGroup(BaseModel):
+    """The estimates of one gain version within a :class:`FleetEstimates` message, as columns: element i
+    of every list belongs to one estimate, and reads as the :class:`Estimate` of the per-vehicle key."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    gain_version: str = Field(description="version of the gains that produced these estimates")
+    vehicle: list[str] = Field(description="vehicle ids")
+    seq: list[int] = Field(description="sequence numbers of the measurements answered")
+    t_ns: list[int] = Field(description="timestamps of those measurements [ns]")
+    vx: list[float] = Field(description="estimated v_x [m/s]")
+    vy: list[float] = Field(description="estimated v_y [m/s]")
+    r: list[float] = Field(description="estimated r [rad/s]")
+    torque_fault: list[float] = Field(description="estimated T_f [N m]")
+    steer_fault: list[float] = Field(description="estimated delta_f [rad]")
+    in_domain: list[bool] = Field(description="the measured premise lay in the design box")
+    level: list[Level] = Field(description="the vehicle's alarm level at that sample")
+
+    @model_validator(mode="after")
+    def _same_lengths(self) -> FleetEstimateGroup:
+        columns = ("seq", "t_ns", "vx", "vy", "r", "torque_fault", "steer_fault", "in_domain", "level")
+        lengths = {name: len(getattr(self, name)) for name in columns}
+        wrong = {k: n for k, n in lengths.items() if n != len(self.vehicle)}
+        if wrong:
+            raise ValueError(f"every column must have {len(self.vehicle)} entries, as 'vehicle' has: {wrong}")
+        return self
+
+    def estimates(self) -> list[Estimate]:
+        return [
+            Estimate(
+                vehicle=self.vehicle[i],
+                seq=self.seq[i],
+                t_ns=self.t_ns[i],
+                vx=self.vx[i],
+                vy=self.vy[i],
+                r=self.r[i],
+                torque_fault=self.torque_fault[i],
+                steer_fault=self.steer_fault[i],
+                in_domain=self.in_domain[i],
+                gain_version=self.gain_version,
+                level=self.level[i],
+            )
+            for i in range(len(self.vehicle))
+        ]
 
 
 class FleetEstimates(BaseModel):
-    """Every estimate one service replica published in one ingest tick (JSON), on
+    """Every estimate one service replica published in one ingest tick (JSON, columns), on
     ``{prefix}/v1/service/{replica_id}/estimates``: one message instead of one per vehicle, for
     consumers that follow the whole fleet (docs/protocol.md)."""
 
     model_config = ConfigDict(
         extra="forbid",
-        json_schema_extra={"examples": [{"v": 1, "replica": "replica-0", "estimates": [ESTIMATE_EXAMPLE]}]},
+        json_schema_extra={
+            "examples": [
+                {
+                    "v": 1,
+                    "replica": "replica-0",
+                    "groups": [
+                        {
+                            "gain_version": "3f9a1c0b7d2e",
+                            "vehicle": ["truck-7", "truck-9"],
+                            "seq": [1042, 77],
+                            "t_ns": [1_700_000_010_420_000_000, 1_700_000_010_421_000_000],
+                            "vx": [10.42, 8.1],
+                            "vy": [-0.031, 0.002],
+                            "r": [0.012, -0.004],
+                            "torque_fault": [29.7, 0.4],
+                            "steer_fault": [0.0012, -0.0001],
+                            "in_domain": [True, True],
+                            "level": ["OK", "OK"],
+                        }
+                    ],
+                }
+            ]
+        },
     )
 
     v: Literal[1] = Field(1, description="protocol version")
     replica: str = Field(description="the replica that published it")
-    estimates: list[Estimate] = Field(description="the tick's estimates, in the order they were made")
+    groups: list[FleetEstimateGroup] = Field(description="the tick's estimates, one column group per gain version")
 
     @classmethod
     def decode(cls, payload: bytes | bytearray | memoryview) -> FleetEstimates:
@@ -398,6 +491,10 @@ class FleetEstimates(BaseModel):
             return cls.model_validate_json(bytes(payload))
         except ValueError as exc:
             raise ProtocolError(f"invalid FleetEstimates: {exc}") from exc
+
+    def estimates(self) -> list[Estimate]:
+        """Every estimate of the message, in the order the service made them."""
+        return [e for g in self.groups for e in g.estimates()]
 
 
 AlarmKind = Literal["torque_fault", "steer_fault", "out_of_domain", "stale", "rejected_inputs"]

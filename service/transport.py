@@ -42,7 +42,7 @@ from service.protocol import (
 from service.settings import ZenohSettings
 
 if TYPE_CHECKING:
-    from service.fleet.engine import EstimateBatch
+    from service.protocol import EstimateBatch
 
 #: Ground-truth samples kept per followed vehicle between two drains (newest kept).
 TRUTH_RING_CAPACITY = 1024
@@ -193,10 +193,11 @@ class Transport:
         pubs, unmatched = self._estimate_pubs, self._unmatched
         sent = 0
         for batch in batches:
-            documents: list[bytes] | None = None
-            for j, vehicle_id in enumerate(batch.vehicle_ids):
-                if vehicle_id in unmatched:
-                    continue
+            rows = [j for j, vehicle_id in enumerate(batch.vehicle_ids) if vehicle_id not in unmatched]
+            if not rows:
+                continue
+            for j, document in zip(rows, batch.documents(rows), strict=True):
+                vehicle_id = batch.vehicle_ids[j]
                 pub = pubs.get(vehicle_id)
                 if pub is None:
                     pub = pubs[vehicle_id] = self.session.declare_publisher(
@@ -205,14 +206,12 @@ class Transport:
                         encoding=zenoh.Encoding.APPLICATION_JSON,
                     )
                     self._declared_at[vehicle_id] = time.monotonic()
-                if documents is None:
-                    documents = batch.documents()
-                pub.put(documents[j])
-                sent += 1
+                pub.put(document)
+            sent += len(rows)
         in_fleet = 0
         if self._fleet_pub is not None and batches and self._fleet_pub.matching_status.matching:
-            self._fleet_pub.put(encode_fleet_estimates(self.replica_id, [b.array for b in batches]))
-            in_fleet = sum(len(b.vehicle_ids) for b in batches)
+            self._fleet_pub.put(encode_fleet_estimates(self.replica_id, batches))
+            in_fleet = sum(len(b) for b in batches)
         return sent, in_fleet
 
     def refresh_matching(self, now: float | None = None) -> int:

@@ -10,14 +10,18 @@ latency = arrival - stamp (one machine, one clock). N grows until a step
 fails: the generator cannot hold 100 Hz, the service misses or rejects a
 sample, or an estimate does not arrive.
 
-Two sweeps: the default (an estimate published for every sample) and
-estimates decimated to every 10th sample (setting ingest.estimate_every_n),
-which is what a fleet that only needs 10 Hz of estimates would run.
+Three sweeps. The receiver takes the estimates on every vehicle's own key,
+an estimate for every sample (the default); the same, decimated to every
+10th sample (setting ingest.estimate_every_n), which is what a fleet that only
+needs 10 Hz of estimates would run; and an estimate for every sample taken from
+the replica's fleet stream, one message per ingest tick (docs/protocol.md), as
+a recorder or fleet backend following the whole fleet would.
 """
 
 from __future__ import annotations
 
 import array
+import gc
 import json
 import multiprocessing
 import os
@@ -37,8 +41,9 @@ from agv_fe.benchmarks import report_header
 FLEET_SIZES = (100, 250, 500, 750, 1000, 1250, 1500, 2000)
 STEP_S = 10.0
 WARMUP_S = 2.0
-#: The sweeps: publish an estimate for every sample (the service's default), then for every 10th.
-ESTIMATE_MODES = (1, 10)
+#: The sweeps, (estimate every n-th sample, how the receiver takes them): "vehicle", a subscription to every
+#: vehicle's own estimate key; "fleet", the replica's one-message-per-tick fleet stream.
+ESTIMATE_MODES: tuple[tuple[int, str], ...] = ((1, "vehicle"), (10, "vehicle"), (1, "fleet"))
 #: The fleet size of the latency target. Right after the sweep's step of this size, the service holds it for
 #: TARGET_HOLD_S and the p99 of each STEP_S window is reported: one 10 s step on a shared machine is one sample
 #: of a noisy figure. (Separate steps would each start after the whole fleet went STALE and came back, an alarm
@@ -112,15 +117,20 @@ def _generator(endpoint: str, n: int, duration_s: float, out: Any) -> None:
     session.close()
 
 
-def _receiver(endpoint: str, stop_after_s: float, out: Any, ready: Any) -> None:
-    """Count estimates and record their latency until stop_after_s of silence-bounded time."""
+def _receiver(endpoint: str, stop_after_s: float, out: Any, ready: Any, stream: str = "vehicle") -> None:
+    """Count estimates and record their latency until stop_after_s of silence-bounded time.
+
+    stream "vehicle": one subscription to every vehicle's estimate key; "fleet": the replicas' fleet stream,
+    where every estimate of a message arrived when the message did."""
+    import orjson
     import zenoh
 
-    from service.protocol import fleet_selector
+    from service.protocol import fleet_estimates_selector, fleet_selector
     from service.transport import open_session
 
     session = open_session("client", endpoint)
-    sub = session.declare_subscriber(fleet_selector("estimate"), zenoh.handlers.FifoChannel(1 << 20))
+    selector = fleet_selector("estimate") if stream == "vehicle" else fleet_estimates_selector()
+    sub = session.declare_subscriber(selector, zenoh.handlers.FifoChannel(1 << 20))
     time.sleep(0.3)
     ready.set()
     latencies = array.array("q")
@@ -134,6 +144,11 @@ def _receiver(endpoint: str, stop_after_s: float, out: Any, ready: Any) -> None:
             continue
         now = time.time_ns()
         payload = sample.payload.to_bytes()
+        if stream == "fleet":
+            for group in orjson.loads(payload)["groups"]:
+                stamps.extend(group["t_ns"])
+                latencies.extend(now - t for t in group["t_ns"])
+            continue
         i = payload.find(marker) + len(marker)
         stamp = int(payload[i : payload.find(b",", i)])
         stamps.append(stamp)
@@ -157,13 +172,19 @@ def _metric(text: str, name: str) -> float:
 
 
 def _step(
-    endpoint: str, http: httpx.Client, pid: int, n: int, every_n: int, duration_s: float | None = None
+    endpoint: str,
+    http: httpx.Client,
+    pid: int,
+    n: int,
+    every_n: int,
+    duration_s: float | None = None,
+    stream: str = "vehicle",
 ) -> dict[str, Any]:
     duration_s = STEP_S if duration_s is None else duration_s
     ctx = multiprocessing.get_context("spawn")
     gen_q, rec_q = ctx.Queue(), ctx.Queue()
     ready = ctx.Event()
-    receiver = ctx.Process(target=_receiver, args=(endpoint, WARMUP_S + duration_s + 6.0, rec_q, ready))
+    receiver = ctx.Process(target=_receiver, args=(endpoint, WARMUP_S + duration_s + 6.0, rec_q, ready, stream))
     receiver.start()
     ready.wait(30)
     before = http.get("/metrics").text
@@ -186,6 +207,7 @@ def _step(
             "agv_fe_measurements_rejected_total",
             "agv_fe_samples_missing_total",
             "agv_fe_estimates_published_total",
+            "agv_fe_fleet_estimates_published_total",
         )
     }
     # latency in steady state: the first WARMUP_S of a step register the new vehicles and declare their publishers
@@ -225,6 +247,9 @@ def _step(
         "service_cpu": (cpu1 - cpu0) / gen["elapsed_s"],
         "receiver_cpu": (receiver_cpu1 - receiver_cpu0) / gen["elapsed_s"],
         "estimate_every_n": every_n,
+        "stream": stream,
+        "published_per_vehicle": int(diff["agv_fe_estimates_published_total"]),
+        "published_in_fleet_stream": int(diff["agv_fe_fleet_estimates_published_total"]),
         "duration_s": duration_s,
         "p99_windows_ms": window_p99,
     }
@@ -254,6 +279,8 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: in
     from synth.gains import ObserverGains
 
     gains = ObserverGains.from_dict(gains_doc, reverify=False)
+    gc.collect()
+    gc.freeze()  # as the service does once started (setting ingest.gc_freeze)
     pack = struct.Struct("<Qq").pack_into
     rows = []
     for n in sizes:
@@ -307,19 +334,21 @@ def _calibration_us(vehicles: int = 1000, steps: int = 300) -> float:
     return sorted(times)[len(times) // 2] * 1e6
 
 
-def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES, modes: tuple[int, ...] = ESTIMATE_MODES) -> Path:
+def run(
+    out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES, modes: tuple[tuple[int, str], ...] = ESTIMATE_MODES
+) -> Path:
     before = _calibration_us()
-    sweeps = [_sweep(sizes, every_n) for every_n in modes]
+    sweeps = [_sweep(sizes, every_n, stream) for every_n, stream in modes]
     after = _calibration_us()
     print(f"  machine speed: observer step at 1,000 vehicles {before:.1f} us before, {after:.1f} us after", flush=True)
     return _report(out_dir, sweeps, sizes, (before, after))
 
 
-def _sweep(sizes: tuple[int, ...], every_n: int) -> dict[str, Any]:
+def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle") -> dict[str, Any]:
     """One service, fleet sizes in turn until one fails, then the target size again; and the engine alone."""
     http_port, zenoh_port = _free_port(), _free_port()
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"
-    print(f" estimates for every {'' if every_n == 1 else f'{every_n}th '}sample", flush=True)
+    print(f" {_mode_name(every_n, stream)}", flush=True)
     with tempfile.TemporaryDirectory() as data_dir:
         env = {
             **os.environ,
@@ -347,7 +376,7 @@ def _sweep(sizes: tuple[int, ...], every_n: int) -> dict[str, Any]:
             gains_doc = http.get("/profiles/default/gains", params={"matrices": "true"}).json()
             design = gains_doc["options"]
             for n in sizes:
-                row = _step(endpoint, http, proc.pid, n, every_n)
+                row = _step(endpoint, http, proc.pid, n, every_n, stream=stream)
                 rows.append(row)
                 print(
                     f"  {n} vehicles: {row['rate_msg_s']:.0f} msg/s, zero loss {row['zero_loss']}, "
@@ -358,7 +387,7 @@ def _sweep(sizes: tuple[int, ...], every_n: int) -> dict[str, Any]:
                 if not _sustained(row):
                     break
                 if n == TARGET_VEHICLES:  # hold the target size now, with the fleet state the sweep's step had
-                    hold = _step(endpoint, http, proc.pid, TARGET_VEHICLES, every_n, TARGET_HOLD_S)
+                    hold = _step(endpoint, http, proc.pid, TARGET_VEHICLES, every_n, TARGET_HOLD_S, stream)
                     print(f"  {TARGET_VEHICLES} vehicles held {TARGET_HOLD_S:.0f} s: p99 per window "
                           f"{', '.join(f'{x:.2f}' for x in hold['p99_windows_ms'])} ms, zero loss {hold['zero_loss']}",
                           flush=True)  # fmt: skip
@@ -370,7 +399,14 @@ def _sweep(sizes: tuple[int, ...], every_n: int) -> dict[str, Any]:
             except subprocess.TimeoutExpired:
                 proc.kill()
     engine = _engine_alone(gains_doc, tuple(r["vehicles"] for r in rows), every_n)
-    return {"estimate_every_n": every_n, "design": design, "service": rows, "target_hold": hold, "engine": engine}
+    return {
+        "estimate_every_n": every_n,
+        "stream": stream,
+        "design": design,
+        "service": rows,
+        "target_hold": hold,
+        "engine": engine,
+    }
 
 
 def _sustained(row: dict[str, Any]) -> bool:
@@ -396,8 +432,11 @@ def _largest(rows: list[dict[str, Any]], sizes: tuple[int, ...]) -> str:
     return f"{best:,} vehicles" if failed else f"at least {best:,} vehicles (the largest size tried)"
 
 
-def _mode_name(every_n: int) -> str:
-    return "an estimate for every sample (the default)" if every_n == 1 else f"an estimate for every {every_n}th sample"
+def _mode_name(every_n: int, stream: str = "vehicle") -> str:
+    what = "an estimate for every sample" if every_n == 1 else f"an estimate for every {every_n}th sample"
+    if stream == "fleet":
+        return f"{what}, taken from the fleet stream (one message per tick)"
+    return f"{what}, on each vehicle's key" + (" (the default)" if every_n == 1 else "")
 
 
 def _report(
@@ -411,12 +450,17 @@ def _report(
         report_header("Service capacity and latency", "service_load"),
         "Largest fleet at 100 Hz per vehicle with zero loss (every sample accepted, no gap, every estimate "
         f"delivered) and the service keeping up (p99 under {KEEP_UP_P99_MS:.0f} ms):\n",
-        *(f"* publishing {_mode_name(sw['estimate_every_n'])}: **{_largest(sw['service'], sizes)}**" for sw in sweeps),
+        *(
+            f"* {_mode_name(sw['estimate_every_n'], sw.get('stream', 'vehicle'))}: **{_largest(sw['service'], sizes)}**"
+            for sw in sweeps
+        ),
         "",
         f"Setup: `agv-fe serve` (embedded Zenoh router on 127.0.0.1, default profile: design "
         f"'{design.get('design')}', fault order {design.get('fault_order')}, {design.get('lyapunov')} P), "
         f"estimate and measurement congestion control BLOCK. Load generator and latency receiver in two more "
-        f"processes on the same 2-core machine; the receiver subscribes to every estimate. {STEP_S:.0f} s per "
+        f"processes on the same 2-core machine; the receiver takes every estimate, from every vehicle's key or from "
+        f"the fleet stream (the service then sends nothing on the vehicle keys: nobody subscribes to them). "
+        f"{STEP_S:.0f} s per "
         "step; the sweep stops at the first size that fails.\n",
     ]
     if calibration_us is not None:
@@ -433,8 +477,9 @@ def _report(
         )
     for sw in sweeps:
         every_n, rows, engine, hold = sw["estimate_every_n"], sw["service"], sw["engine"], sw["target_hold"]
+        name = _mode_name(every_n, sw.get("stream", "vehicle"))
         lines += [
-            f"## Publishing {_mode_name(every_n)}"
+            f"## {name[0].upper()}{name[1:]}"
             + ("" if every_n == 1 else f" (`AGV_FE_INGEST__ESTIMATE_EVERY_N={every_n}`)")
             + "\n",
             "| vehicles | target msg/s | achieved msg/s | samples sent | accepted | missing | rejected "
@@ -454,7 +499,8 @@ def _report(
         lines += [
             "",
             "The fleet engine alone, in one process without Zenoh (same gains and estimate decimation, one "
-            f"sample per vehicle per tick, {ENGINE_TICKS} ticks): the service's own ingest work.",
+            f"sample per vehicle per tick, {ENGINE_TICKS} ticks, the start-up heap frozen as the service does): "
+            "the service's own ingest work, including the JSON of the tick's estimates.",
             "",
             "| vehicles | us per measurement | cores needed at 100 Hz |",
             "|---|---|---|",

@@ -51,13 +51,12 @@ from service.protocol import (
     PROTOCOL_VERSION,
     AlarmKind,
     Estimate,
+    EstimateBatch,
     Level,
     Measurement,
     ProtocolError,
     bucket_of,
-    encode_estimate_array,
     parse_vehicle_key,
-    split_estimate_array,
     unpack_measurement_sequence,
     vehicle_key,
 )
@@ -177,18 +176,6 @@ class Vehicle:
 
 
 @dataclass
-class EstimateBatch:
-    """Estimates of one profile step, encoded once: a JSON array of Estimate documents, one per vehicle id."""
-
-    vehicle_ids: list[str]
-    array: bytes
-
-    def documents(self) -> list[bytes]:
-        """One Estimate document per vehicle, in the order of ``vehicle_ids``."""
-        return split_estimate_array(self.array, len(self.vehicle_ids))
-
-
-@dataclass
 class TickResult:
     """What one tick produced: estimates to publish, alarm changes to store then publish, new vehicles to store."""
 
@@ -200,7 +187,7 @@ class TickResult:
 
     @property
     def estimate_count(self) -> int:
-        return sum(len(b.vehicle_ids) for b in self.estimate_batches)
+        return sum(len(b) for b in self.estimate_batches)
 
     @property
     def estimates(self) -> list[tuple[str, bytes]]:
@@ -576,38 +563,35 @@ class FleetEngine:
         level = np.maximum(
             np.maximum(bank.torque.level[slots[pub]], bank.steer.level[slots[pub]]), bank.domain.level[slots[pub]]
         )
-        version = bank.version or ""
         at = idx[pub].tolist()
-        published = [rows.vehicles[i] for i in at]
-        ids = [vehicle.id for vehicle in published]
-        levels = zip(published, level.tolist(), strict=True)
-        names = ["STALE" if vehicle.stale else LEVEL_NAMES[lvl] for vehicle, lvl in levels]
-        states, seqs, times = x5[pub].tolist(), seq[idx[pub]].tolist(), t[pub].tolist()
-        domains = in_domain[pub].tolist()
-        array = encode_estimate_array(ids, seqs, times, states, domains, version, names)
-        result.estimate_batches.append(EstimateBatch(ids, array))
+        vehicles = rows.vehicles
+        ids = [vehicles[i].id for i in at]
+        # every vehicle of the tick had its STALE state cleared before it was stepped (process, pass 2)
+        names = [LEVEL_NAMES[lvl] for lvl in level.tolist()]
+        batch = EstimateBatch(ids, seq[idx[pub]], t[pub], x5[pub], in_domain[pub], names, bank.version or "")
+        result.estimate_batches.append(batch)
         if not self.events.wants("estimate"):
             return
         audience = self.events.audience("estimate")  # None: every vehicle
         for j, vehicle_id in enumerate(ids):
             if audience is not None and vehicle_id not in audience:
                 continue
-            vx, vy, r, tf, df = states[j]
+            vx, vy, r, tf, df = batch.x5[j].tolist()
             self.events.publish(
                 FleetEvent(
                     "estimate",
                     vehicle_id,
                     Estimate.model_construct(
                         vehicle=vehicle_id,
-                        seq=seqs[j],
-                        t_ns=times[j],
+                        seq=int(batch.seq[j]),
+                        t_ns=int(batch.t_ns[j]),
                         vx=vx,
                         vy=vy,
                         r=r,
                         torque_fault=tf,
                         steer_fault=df,
-                        in_domain=domains[j],
-                        gain_version=version,
+                        in_domain=bool(batch.in_domain[j]),
+                        gain_version=batch.gain_version,
                         level=names[j],
                         v=1,
                     ),

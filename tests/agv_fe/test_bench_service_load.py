@@ -9,17 +9,18 @@ pytestmark = pytest.mark.network
 
 
 def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
-    """Short steps of 10 vehicles against a real `agv-fe serve`, with an estimate for every sample (the default)
-    and for every 10th: the tables, the engine alone and the verdicts all come from the run's own figures."""
+    """Short steps of 10 vehicles against a real `agv-fe serve`, with an estimate for every sample (the default),
+    for every 10th, and for every sample from the fleet stream: the tables, the engine alone and the verdicts all
+    come from the run's own figures."""
     monkeypatch.setattr(bench, "STEP_S", 3.0)
     monkeypatch.setattr(bench, "WARMUP_S", 1.0)
     monkeypatch.setattr(bench, "ENGINE_TICKS", 30)
-    path = bench.run(tmp_path, sizes=(10,), modes=(1, 10))
+    path = bench.run(tmp_path, sizes=(10,), modes=((1, "vehicle"), (10, "vehicle"), (1, "fleet")))
     assert "Machine speed during this run: one observer step for 1,000 vehicles" in path.read_text()
     text = path.read_text()
     sweeps = json.loads(text.rsplit("```json\n", 1)[1].split("\n```")[0])
-    assert [sw["estimate_every_n"] for sw in sweeps] == [1, 10]
-    for sweep, expected in zip(sweeps, (3000, 300), strict=True):
+    assert [(sw["estimate_every_n"], sw["stream"]) for sw in sweeps] == [(1, "vehicle"), (10, "vehicle"), (1, "fleet")]
+    for sweep, expected in zip(sweeps, (3000, 300, 3000), strict=True):
         (row,) = sweep["service"]
         (engine,) = sweep["engine"]
         assert row["vehicles"] == 10 and row["sent"] == 3000 and row["zero_loss"] and row["paced"]
@@ -29,10 +30,16 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
         assert engine["vehicles"] == 10 and engine["us_per_msg"] > 0
         assert f"{engine['us_per_msg']:.2f} us per measurement" in text
     # the sweep stopped at its largest size without a failure: a lower bound, said as such
-    assert "every sample (the default): **at least 10 vehicles (the largest size tried)**" in text
-    assert "every 10th sample: **at least 10 vehicles (the largest size tried)**" in text
+    # the fleet stream carried every estimate; the vehicle keys, which nobody watched, stopped after the first second
+    (fleet,) = sweeps[2]["service"]
+    assert fleet["published_in_fleet_stream"] == 3000 and fleet["published_per_vehicle"] < 3000
+    (keys,) = sweeps[0]["service"]
+    assert keys["published_per_vehicle"] == 3000 and keys["published_in_fleet_stream"] == 0
+    assert "vehicle's key (the default): **at least 10 vehicles (the largest size tried)**" in text
+    assert "every 10th sample, on each vehicle's key: **at least 10 vehicles (the largest size tried)**" in text
+    assert "the fleet stream (one message per tick): **at least 10 vehicles (the largest size tried)**" in text
     verdicts = text.split("**Against the targets (this run).**")[1:]
-    assert len(verdicts) == 2
+    assert len(verdicts) == 3
     for sweep, verdict in zip(sweeps, verdicts, strict=True):
         (row,) = sweep["service"]
         line = verdict.split("\n", 1)[0]

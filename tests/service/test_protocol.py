@@ -10,6 +10,7 @@ from service.protocol import (
     MEASUREMENT_HEADER_SIZE,
     Alarm,
     Estimate,
+    EstimateBatch,
     Measurement,
     ProtocolError,
     all_buckets,
@@ -78,41 +79,55 @@ def test_keys_buckets_and_shards():
     assert sum(len(s) for s in shards) == len(all_buckets())
 
 
+def _batch(states: list[list[float]], ids: list[str] | None = None, seq0: int = 1042) -> EstimateBatch:
+    n = len(states)
+    ids = ids if ids is not None else [f"truck-{k}" if k % 3 else f"a.b_c-{k}" for k in range(n)]
+    return EstimateBatch(
+        ids,
+        np.arange(seq0, seq0 + n, dtype=np.int64),
+        np.arange(n, dtype=np.int64) + 1_700_000_010_420_000_000,
+        np.array(states, dtype=np.float64).reshape(n, 5),
+        np.array([k % 2 == 0 for k in range(n)], dtype=bool),
+        (["OK", "WARN", "FAULT", "STALE"] * n)[:n],
+        "3f9a1c0b7d2e",
+    )
+
+
+EXTREME_FLOATS = [10.0, -0.0, 1e-300, -3.25e-7, 29.700000000000003, 1.2345678901234567e8, -math.pi, 5e-324]
+
+
 def test_the_fast_estimate_encoder_writes_the_estimate_model_exactly():
-    """encode_estimates skips pydantic; each document must decode to the same Estimate, float for float."""
+    """EstimateBatch.documents skips pydantic; each document must decode to the same Estimate, float for float."""
     import json
-    import math
 
-    from service.protocol import encode_estimate, encode_estimates
+    from service.protocol import encode_estimate
 
-    values = [10.0, -0.0, 1e-300, -3.25e-7, 29.700000000000003, 1.2345678901234567e8, -math.pi, 5e-324]
+    values = EXTREME_FLOATS
     states = [[values[(k + j) % len(values)] for j in range(5)] for k in range(len(values))]
-    ids = [f"truck-{k}" if k % 3 else f"a.b_c-{k}" for k in range(len(states))]
-    seqs = [1042 + k for k in range(len(states))]
-    stamps = [1_700_000_010_420_000_000 + k for k in range(len(states))]
-    domains = [k % 2 == 0 for k in range(len(states))]
-    levels = ["OK", "WARN", "FAULT", "STALE"] * 2
-    payloads = encode_estimates(ids, seqs, stamps, states, domains, "3f9a1c0b7d2e", levels)
+    batch = _batch(states)
+    payloads = batch.documents()
     assert len(payloads) == len(states)
     for k, payload in enumerate(payloads):
         json.loads(payload)  # plain JSON, no NaN or Infinity tokens
         e = Estimate.decode(payload)
         assert (e.vehicle, e.seq, e.t_ns, e.in_domain, e.gain_version, e.level) == (
-            ids[k], seqs[k], stamps[k], domains[k], "3f9a1c0b7d2e", levels[k]
+            batch.vehicle_ids[k], 1042 + k, 1_700_000_010_420_000_000 + k, k % 2 == 0, "3f9a1c0b7d2e", batch.levels[k]
         )  # fmt: skip
         got = [e.vx, e.vy, e.r, e.torque_fault, e.steer_fault]
         assert got == states[k]
         assert [math.copysign(1.0, a) for a in got] == [math.copysign(1.0, b) for b in states[k]]  # -0.0 kept
-        one = encode_estimate(ids[k], seqs[k], stamps[k], *states[k], domains[k], "3f9a1c0b7d2e", levels[k])  # type: ignore[arg-type]
+        one = encode_estimate(
+            batch.vehicle_ids[k], 1042 + k, 1_700_000_010_420_000_000 + k, *states[k], k % 2 == 0,
+            "3f9a1c0b7d2e", batch.levels[k],  # type: ignore[arg-type]
+        )  # fmt: skip
         assert one == payload
-    assert encode_estimates([], [], [], [], [], "3f9a1c0b7d2e", []) == []
+    assert batch.documents([5, 2]) == [payloads[5], payloads[2]]  # a subset, in the order asked
+    assert batch.documents([]) == []
 
 
 def test_the_fast_estimate_encoder_refuses_a_field_that_would_break_the_batch():
-    from service.protocol import encode_estimates
-
     with pytest.raises(ValueError, match="contains"):
-        encode_estimates(["a},{b", "c"], [1, 2], [3, 4], [[0.0] * 5] * 2, [True, True], "00", ["OK", "OK"])
+        _batch([[0.0] * 5] * 2, ids=["a},{b", "c"]).documents()
 
 
 def test_json_messages_round_trip():
@@ -137,32 +152,31 @@ def test_json_messages_round_trip():
         Alarm.decode(b'{"v": 1, "vehicle": "v1"}')
 
 
-def test_a_fleet_message_joins_estimate_arrays_in_order_and_decodes():
+def test_a_fleet_message_holds_each_batch_as_columns_that_read_as_the_per_vehicle_documents():
     from service.protocol import (
         FleetEstimates,
-        encode_estimate_array,
         encode_fleet_estimates,
         fleet_estimates_key,
         fleet_estimates_selector,
         fleet_selector,
     )
 
-    def array(ids: list[str], seq0: int) -> bytes:
-        n = len(ids)
-        states = [[float(k), 0.5, -0.25, 30.0 + k, 1e-3] for k in range(n)]
-        return encode_estimate_array(ids, range(seq0, seq0 + n), [7] * n, states, [True] * n, "ab12", ["OK"] * n)
-
-    message = encode_fleet_estimates("replica-1", [array(["a", "b"], 10), array([], 0), array(["c"], 20)])
+    values = EXTREME_FLOATS
+    first = _batch([[values[(k + j) % len(values)] for j in range(5)] for k in range(3)], ["a", "b", "c"], 10)
+    empty = _batch([], [], 0)
+    second = _batch([[1.0, 0.5, -0.25, 30.0, 1e-3]], ["d"], 20)
+    second.gain_version = "ab12"
+    message = encode_fleet_estimates("replica-1", [first, empty, second])
     decoded = FleetEstimates.decode(message)
     assert decoded.replica == "replica-1"
-    assert [(e.vehicle, e.seq, e.torque_fault) for e in decoded.estimates] == [
-        ("a", 10, 30.0),
-        ("b", 11, 31.0),
-        ("c", 20, 30.0),
-    ]
-    assert FleetEstimates.decode(encode_fleet_estimates("replica-1", [])).estimates == []
+    assert [g.gain_version for g in decoded.groups] == ["3f9a1c0b7d2e", "ab12"]  # an empty batch is left out
+    expected = [Estimate.decode(d) for d in [*first.documents(), *second.documents()]]
+    assert decoded.estimates() == expected  # float for float, in order
+    assert FleetEstimates.decode(encode_fleet_estimates("replica-1", [])).estimates() == []
+    with pytest.raises(ProtocolError, match="every column"):
+        FleetEstimates.decode(message.replace(b'"vehicle":["a","b","c"]', b'"vehicle":["a","b"]'))
     with pytest.raises(ProtocolError):
-        FleetEstimates.decode(b'{"v":1,"replica":"r","estimates":[{"v":1}]}')
+        FleetEstimates.decode(b'{"v":1,"replica":"r","groups":[{"vehicle":[]}]}')
     # the fleet key is outside every per-vehicle selector, and its selector matches every replica's key
     key = fleet_estimates_key("replica-1")
     assert key == "agv/v1/service/replica-1/estimates"

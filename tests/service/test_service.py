@@ -247,7 +247,7 @@ def test_the_fleet_stream_carries_every_estimate_once_and_unwatched_keys_are_not
         while (s := fleet.try_recv()) is not None:
             message = FleetEstimates.decode(s.payload.to_bytes())
             replicas.add(message.replica)
-            got.extend((e.vehicle, e.seq) for e in message.estimates if e.vehicle in ids)
+            got.extend((e.vehicle, e.seq) for e in message.estimates() if e.vehicle in ids)
         return len(got)
 
     def send(seqs: range) -> None:
