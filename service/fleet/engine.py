@@ -64,6 +64,9 @@ from synth.gains import ObserverGains
 from synth.model import FloatArray
 from synth.observer import RuntimeGains
 
+#: Sequence numbers at or above this take the one-by-one path of a tick (exact Python integers there).
+_FAST_SEQ_LIMIT = 1 << 62
+
 RejectReason = Literal[
     "malformed", "id_mismatch", "unknown_vehicle", "duplicate", "out_of_order", "non_finite", "out_of_range", "no_gains"
 ]
@@ -358,7 +361,9 @@ class FleetEngine:
         header = np.frombuffer(b"".join(headers), dtype=MEASUREMENT_HEADER_DTYPE)
         values = np.column_stack([header["vx"], header["r"], header["torque"], header["steer"]])
         ordinal = self._ordinal
-        lim = self._limits[[ordinal[v.bank.name] for v, _, _ in frames]]
+        frame_vehicles = [v for v, _, _ in frames]
+        bank_of = np.array([ordinal[v.bank.name] for v in frame_vehicles], dtype=np.intp)
+        lim = self._limits[bank_of]
         finite = np.isfinite(values).all(axis=1)
         with np.errstate(invalid="ignore"):
             ok = (
@@ -370,8 +375,30 @@ class FleetEngine:
                 & (np.abs(values[:, 3]) <= lim[:, 4])
             )
         good = ok.tolist()
-        # pass 2: sequence bookkeeping of the plausible samples, in arrival order
-        for position, (vehicle, seq, flags) in enumerate(frames):
+        # pass 2a, the common case at once: a plausible sample, the vehicle's only one in this tick and the
+        # next in its sequence (or its first), of a vehicle that is not stale and whose profile has gains
+        fast = self._in_sequence(frame_vehicles, header["seq"], ok, bank_of)
+        fast_at = np.flatnonzero(fast)
+        if len(fast_at):
+            at_list = fast_at.tolist()
+            for position, seq in zip(at_list, header["seq"][fast_at].tolist(), strict=True):
+                vehicle = frame_vehicles[position]
+                vehicle.last_seen_mono = now_mono
+                vehicle.last_seen_ns = now_ns
+                vehicle.last_seq = seq
+            names = list(self.banks)
+            fast_banks = bank_of[fast_at]
+            for o in np.unique(fast_banks).tolist():
+                at = at_list if len(names) == 1 else fast_at[fast_banks == o].tolist()
+                rows = per_bank.get(names[o])
+                if rows is None:
+                    rows = per_bank[names[o]] = _Rows()
+                rows.vehicles.extend([frame_vehicles[i] for i in at])
+                rows.slots.extend([frame_vehicles[i].slot for i in at])
+                rows.positions.extend(at)
+        # pass 2b: every other sample, one by one in arrival order
+        for position in np.flatnonzero(~fast).tolist():
+            vehicle, seq, flags = frames[position]
             vehicle.last_seen_mono = now_mono
             vehicle.last_seen_ns = now_ns
             if vehicle.stale:
@@ -423,6 +450,28 @@ class FleetEngine:
         for name, rows in per_bank.items():
             self._step_bank(self.banks[name], rows, values, seq_all, t_ns_all, now_mono, now_ns, result)
         return result
+
+    def _in_sequence(
+        self, vehicles: list[Vehicle], seq: np.ndarray, plausible: np.ndarray, bank_of: np.ndarray
+    ) -> np.ndarray:
+        """Which frames pass 2 may take at once: plausible, their vehicle's only frame in the tick, the next
+        sample of its sequence (or its first), not stale, with gains. Every other frame goes one by one."""
+        n = len(vehicles)
+        last = np.fromiter((min(v.last_seq, _FAST_SEQ_LIMIT) for v in vehicles), dtype=np.int64, count=n)
+        stale = np.fromiter((v.stale for v in vehicles), dtype=bool, count=n)
+        identity = np.fromiter((id(v) for v in vehicles), dtype=np.uint64, count=n)
+        _, inverse, counts = np.unique(identity, return_inverse=True, return_counts=True)
+        has_gains = np.array([bank.runtime is not None for bank in self.banks.values()], dtype=bool)
+        small = (seq < _FAST_SEQ_LIMIT) & (last < _FAST_SEQ_LIMIT)  # exact in int64 below
+        next_seq = np.where(small, seq, 0).astype(np.int64)
+        return np.asarray(
+            plausible
+            & small
+            & (counts[inverse] == 1)
+            & ~stale
+            & has_gains[bank_of]
+            & ((last < 0) | (next_seq == last + 1))
+        )
 
     def _resolve(self, key: str, payload: bytes, result: TickResult, now_mono: float) -> Vehicle | None:
         """The slow path for a key not seen before: parse, check, register or reject."""
