@@ -245,6 +245,7 @@ class _Message(BaseModel):
 
 
 Level = Literal["OK", "WARN", "FAULT", "STALE"]
+GainSetName = Literal["fast", "quiet"]
 
 
 ESTIMATE_EXAMPLE: dict[str, JsonValue] = {
@@ -282,6 +283,10 @@ class Estimate(_Message):
     in_domain: bool = Field(description="the measured premise lies in the design box")
     gain_version: str = Field(description="version of the gains that produced it")
     level: Level = Field("OK", description="the vehicle's current alarm level")
+    gain_set: GainSetName | None = Field(
+        None,
+        description="which gain set of a switched design made it, 'fast' or 'quiet' (absent for one set)",
+    )
 
 
 @dataclass
@@ -289,10 +294,11 @@ class EstimateBatch:
     """Estimates of one gain version, as columns: what one profile step of the service produced.
 
     vehicle_ids, levels : n each; seq, t_ns : (n,) int64; x5 : (n, 5) float64, columns vx, vy, r,
-    torque_fault, steer_fault; in_domain : (n,) bool. The caller guarantees finite floats, valid
-    vehicle ids and a hex gain version, so nothing needs escaping. The columns are written as they
-    are into the fleet stream (:func:`encode_fleet_estimates`); the per-vehicle documents are made
-    only for the vehicles someone listens to (:meth:`documents`).
+    torque_fault, steer_fault; in_domain : (n,) bool; fast : (n,) bool, the row ran the fast gain set of a
+    switched design (None: the gains have one set, and no ``gain_set`` is written). The caller
+    guarantees finite floats, valid vehicle ids and a hex gain version, so nothing needs escaping.
+    The columns are written as they are into the fleet stream (:func:`encode_fleet_estimates`); the
+    per-vehicle documents are made only for the vehicles someone listens to (:meth:`documents`).
     """
 
     vehicle_ids: list[str]
@@ -302,6 +308,7 @@ class EstimateBatch:
     in_domain: np.ndarray
     levels: Sequence[str]
     gain_version: str
+    fast: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.vehicle_ids)
@@ -320,30 +327,34 @@ class EstimateBatch:
         ids, levels, version = self.vehicle_ids, self.levels, self.gain_version
         if rows is None:
             seq, t_ns, states, domains = self.seq, self.t_ns, self.x5, self.in_domain
+            fast = self.fast
         else:
             at = np.asarray(rows, dtype=np.intp)
             seq, t_ns, states, domains = self.seq[at], self.t_ns[at], self.x5[at], self.in_domain[at]
-        array = orjson.dumps(
-            [
-                {
-                    "v": 1,
-                    "vehicle": ids[i],
-                    "seq": sq,
-                    "t_ns": t,
-                    "vx": vx,
-                    "vy": vy,
-                    "r": r,
-                    "torque_fault": tf,
-                    "steer_fault": sf,
-                    "in_domain": dom,
-                    "gain_version": version,
-                    "level": levels[i],
-                }
-                for i, sq, t, (vx, vy, r, tf, sf), dom in zip(
-                    pick, seq.tolist(), t_ns.tolist(), states.tolist(), domains.tolist(), strict=True
-                )
-            ]
-        )
+            fast = None if self.fast is None else self.fast[at]
+        docs = [
+            {
+                "v": 1,
+                "vehicle": ids[i],
+                "seq": sq,
+                "t_ns": t,
+                "vx": vx,
+                "vy": vy,
+                "r": r,
+                "torque_fault": tf,
+                "steer_fault": sf,
+                "in_domain": dom,
+                "gain_version": version,
+                "level": levels[i],
+            }
+            for i, sq, t, (vx, vy, r, tf, sf), dom in zip(
+                pick, seq.tolist(), t_ns.tolist(), states.tolist(), domains.tolist(), strict=True
+            )
+        ]
+        if fast is not None:  # a switched design: which of its two gain sets made each estimate
+            for doc, on in zip(docs, fast.tolist(), strict=True):
+                doc["gain_set"] = "fast" if on else "quiet"
+        array = orjson.dumps(docs)
         out = array[1:-1].replace(b"},{", b"}\n{").split(b"\n")
         if len(out) != len(pick):  # a string held the cut mark: only possible if a caller broke the contract
             raise ValueError("an estimate field contains '},{' or a newline")
@@ -364,7 +375,7 @@ class EstimateBatch:
             "steer_fault": x5[4],
             "in_domain": np.ascontiguousarray(self.in_domain, dtype=np.bool_),
             "level": self.levels,
-        }
+        } | ({} if self.fast is None else {"gain_set": ["fast" if on else "quiet" for on in self.fast.tolist()]})
 
 
 def encode_fleet_estimates(replica_id: str, batches: Iterable[EstimateBatch]) -> bytes:
@@ -420,11 +431,14 @@ class FleetEstimateGroup(BaseModel):
     steer_fault: list[float] = Field(description="estimated delta_f [rad]")
     in_domain: list[bool] = Field(description="the measured premise lay in the design box")
     level: list[Level] = Field(description="the vehicle's alarm level at that sample")
+    gain_set: list[GainSetName] | None = Field(
+        None, description="which gain set of a switched design made each estimate (absent for one set)"
+    )
 
     @model_validator(mode="after")
     def _same_lengths(self) -> FleetEstimateGroup:
-        columns = ("seq", "t_ns", "vx", "vy", "r", "torque_fault", "steer_fault", "in_domain", "level")
-        lengths = {name: len(getattr(self, name)) for name in columns}
+        columns = ("seq", "t_ns", "vx", "vy", "r", "torque_fault", "steer_fault", "in_domain", "level", "gain_set")
+        lengths = {name: len(getattr(self, name)) for name in columns if getattr(self, name) is not None}
         wrong = {k: n for k, n in lengths.items() if n != len(self.vehicle)}
         if wrong:
             raise ValueError(f"every column must have {len(self.vehicle)} entries, as 'vehicle' has: {wrong}")
@@ -444,6 +458,7 @@ class FleetEstimateGroup(BaseModel):
                 in_domain=self.in_domain[i],
                 gain_version=self.gain_version,
                 level=self.level[i],
+                gain_set=None if self.gain_set is None else self.gain_set[i],
             )
             for i in range(len(self.vehicle))
         ]

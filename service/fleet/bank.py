@@ -33,6 +33,7 @@ class StepOutput:
 
     x5 : (k, 5) estimates; in_domain, vy_in_bounds, finite : (k,) bool;
     restarted : (k,) bool, the row's observer was (re)initialised at this sample.
+    fast : (k,) bool, the row ran the fast gain set of a switched design (None: the design has one set).
     """
 
     x5: FloatArray
@@ -40,6 +41,7 @@ class StepOutput:
     vy_in_bounds: np.ndarray
     finite: np.ndarray
     restarted: np.ndarray
+    fast: np.ndarray | None = None
 
 
 def _s_to_ns(seconds: float) -> int:
@@ -267,7 +269,12 @@ class ProfileBank:
         self.hist_t_ns[good, pos] = t_ns[finite]
         self.hist_count[good] += 1
         return StepOutput(
-            x5=x5, in_domain=res.in_domain, vy_in_bounds=res.vy_in_bounds, finite=finite, restarted=restarted
+            x5=x5,
+            in_domain=res.in_domain,
+            vy_in_bounds=res.vy_in_bounds,
+            finite=finite,
+            restarted=restarted,
+            fast=res.fast if rt.switched else None,
         )
 
     def history(self, slot: int, limit: int) -> list[tuple[int, int, bool, list[float]]]:

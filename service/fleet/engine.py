@@ -40,7 +40,7 @@ from typing import Any, Literal
 import numpy as np
 
 from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange
-from service.fleet.bank import ProfileBank
+from service.fleet.bank import ProfileBank, StepOutput
 from service.fleet.events import EventBus, FleetEvent
 from service.profiles import ProfileSpec
 from service.protocol import (
@@ -560,9 +560,7 @@ class FleetEngine:
                     rows.vehicles[i].base_counters["restarts"] += 1
                 self.stats["restarts"] += len(again)
             out = bank.step(s, values[idx][:, [0, 1]], values[idx][:, [2, 3]], seq[idx], t_ns[idx])
-            self._after_step(
-                bank, rows, idx, s, out.x5, out.in_domain, out.vy_in_bounds, out.finite, seq, t_ns, values, result
-            )
+            self._after_step(bank, rows, idx, s, out, seq, t_ns, values, result)
         result.accepted += len(slots)
         self.stats["accepted"] += len(slots)
 
@@ -572,15 +570,13 @@ class FleetEngine:
         rows: _Rows,
         idx: np.ndarray,
         slots: np.ndarray,
-        x5: np.ndarray,
-        in_domain: np.ndarray,
-        vy_in_bounds: np.ndarray,
-        finite: np.ndarray,
+        out: StepOutput,
         seq: np.ndarray,
         t_ns: np.ndarray,
         values: np.ndarray,
         result: TickResult,
     ) -> None:
+        x5, in_domain, vy_in_bounds, finite = out.x5, out.in_domain, out.vy_in_bounds, out.finite
         t = t_ns[idx]
         if not finite.all():
             self.stats["numerical_restarts"] += int((~finite).sum())
@@ -617,7 +613,8 @@ class FleetEngine:
         ids = [vehicles[i].id for i in at]
         # every vehicle of the tick had its STALE state cleared before it was stepped (process, pass 2)
         names = [LEVEL_NAMES[lvl] for lvl in level.tolist()]
-        batch = EstimateBatch(ids, seq[idx[pub]], t[pub], x5[pub], in_domain[pub], names, bank.version or "")
+        fast = None if out.fast is None else out.fast[pub]
+        batch = EstimateBatch(ids, seq[idx[pub]], t[pub], x5[pub], in_domain[pub], names, bank.version or "", fast)
         result.estimate_batches.append(batch)
         if not self.events.wants("estimate"):
             return
@@ -642,6 +639,7 @@ class FleetEngine:
                         in_domain=bool(batch.in_domain[j]),
                         gain_version=batch.gain_version,
                         level=names[j],
+                        gain_set=None if batch.fast is None else ("fast" if batch.fast[j] else "quiet"),
                         v=1,
                     ),
                     tuple(values[at[j]].tolist()),

@@ -13,7 +13,14 @@ from edge_client.library import paper_1
 from service.fleet import EngineConfig, FleetEngine
 from service.fleet.engine import REJECT_REASONS
 from service.profiles import ProfileSpec
-from service.protocol import FLAG_SEQUENCE_RESTART, Estimate, Measurement, vehicle_key
+from service.protocol import (
+    FLAG_SEQUENCE_RESTART,
+    Estimate,
+    FleetEstimates,
+    Measurement,
+    encode_fleet_estimates,
+    vehicle_key,
+)
 from synth.observer import FuzzyObserver
 from tests.service.helpers import FAST_DESIGN, PERIOD_NS, T0_NS, as_array, constant_measurement, plant_measurements
 from tests.tolerances import BATCH_EQUALITY_ATOL
@@ -89,11 +96,19 @@ def test_a_switched_design_runs_in_the_engine_as_offline():
     assert True in modes and False in modes  # the rule ran both sets in these 80 samples
     a = sorted((e for e in got if e.vehicle == "a"), key=lambda e: e.seq)
     np.testing.assert_allclose(as_array(a), np.array(expected), atol=BATCH_EQUALITY_ATOL)
+    assert [e.gain_set for e in a] == ["fast" if m else "quiet" for m in modes]  # every estimate names its set
     status = engine.vehicle_status(engine.vehicles["a"])
     assert status["gain_set"] == ("fast" if modes[-1] else "quiet")
+    # the fleet stream carries the same column
+    late = engine.process(pairs([m for row in plant_measurements(ids, 82)[80:] for m in row]))
+    fleet = FleetEstimates.decode(encode_fleet_estimates("r", late.estimate_batches)).estimates()
+    assert [e.gain_set for e in fleet] == [Estimate.decode(p).gain_set for _, p in late.estimates]
+    assert {e.gain_set for e in fleet} <= {"fast", "quiet"} and len(fleet) == 4
     one_set = make_engine(synthesize(options=DesignOptions(design="robust", lyapunov="common")))
-    one_set.process(pairs(samples[0]))
+    result = one_set.process(pairs(samples[0]))
     assert one_set.vehicle_status(one_set.vehicles["a"])["gain_set"] is None
+    assert all(b'"gain_set"' not in p for _, p in result.estimates)  # one set: the documents are as before
+    assert b'"gain_set"' not in encode_fleet_estimates("r", result.estimate_batches)
 
 
 BAD = {
