@@ -57,6 +57,13 @@ class ZenohSettings(_Section):
         description="congestion control of estimate puts: 'drop' never lets a slow estimate subscriber stall "
         "ingest; alarms always use 'block'",
     )
+    vehicle_estimates: Literal["always", "subscribed"] = Field(
+        "always",
+        description="'always': every estimate goes to its vehicle's key; 'subscribed': only while a subscriber "
+        "matches that key (read every housekeeping pass), which saves encoding and sending when the estimates "
+        "are taken from the fleet stream, at the price of a new or returning subscriber waiting up to a pass "
+        "or two (after a router restart: up to about a second)",
+    )
 
     @field_validator("endpoint")
     @classmethod

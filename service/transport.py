@@ -185,8 +185,9 @@ class Transport:
     def publish_estimates(self, batches: Sequence[EstimateBatch]) -> tuple[int, int]:
         """Publish a tick's estimates; returns (per-vehicle messages, estimates in the fleet message).
 
-        Each vehicle's estimate goes to its own key unless no subscriber matched that key at the last
-        :meth:`refresh_matching` (then the document is not even cut out of its batch). The whole tick
+        Each vehicle's estimate goes to its own key; with ``zenoh.vehicle_estimates='subscribed'``, not when
+        no subscriber matched that key at the last :meth:`refresh_matching` (then the document is not even
+        made). The whole tick
         goes as one :class:`~service.protocol.FleetEstimates` message when a subscriber matches the
         replica's fleet key.
         """
@@ -216,10 +217,11 @@ class Transport:
 
     def refresh_matching(self, now: float | None = None) -> int:
         """Re-read whether a subscriber matches each vehicle's estimate key (at most MATCH_REFRESH_MAX per
-        call, round robin); returns how many vehicles' estimates are currently skipped."""
+        call, round robin); returns how many vehicles' estimates are currently skipped. Nothing is skipped
+        unless the setting ``zenoh.vehicle_estimates`` is 'subscribed'."""
         now = time.monotonic() if now is None else now
         items = list(self._estimate_pubs.items())
-        if not items:
+        if not items or self.settings.vehicle_estimates == "always":
             return 0
         start = self._refresh_from % len(items)
         chunk = items[start : start + MATCH_REFRESH_MAX]

@@ -355,6 +355,8 @@ def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle") -> dic
             "AGV_FE_AUTH__TOKEN": "bench",
             "AGV_FE_INGEST__ESTIMATE_EVERY_N": str(every_n),
             "AGV_FE_ZENOH__ESTIMATE_CONGESTION": "block",
+            # taking the fleet stream, nobody subscribes to the vehicle keys: the service may skip them
+            "AGV_FE_ZENOH__VEHICLE_ESTIMATES": "subscribed" if stream == "fleet" else "always",
         }
         cmd = [sys.executable, "-m", "agv_fe", "serve", "--http-port", str(http_port), "--zenoh-endpoint", endpoint,
                "--data-dir", data_dir, "--log-level", "warning"]  # fmt: skip
@@ -459,7 +461,8 @@ def _report(
         f"'{design.get('design')}', fault order {design.get('fault_order')}, {design.get('lyapunov')} P), "
         f"estimate and measurement congestion control BLOCK. Load generator and latency receiver in two more "
         f"processes on the same 2-core machine; the receiver takes every estimate, from every vehicle's key or from "
-        f"the fleet stream (the service then sends nothing on the vehicle keys: nobody subscribes to them). "
+        f"the fleet stream (the service then runs with `AGV_FE_ZENOH__VEHICLE_ESTIMATES=subscribed` and, after "
+        f"each vehicle's first second, sends nothing on the vehicle keys: nobody subscribes to them). "
         f"{STEP_S:.0f} s per "
         "step; the sweep stops at the first size that fails.\n",
     ]

@@ -225,8 +225,21 @@ def test_unknown_vehicles_are_rejected_when_the_setting_says_so(tmp_path):
         assert p.estimates_of("stranger-1") == []
 
 
-def test_the_fleet_stream_carries_every_estimate_once_and_unwatched_keys_are_not_sent(server):
-    """One FleetEstimates message per tick holds every estimate; a vehicle key nobody subscribes to gets none."""
+@pytest.mark.parametrize("vehicle_estimates", ["always", "subscribed"])
+def test_the_fleet_stream_carries_every_estimate_once_and_vehicle_keys_follow_the_setting(
+    server, tmp_path, vehicle_estimates
+):
+    """One FleetEstimates message per tick holds every estimate. Vehicle keys get every estimate by default;
+    with vehicle_estimates='subscribed', a key nobody subscribes to gets none until someone does."""
+    if vehicle_estimates == "subscribed":
+        settings = make_settings(tmp_path, zenoh={"vehicle_estimates": "subscribed"})
+        with running(settings) as own:
+            _fleet_stream_case(own, skips=True)
+    else:
+        _fleet_stream_case(server, skips=False)
+
+
+def _fleet_stream_case(server, skips: bool) -> None:
     import zenoh
 
     from service.protocol import FleetEstimates, fleet_estimates_selector
@@ -272,6 +285,14 @@ def test_the_fleet_stream_carries_every_estimate_once_and_unwatched_keys_are_not
         for v in ids:
             assert [k for vid, k in got if vid == v] == list(range(200))  # in order
         assert replicas == {server.service.replica_id}
+        if not skips:  # the default: every estimate on its vehicle's key too, watched or not
+            time.sleep(MATCH_SETTLE_S + 0.3)
+            per_vehicle0, _, unmatched = counters()
+            send(range(200, 300))
+            wait_for(lambda: drain() >= 900, what="300 more estimates in fleet messages")
+            wait_for(lambda: counters()[0] >= per_vehicle0 + 300, what="300 more estimates on the vehicle keys")
+            assert unmatched == 0
+            return
         # nobody subscribes to these vehicles' own keys: once the service has looked, it stops sending there
         time.sleep(MATCH_SETTLE_S + 0.3)
         wait_for(lambda: counters()[2] >= len(ids), what="the three keys seen unmatched")
