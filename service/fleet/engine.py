@@ -238,6 +238,7 @@ class FleetEngine:
         #: plausibility limits of every profile, one row per bank ordinal (see _limits_row)
         self._limits = np.zeros((0, 5))
         self._ordinal: dict[str, int] = {}
+        self._stale_count = 0  # vehicles marked stale now (a tick with none skips gathering the flags)
 
     # ------------------------------------------------------------------ profiles and vehicles
 
@@ -457,21 +458,22 @@ class FleetEngine:
         """Which frames pass 2 may take at once: plausible, their vehicle's only frame in the tick, the next
         sample of its sequence (or its first), not stale, with gains. Every other frame goes one by one."""
         n = len(vehicles)
-        last = np.fromiter((min(v.last_seq, _FAST_SEQ_LIMIT) for v in vehicles), dtype=np.int64, count=n)
-        stale = np.fromiter((v.stale for v in vehicles), dtype=bool, count=n)
-        identity = np.fromiter((id(v) for v in vehicles), dtype=np.uint64, count=n)
-        _, inverse, counts = np.unique(identity, return_inverse=True, return_counts=True)
-        has_gains = np.array([bank.runtime is not None for bank in self.banks.values()], dtype=bool)
-        small = (seq < _FAST_SEQ_LIMIT) & (last < _FAST_SEQ_LIMIT)  # exact in int64 below
-        next_seq = np.where(small, seq, 0).astype(np.int64)
-        return np.asarray(
-            plausible
-            & small
-            & (counts[inverse] == 1)
-            & ~stale
-            & has_gains[bank_of]
-            & ((last < 0) | (next_seq == last + 1))
-        )
+        try:
+            last = np.fromiter((v.last_seq for v in vehicles), dtype=np.int64, count=n)
+        except OverflowError:  # a sequence number beyond int64 in the tick: those vehicles the exact way
+            last = np.fromiter((min(v.last_seq, _FAST_SEQ_LIMIT) for v in vehicles), dtype=np.int64, count=n)
+        ok = plausible & (seq < _FAST_SEQ_LIMIT) & (last < _FAST_SEQ_LIMIT)
+        if len(set(vehicles)) < n:  # some vehicle sent several samples this tick: those go one by one
+            identity = np.fromiter((id(v) for v in vehicles), dtype=np.uint64, count=n)
+            _, inverse, counts = np.unique(identity, return_inverse=True, return_counts=True)
+            ok &= counts[inverse] == 1
+        if self._stale_count:
+            ok &= ~np.fromiter((v.stale for v in vehicles), dtype=bool, count=n)
+        if len(self.banks) > 1 or any(bank.runtime is None for bank in self.banks.values()):
+            has_gains = np.array([bank.runtime is not None for bank in self.banks.values()], dtype=bool)
+            ok &= has_gains[bank_of]
+        next_seq = np.where(ok, seq, 0).astype(np.int64)  # exact: below 2^62 where it counts
+        return np.asarray(ok & ((last < 0) | (next_seq == last + 1)))
 
     def _resolve(self, key: str, payload: bytes, result: TickResult, now_mono: float) -> Vehicle | None:
         """The slow path for a key not seen before: parse, check, register or reject."""
@@ -722,12 +724,14 @@ class FleetEngine:
 
     def _unstale(self, vehicle: Vehicle, now_ns: int, result: TickResult) -> None:
         vehicle.stale = False
+        self._stale_count -= 1
         self._emit(self.alarms.clear(vehicle.id, "stale", now_ns, "measurements resumed"), result)
         if self.events.wants("vehicle"):
             self.events.publish(FleetEvent("vehicle", vehicle.id, {"event": "resumed"}))
 
     def _make_stale(self, vehicle: Vehicle, now_ns: int, why: str, changes: list[AlarmChange]) -> None:
         vehicle.stale = True
+        self._stale_count += 1
         vehicle.bank.restart(vehicle.slot)
         change = self.alarms.raise_level(vehicle.id, vehicle.profile, "stale", "STALE", now_ns, None, None, why)
         self._emit(change, changes)
