@@ -536,6 +536,27 @@ The 10 ms latency target is judged separately. Three Python processes share two 
 so the generator and the receiver (which decodes every estimate: see its CPU column) take CPU the
 service would otherwise have; a service on its own machine carries more.
 
+Where the service's time goes (2026-11-24, 1,000 vehicles, an estimate for every sample taken from
+the fleet stream, 20 s runs, timing code added for the runs and not kept):
+
+* CPU per thread: the ingest loop 0.57 cores, Zenoh's two receive threads 0.17, the rest 0.03.
+* Per measurement in the ingest loop: draining the Zenoh channel 1.2 us, the fleet engine 3.7 us,
+  publishing 0.8 us. The engine alone, in this benchmark's process, does the same work in 1.3-1.7 us:
+  inside the loaded service the same code runs 2-2.5 times slower (caches and cores shared with the
+  Zenoh threads and two more processes).
+* With the generator and the receiver at nice 10, so that the service gets a core first: p99 11.2 ms,
+  against 12.3-13.5 ms in three runs at normal priority. The other processes are not most of the tail;
+  the service's own tick work is.
+* What came out of it, in this report's commit: the start-up heap frozen for the garbage collector (one
+  full collection took 65 ms, and an estimate for every sample triggered several a minute); a tick's
+  estimates written by one orjson call; in-sequence samples sequenced at once; and the fleet stream,
+  which carries a tick's estimates as columns in one message.
+* The estimate-every-10th figures above are worse than in the previous report (commit 2d91fc4: p99
+  9.8 ms at 1,000 vehicles, service 0.65 cores). The machine was slower during this run (see the
+  machine-speed line). The previous commit and this one, run alternately on the same machine within
+  the same hour (1,000 vehicles, every 10th, 20 s): p99 15.7 and 20.4 ms against 12.3 and 14.9 ms;
+  service CPU 0.91 and 0.89 against 0.79 and 0.93 cores.
+
 Tried and not adopted (2026-11-23, one service per run, 10 s steps, 1,000 vehicles, an estimate for
 every 10th sample): one Zenoh RX worker thread in the service instead of two
 (`ZENOH_RUNTIME='(rx: (worker_threads: 1))'`). In the runs with nothing else on the machine (three
@@ -584,10 +605,9 @@ def _against_target(
             f"The engine alone needs {e['us_per_msg']:.2f} us per measurement, {e['cores_at_100hz']:.2f} of a "
             f"core for {e['vehicles']:,} vehicles; the rest of the service's CPU goes to Zenoh (the "
             "embedded router and the session receiving every sample and publishing the estimates) and the "
-            "event loop. The tail latency comes from three processes sharing two cores: each tick waits for "
-            "a core. Headroom: run the load generator elsewhere, or split the fleet across replicas by "
-            "key-expression shard "
-            "(`--shard 0/2`, `1/2`)."
+            "event loop, and inside the loaded service the engine itself runs 2-2.5 times slower than alone "
+            "(see the reading). Headroom: run the load generator elsewhere, or split the fleet across "
+            "replicas by key-expression shard (`--shard 0/2`, `1/2`)."
         )
     return " ".join(parts) + "\n"
 
