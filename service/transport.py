@@ -186,19 +186,21 @@ class Transport:
         """Publish a tick's estimates; returns (per-vehicle messages, estimates in the fleet message).
 
         Each vehicle's estimate goes to its own key; with ``zenoh.vehicle_estimates='subscribed'``, not when
-        no subscriber matched that key at the last :meth:`refresh_matching` (then the document is not even
-        made). The whole tick
-        goes as one :class:`~service.protocol.FleetEstimates` message when a subscriber matches the
-        replica's fleet key.
+        no subscriber matched that key at the last :meth:`refresh_matching` (then its document is not even
+        made). The whole tick goes as one :class:`~service.protocol.FleetEstimates` message when a
+        subscriber matches the replica's fleet key.
         """
         pubs, unmatched = self._estimate_pubs, self._unmatched
         sent = 0
         for batch in batches:
-            rows = [j for j, vehicle_id in enumerate(batch.vehicle_ids) if vehicle_id not in unmatched]
-            if not rows:
-                continue
-            for j, document in zip(rows, batch.documents(rows), strict=True):
-                vehicle_id = batch.vehicle_ids[j]
+            ids = batch.vehicle_ids
+            if unmatched:  # only with vehicle_estimates='subscribed'
+                rows = [j for j, vehicle_id in enumerate(ids) if vehicle_id not in unmatched]
+                ids = [ids[j] for j in rows]
+                documents = batch.documents(rows)
+            else:
+                documents = batch.documents()
+            for vehicle_id, document in zip(ids, documents, strict=True):
                 pub = pubs.get(vehicle_id)
                 if pub is None:
                     pub = pubs[vehicle_id] = self.session.declare_publisher(
@@ -208,7 +210,7 @@ class Transport:
                     )
                     self._declared_at[vehicle_id] = time.monotonic()
                 pub.put(document)
-            sent += len(rows)
+            sent += len(documents)
         in_fleet = 0
         if self._fleet_pub is not None and batches and self._fleet_pub.matching_status.matching:
             self._fleet_pub.put(encode_fleet_estimates(self.replica_id, batches))

@@ -189,10 +189,6 @@ class TickResult:
     accepted: int = 0
 
     @property
-    def estimate_count(self) -> int:
-        return sum(len(b) for b in self.estimate_batches)
-
-    @property
     def estimates(self) -> list[tuple[str, bytes]]:
         """(vehicle id, Estimate document) of every estimate of the tick."""
         return [pair for b in self.estimate_batches for pair in zip(b.vehicle_ids, b.documents(), strict=True)]
