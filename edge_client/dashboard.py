@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING
 
 from rich.console import Console, Group, RenderableType
 from rich.live import Live
@@ -105,7 +105,7 @@ class DashboardModel:
         if vehicle_id is None:
             return
         try:
-            alarm = cast(Alarm, Alarm.decode(rx.payload))
+            alarm = Alarm.decode(rx.payload)
         except ProtocolError:
             self.bad_messages += 1
             return
@@ -138,7 +138,7 @@ class DashboardModel:
         for row in self.vehicles.values():
             if row.pending_estimate is not None:
                 try:
-                    row.estimate = cast(Estimate, Estimate.decode(row.pending_estimate))
+                    row.estimate = Estimate.decode(row.pending_estimate)
                 except ProtocolError:
                     self.bad_messages += 1
                 row.pending_estimate = None

@@ -34,7 +34,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, TextIO, cast
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
 
@@ -286,7 +286,7 @@ class FleetPublisher:
         if i is None:
             return
         try:
-            estimate = cast(Estimate, Estimate.decode(rx.payload))
+            estimate = Estimate.decode(rx.payload)
         except ProtocolError:
             self.bad_messages += 1
             return
@@ -311,7 +311,7 @@ class FleetPublisher:
         if i is None:
             return
         try:
-            alarm = cast(Alarm, Alarm.decode(rx.payload))
+            alarm = Alarm.decode(rx.payload)
         except ProtocolError:
             self.bad_messages += 1
             return

@@ -38,7 +38,7 @@ import struct
 import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, Self
 
 import numpy as np
 import orjson
@@ -227,21 +227,25 @@ unpack_measurement_header = _HEADER.unpack_from
 unpack_measurement_sequence = struct.Struct("<4sBBxxQ").unpack_from
 
 
-class _Message(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    v: Literal[1] = Field(1, description="protocol version")
-    vehicle: str = Field(description="vehicle id")
+class _Json(BaseModel):
+    """A JSON message of the protocol: encoded by pydantic, decoded with a :class:`ProtocolError` on bad input."""
 
     def encode(self) -> bytes:
         return self.model_dump_json().encode()
 
     @classmethod
-    def decode(cls, payload: bytes | bytearray | memoryview) -> _Message:
+    def decode(cls, payload: bytes | bytearray | memoryview) -> Self:
         try:
             return cls.model_validate_json(bytes(payload))
         except ValueError as exc:
             raise ProtocolError(f"invalid {cls.__name__}: {exc}") from exc
+
+
+class _Message(_Json):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    v: Literal[1] = Field(1, description="protocol version")
+    vehicle: str = Field(description="vehicle id")
 
 
 Level = Literal["OK", "WARN", "FAULT", "STALE"]
@@ -464,7 +468,7 @@ class FleetEstimateGroup(BaseModel):
         ]
 
 
-class FleetEstimates(BaseModel):
+class FleetEstimates(_Json):
     """Every estimate one service replica published in one ingest tick (JSON, columns), on
     ``{prefix}/v1/service/{replica_id}/estimates``: one message instead of one per vehicle, for
     consumers that follow the whole fleet (docs/protocol.md)."""
@@ -499,13 +503,6 @@ class FleetEstimates(BaseModel):
     v: Literal[1] = Field(1, description="protocol version")
     replica: str = Field(description="the replica that published it")
     groups: list[FleetEstimateGroup] = Field(description="the tick's estimates, one column group per gain version")
-
-    @classmethod
-    def decode(cls, payload: bytes | bytearray | memoryview) -> FleetEstimates:
-        try:
-            return cls.model_validate_json(bytes(payload))
-        except ValueError as exc:
-            raise ProtocolError(f"invalid FleetEstimates: {exc}") from exc
 
     def estimates(self) -> list[Estimate]:
         """Every estimate of the message, in the order the service made them."""
