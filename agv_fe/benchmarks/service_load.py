@@ -551,11 +551,15 @@ the fleet stream, 20 s runs, timing code added for the runs and not kept):
   full collection took 65 ms, and an estimate for every sample triggered several a minute); a tick's
   estimates written by one orjson call; in-sequence samples sequenced at once; and the fleet stream,
   which carries a tick's estimates as columns in one message.
-* The estimate-every-10th figures above are worse than in the previous report (commit 2d91fc4: p99
-  9.8 ms at 1,000 vehicles, service 0.65 cores). The machine was slower during this run (see the
-  machine-speed line). The previous commit and this one, run alternately on the same machine within
-  the same hour (1,000 vehicles, every 10th, 20 s): p99 15.7 and 20.4 ms against 12.3 and 14.9 ms;
-  service CPU 0.91 and 0.89 against 0.79 and 0.93 cores.
+* From run to run the figures move a lot on this shared machine. Two runs of this benchmark on
+  2026-11-24, an hour apart, at 1,000 vehicles: from the fleet stream, p99 9.0 ms in the sweep and
+  10.5-14.8 ms per hold window with at least 2,000 vehicles sustained (commit 5fb65cd), then 14.3 ms
+  and 13.5-28.7 ms with 1,250 sustained (commit 855d79a, whose changes since only removed work from
+  the default publish path); every 10th sample, 14.7 and 13.4 ms. The report before these (commit
+  2d91fc4) had 9.8 ms for every 10th sample. To tell a regression from the machine, the previous
+  stop's commit (c893544) and this code ran alternately within one hour (1,000 vehicles, every 10th,
+  20 s): p99 15.7 and 20.4 ms against 12.3 and 14.9 ms; service CPU 0.91 and 0.89 against 0.79 and
+  0.93 cores.
 
 Tried and not adopted (2026-11-23, one service per run, 10 s steps, 1,000 vehicles, an estimate for
 every 10th sample): one Zenoh RX worker thread in the service instead of two
