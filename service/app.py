@@ -229,12 +229,17 @@ class Service:
         ingest = self.settings.ingest
         transport = self._require_transport()
         engine, metrics = self.engine, self.metrics
+        interval = ingest.tick_interval_s
+        next_tick = time.perf_counter()
         while self._running:
+            # a tick starts at most once per interval; a late one starts at once, after the event loop's other work
+            wait = next_tick - time.perf_counter()
+            await asyncio.sleep(wait if wait > 0 else 0)
+            started = time.perf_counter()
+            next_tick = started + interval
             batch = transport.drain(ingest.max_batch)
             if not batch:
-                await asyncio.sleep(ingest.poll_interval_s)
                 continue
-            started = time.perf_counter()
             result = engine.process(batch)
             if result.new_vehicles:
                 self.db.put_vehicles((v.id, v.profile, v.registered_t_ns) for v in result.new_vehicles)
@@ -249,7 +254,6 @@ class Service:
             metrics.last_batch = len(batch)
             if len(batch) >= ingest.max_batch:
                 metrics.full_batches += 1
-            await asyncio.sleep(0)  # let HTTP requests in between two ticks
 
     async def _housekeeping_loop(self) -> None:
         transport = self._require_transport()

@@ -90,8 +90,11 @@ class IngestSettings(_Section):
     history_samples: Annotated[int, Field(ge=1, le=100_000)] = Field(
         500, description="estimates kept per vehicle for GET /vehicles/{id}/estimates"
     )
-    poll_interval_s: Annotated[float, Field(gt=0, le=0.1)] = Field(
-        0.001, description="how long the ingest loop sleeps when no measurement is waiting [s]"
+    tick_interval_s: Annotated[float, Field(gt=0, le=0.1)] = Field(
+        0.001,
+        description="the ingest loop starts a tick at most this often [s]: what arrived in between is stepped as one "
+        "batch. Vehicles with independent clocks send all through the period; without a floor the loop would run a "
+        "tick for every few samples and spend its time on per-tick work",
     )
     max_batch: Annotated[int, Field(ge=1)] = Field(20_000, description="measurements processed per tick at most")
     housekeeping_interval_s: Annotated[float, Field(gt=0)] = Field(

@@ -3,14 +3,17 @@ cannot be designed."""
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import pytest
 
 from tests.service.helpers import (
     FAST_DESIGN,
+    constant_measurement,
     job_done,
     make_settings,
+    parse_metrics,
     plant_measurements,
     probe,
     running,
@@ -164,3 +167,36 @@ def test_the_latest_request_wins_over_a_pending_design(tmp_path):
         assert after["active_version"] == active["active_version"]
         assert after["spec"]["alarms"]["torque_warn_nm"] == 15.0
         assert after["spec"]["design"]["fault_order"] == active["spec"]["design"]["fault_order"]
+
+
+def test_samples_arriving_all_the_time_are_stepped_in_ticks_at_most_one_per_interval(tmp_path):
+    """Vehicles with independent clocks send all through the sample period. The ingest loop starts a tick at most
+    once per ``tick_interval_s`` and steps what arrived in between as one batch: samples that keep arriving while
+    a tick runs do not each start a tick of their own. (A separate process: a service in the test's process would
+    share its interpreter lock with the sender.)"""
+    interval, spacing_s, rounds = 0.02, 0.00005, 250
+    ids = [f"trickle-{i}" for i in range(20)]
+    settings = make_settings(tmp_path, ingest={"tick_interval_s": interval})
+
+    def ticks() -> float:
+        return parse_metrics(srv.get("/metrics").text).value("agv_fe_tick_batch_measurements_count")
+
+    with service_process(settings, tmp_path / "service.log") as srv, probe(settings.zenoh.endpoint) as p:
+        srv.wait_ready()
+        before = ticks()
+        started = due = time.perf_counter()
+        for k in range(rounds):
+            for vehicle_id in ids:
+                p.put(constant_measurement(vehicle_id, k))
+                due += spacing_s
+                while time.perf_counter() < due:  # a steady stream, finer than time.sleep can pace
+                    pass
+        sending_s = time.perf_counter() - started
+        wait_for(lambda: all(len(p.estimates_of(v)) >= rounds for v in ids), what="every estimate")
+        stepped = ticks() - before
+        for vehicle_id in ids:
+            assert [e.seq for e in p.estimates_of(vehicle_id)] == list(range(rounds))
+    # 5,000 samples 50 us apart (0.25 s at least) in ticks 20 ms apart: at most about 13 ticks (9 in a run here),
+    # where the loop that drained whatever waited as soon as a tick ended ran 29
+    assert sending_s >= rounds * len(ids) * spacing_s
+    assert stepped <= sending_s / interval + 3, (stepped, sending_s)

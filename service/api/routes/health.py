@@ -135,7 +135,7 @@ async def metrics(service: ServiceDep) -> PlainTextResponse:
         "ticks that hit ingest.max_batch (backlog)",
         [({}, m.full_batches)],
     )
-    out.histogram("agv_fe_tick_seconds", "time to validate, step, alarm and publish one tick", m.tick_seconds)
+    out.histogram("agv_fe_tick_seconds", "time to drain, validate, step, alarm and publish one tick", m.tick_seconds)
     out.histogram("agv_fe_tick_batch_measurements", "measurements per tick", m.tick_batch)
     out.histogram("agv_fe_synthesis_seconds", "duration of finished synthesis jobs", m.synthesis_seconds)
     out.metric(
