@@ -10,12 +10,16 @@ latency = arrival - stamp (one machine, one clock). N grows until a step
 fails: the generator cannot hold 100 Hz, the service misses or rejects a
 sample, or an estimate does not arrive.
 
-Three sweeps. The receiver takes the estimates on every vehicle's own key,
-an estimate for every sample (the default); the same, decimated to every
-10th sample (setting ingest.estimate_every_n), which is what a fleet that only
-needs 10 Hz of estimates would run; and an estimate for every sample taken from
-the replica's fleet stream, one message per ingest tick (docs/protocol.md), as
-a recorder or fleet backend following the whole fleet would.
+Four sweeps. Vehicles have independent clocks, so each sends at its own
+phase of the 10 ms period: the generator spreads them evenly over it. The
+receiver takes the estimates on every vehicle's own key, an estimate for every
+sample (the default); the same, decimated to every 10th sample (setting
+ingest.estimate_every_n), which is what a fleet that only needs 10 Hz of
+estimates would run; and an estimate for every sample taken from the replica's
+fleet stream, one message per ingest tick (docs/protocol.md), as a recorder or
+fleet backend following the whole fleet would. The fourth sweep repeats the
+third with every vehicle sending at the same instant (clocks aligned, the worst
+case: the whole fleet's samples arrive as one burst per period).
 """
 
 from __future__ import annotations
@@ -41,9 +45,18 @@ from agv_fe.benchmarks import report_header
 FLEET_SIZES = (100, 250, 500, 750, 1000, 1250, 1500, 2000)
 STEP_S = 10.0
 WARMUP_S = 2.0
-#: The sweeps, (estimate every n-th sample, how the receiver takes them): "vehicle", a subscription to every
-#: vehicle's own estimate key; "fleet", the replica's one-message-per-tick fleet stream.
-ESTIMATE_MODES: tuple[tuple[int, str], ...] = ((1, "vehicle"), (10, "vehicle"), (1, "fleet"))
+#: The sweeps, (estimate every n-th sample, how the receiver takes them, when the vehicles send): "vehicle", a
+#: subscription to every vehicle's own estimate key; "fleet", the replica's one-message-per-tick fleet stream;
+#: "spread", each vehicle at its own phase of the period (independent clocks); "aligned", all at its start.
+Mode = tuple[int, str, str]
+ESTIMATE_MODES: tuple[Mode, ...] = (
+    (1, "vehicle", "spread"),
+    (10, "vehicle", "spread"),
+    (1, "fleet", "spread"),
+    (1, "fleet", "aligned"),
+)
+#: Phases of the sample period the "spread" generator uses, evenly apart: vehicle i sends at phase i % SPREAD_PHASES.
+SPREAD_PHASES = 20
 #: The fleet size of the latency target. Right after the sweep's step of this size, the service holds it for
 #: TARGET_HOLD_S and the p99 of each STEP_S window is reported: one 10 s step on a shared machine is one sample
 #: of a noisy figure. (Separate steps would each start after the whole fleet went STALE and came back, an alarm
@@ -78,8 +91,11 @@ def _templates(ids: list[str]) -> list[bytearray]:
     return templates
 
 
-def _generator(endpoint: str, n: int, duration_s: float, out: Any) -> None:
-    """Publish n vehicles at 100 Hz for duration_s; report samples sent and the time it took."""
+def _generator(endpoint: str, n: int, duration_s: float, out: Any, phases: int = 1) -> None:
+    """Publish n vehicles at 100 Hz for duration_s; report samples sent and the time it took.
+
+    phases = 1: every vehicle sends at the start of each period (aligned clocks, the worst case);
+    phases > 1: vehicle i sends at phase (i % phases) / phases of each period (independent clocks)."""
     import zenoh
 
     from service.protocol import vehicle_key
@@ -91,6 +107,7 @@ def _generator(endpoint: str, n: int, duration_s: float, out: Any) -> None:
         session.declare_publisher(vehicle_key(v, "meas"), congestion_control=zenoh.CongestionControl.BLOCK) for v in ids
     ]
     templates = _templates(ids)
+    groups = [list(zip(pubs[p::phases], templates[p::phases], strict=True)) for p in range(phases)]
     pack = struct.Struct("<Qq").pack_into
     time.sleep(0.5)
     period = 1.0 / RATE_HZ
@@ -98,9 +115,14 @@ def _generator(endpoint: str, n: int, duration_s: float, out: Any) -> None:
     start = time.monotonic()
     late = 0
     for k in range(ticks):
-        for pub, buf in zip(pubs, templates, strict=True):
-            pack(buf, 8, k, time.time_ns())
-            pub.put(bytes(buf))
+        for p, group in enumerate(groups):
+            if p:
+                delay = start + (k + p / phases) * period - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            for pub, buf in group:
+                pack(buf, 8, k, time.time_ns())
+                pub.put(bytes(buf))
         if k == 0:
             for buf in templates:
                 buf[5] = 0
@@ -179,6 +201,7 @@ def _step(
     every_n: int,
     duration_s: float | None = None,
     stream: str = "vehicle",
+    arrival: str = "spread",
 ) -> dict[str, Any]:
     duration_s = STEP_S if duration_s is None else duration_s
     ctx = multiprocessing.get_context("spawn")
@@ -190,7 +213,8 @@ def _step(
     before = http.get("/metrics").text
     cpu0 = _cpu_s(pid)
     receiver_cpu0 = _cpu_s(receiver.pid) if receiver.pid is not None else 0.0
-    generator = ctx.Process(target=_generator, args=(endpoint, n, duration_s, gen_q))
+    phases = SPREAD_PHASES if arrival == "spread" else 1
+    generator = ctx.Process(target=_generator, args=(endpoint, n, duration_s, gen_q, phases))
     generator.start()
     gen = gen_q.get(timeout=duration_s * 10 + 60)
     cpu1 = _cpu_s(pid)
@@ -208,6 +232,7 @@ def _step(
             "agv_fe_samples_missing_total",
             "agv_fe_estimates_published_total",
             "agv_fe_fleet_estimates_published_total",
+            "agv_fe_tick_batch_measurements_count",
         )
     }
     # latency in steady state: the first WARMUP_S of a step register the new vehicles and declare their publishers
@@ -250,6 +275,8 @@ def _step(
         "stream": stream,
         "published_per_vehicle": int(diff["agv_fe_estimates_published_total"]),
         "published_in_fleet_stream": int(diff["agv_fe_fleet_estimates_published_total"]),
+        "service_ticks": int(diff["agv_fe_tick_batch_measurements_count"]),
+        "arrival": arrival,
         "duration_s": duration_s,
         "p99_windows_ms": window_p99,
     }
@@ -334,21 +361,19 @@ def _calibration_us(vehicles: int = 1000, steps: int = 300) -> float:
     return sorted(times)[len(times) // 2] * 1e6
 
 
-def run(
-    out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES, modes: tuple[tuple[int, str], ...] = ESTIMATE_MODES
-) -> Path:
+def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES, modes: tuple[Mode, ...] = ESTIMATE_MODES) -> Path:
     before = _calibration_us()
-    sweeps = [_sweep(sizes, every_n, stream) for every_n, stream in modes]
+    sweeps = [_sweep(sizes, every_n, stream, arrival) for every_n, stream, arrival in modes]
     after = _calibration_us()
     print(f"  machine speed: observer step at 1,000 vehicles {before:.1f} us before, {after:.1f} us after", flush=True)
     return _report(out_dir, sweeps, sizes, (before, after))
 
 
-def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle") -> dict[str, Any]:
+def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle", arrival: str = "spread") -> dict[str, Any]:
     """One service, fleet sizes in turn until one fails, then the target size again; and the engine alone."""
     http_port, zenoh_port = _free_port(), _free_port()
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"
-    print(f" {_mode_name(every_n, stream)}", flush=True)
+    print(f" {_mode_name(every_n, stream, arrival)}", flush=True)
     with tempfile.TemporaryDirectory() as data_dir:
         env = {
             **os.environ,
@@ -378,7 +403,7 @@ def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle") -> dic
             gains_doc = http.get("/profiles/default/gains", params={"matrices": "true"}).json()
             design = gains_doc["options"]
             for n in sizes:
-                row = _step(endpoint, http, proc.pid, n, every_n, stream=stream)
+                row = _step(endpoint, http, proc.pid, n, every_n, stream=stream, arrival=arrival)
                 rows.append(row)
                 print(
                     f"  {n} vehicles: {row['rate_msg_s']:.0f} msg/s, zero loss {row['zero_loss']}, "
@@ -389,7 +414,7 @@ def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle") -> dic
                 if not _sustained(row):
                     break
                 if n == TARGET_VEHICLES:  # hold the target size now, with the fleet state the sweep's step had
-                    hold = _step(endpoint, http, proc.pid, TARGET_VEHICLES, every_n, TARGET_HOLD_S, stream)
+                    hold = _step(endpoint, http, proc.pid, TARGET_VEHICLES, every_n, TARGET_HOLD_S, stream, arrival)
                     print(f"  {TARGET_VEHICLES} vehicles held {TARGET_HOLD_S:.0f} s: p99 per window "
                           f"{', '.join(f'{x:.2f}' for x in hold['p99_windows_ms'])} ms, zero loss {hold['zero_loss']}",
                           flush=True)  # fmt: skip
@@ -404,6 +429,7 @@ def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle") -> dic
     return {
         "estimate_every_n": every_n,
         "stream": stream,
+        "arrival": arrival,
         "design": design,
         "service": rows,
         "target_hold": hold,
@@ -434,11 +460,26 @@ def _largest(rows: list[dict[str, Any]], sizes: tuple[int, ...]) -> str:
     return f"{best:,} vehicles" if failed else f"at least {best:,} vehicles (the largest size tried)"
 
 
-def _mode_name(every_n: int, stream: str = "vehicle") -> str:
+def _mode_name(every_n: int, stream: str = "vehicle", arrival: str = "spread") -> str:
     what = "an estimate for every sample" if every_n == 1 else f"an estimate for every {every_n}th sample"
     if stream == "fleet":
-        return f"{what}, taken from the fleet stream (one message per tick)"
-    return f"{what}, on each vehicle's key" + (" (the default)" if every_n == 1 else "")
+        what = f"{what}, taken from the fleet stream (one message per tick)"
+    else:
+        what = f"{what}, on each vehicle's key" + (" (the default)" if every_n == 1 else "")
+    if arrival == "aligned":
+        return f"{what}, every vehicle sending at the same instant (aligned clocks, the worst case)"
+    return what
+
+
+def _ticks(row: dict[str, Any]) -> str:
+    ticks = row.get("service_ticks")
+    if not ticks:
+        return "-"
+    return f"{ticks / (row['sent'] / row['rate_msg_s']):.0f} ({row['accepted'] / ticks:.0f})"
+
+
+def _mode_of(sweep: dict[str, Any]) -> Mode:
+    return sweep["estimate_every_n"], sweep.get("stream", "vehicle"), sweep.get("arrival", "aligned")
 
 
 def _report(
@@ -452,10 +493,7 @@ def _report(
         report_header("Service capacity and latency", "service_load"),
         "Largest fleet at 100 Hz per vehicle with zero loss (every sample accepted, no gap, every estimate "
         f"delivered) and the service keeping up (p99 under {KEEP_UP_P99_MS:.0f} ms):\n",
-        *(
-            f"* {_mode_name(sw['estimate_every_n'], sw.get('stream', 'vehicle'))}: **{_largest(sw['service'], sizes)}**"
-            for sw in sweeps
-        ),
+        *(f"* {_mode_name(*_mode_of(sw))}: **{_largest(sw['service'], sizes)}**" for sw in sweeps),
         "",
         f"Setup: `agv-fe serve` (embedded Zenoh router on 127.0.0.1, default profile: design "
         f"'{design.get('design')}', fault order {design.get('fault_order')}, {design.get('lyapunov')} P), "
@@ -463,7 +501,9 @@ def _report(
         f"processes on the same 2-core machine; the receiver takes every estimate, from every vehicle's key or from "
         f"the fleet stream (the service then runs with `AGV_FE_ZENOH__VEHICLE_ESTIMATES=subscribed` and, after "
         f"each vehicle's first second, sends nothing on the vehicle keys: nobody subscribes to them). "
-        f"{STEP_S:.0f} s per "
+        f"Vehicles have independent clocks, so the generator spreads them over each 10 ms period "
+        f"({SPREAD_PHASES} phases, {1e3 / RATE_HZ / SPREAD_PHASES:g} ms apart); the last sweep sends the whole "
+        f"fleet at the start of each period instead, the worst case. {STEP_S:.0f} s per "
         "step; the sweep stops at the first size that fails.\n",
     ]
     if calibration_us is not None:
@@ -480,15 +520,15 @@ def _report(
         )
     for sw in sweeps:
         every_n, rows, engine, hold = sw["estimate_every_n"], sw["service"], sw["engine"], sw["target_hold"]
-        name = _mode_name(every_n, sw.get("stream", "vehicle"))
+        name = _mode_name(*_mode_of(sw))
         lines += [
             f"## {name[0].upper()}{name[1:]}"
             + ("" if every_n == 1 else f" (`AGV_FE_INGEST__ESTIMATE_EVERY_N={every_n}`)")
             + "\n",
             "| vehicles | target msg/s | achieved msg/s | samples sent | accepted | missing | rejected "
             "| estimates received / expected | p50 [ms] | p99 [ms] | max [ms] | p99 incl. first 2 s [ms] "
-            "| service CPU [cores] | receiver CPU [cores] | result |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "| service CPU [cores] | receiver CPU [cores] | ticks per s (measurements per tick) | result |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in rows:
             verdict = _verdict(r)
@@ -497,7 +537,7 @@ def _report(
                 f"| {r['missing']} | {r['rejected']} | {r['estimates_received']} / {r['estimates_expected']} "
                 f"| {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | {r['max_ms']:.1f} "
                 f"| {r.get('p99_all_ms', float('nan')):.1f} | {r['service_cpu']:.2f} "
-                f"| {r.get('receiver_cpu', float('nan')):.2f} | {verdict} |"
+                f"| {r.get('receiver_cpu', float('nan')):.2f} | {_ticks(r)} | {verdict} |"
             )
         lines += [
             "",

@@ -10,17 +10,18 @@ pytestmark = pytest.mark.network
 
 def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
     """Short steps of 10 vehicles against a real `agv-fe serve`, with an estimate for every sample (the default),
-    for every 10th, and for every sample from the fleet stream: the tables, the engine alone and the verdicts all
-    come from the run's own figures."""
+    for every 10th, and for every sample from the fleet stream, the vehicles at spread phases; and the last with all
+    of them aligned: the tables, the engine alone and the verdicts all come from the run's own figures."""
     monkeypatch.setattr(bench, "STEP_S", 3.0)
     monkeypatch.setattr(bench, "WARMUP_S", 1.0)
     monkeypatch.setattr(bench, "ENGINE_TICKS", 30)
-    path = bench.run(tmp_path, sizes=(10,), modes=((1, "vehicle"), (10, "vehicle"), (1, "fleet")))
+    modes = ((1, "vehicle", "spread"), (10, "vehicle", "spread"), (1, "fleet", "spread"), (1, "fleet", "aligned"))
+    path = bench.run(tmp_path, sizes=(10,), modes=modes)
     assert "Machine speed during this run: one observer step for 1,000 vehicles" in path.read_text()
     text = path.read_text()
     sweeps = json.loads(text.rsplit("```json\n", 1)[1].split("\n```")[0])
-    assert [(sw["estimate_every_n"], sw["stream"]) for sw in sweeps] == [(1, "vehicle"), (10, "vehicle"), (1, "fleet")]
-    for sweep, expected in zip(sweeps, (3000, 300, 3000), strict=True):
+    assert [(sw["estimate_every_n"], sw["stream"], sw["arrival"]) for sw in sweeps] == list(modes)
+    for sweep, expected in zip(sweeps, (3000, 300, 3000, 3000), strict=True):
         (row,) = sweep["service"]
         (engine,) = sweep["engine"]
         assert row["vehicles"] == 10 and row["sent"] == 3000 and row["zero_loss"] and row["paced"]
@@ -29,6 +30,9 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
         assert row["receiver_cpu"] > 0
         assert engine["vehicles"] == 10 and engine["us_per_msg"] > 0
         assert f"{engine['us_per_msg']:.2f} us per measurement" in text
+        # every tick drained at least one sample; the ticks' measurements add up to what was accepted
+        assert 0 < row["service_ticks"] <= row["accepted"]
+        assert f"({row['accepted'] / row['service_ticks']:.0f}) | sustained |" in text
     # the sweep stopped at its largest size without a failure: a lower bound, said as such
     # the fleet stream carried every estimate; the vehicle keys, which nobody watched, stopped after the first second
     (fleet,) = sweeps[2]["service"]
@@ -38,8 +42,9 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
     assert "vehicle's key (the default): **at least 10 vehicles (the largest size tried)**" in text
     assert "every 10th sample, on each vehicle's key: **at least 10 vehicles (the largest size tried)**" in text
     assert "the fleet stream (one message per tick): **at least 10 vehicles (the largest size tried)**" in text
+    assert "aligned clocks, the worst case): **at least 10 vehicles (the largest size tried)**" in text
     verdicts = text.split("**Against the targets (this run).**")[1:]
-    assert len(verdicts) == 3
+    assert len(verdicts) == 4
     for sweep, verdict in zip(sweeps, verdicts, strict=True):
         (row,) = sweep["service"]
         line = verdict.split("\n", 1)[0]
