@@ -20,6 +20,8 @@ OK, WARN, FAULT = 0, 1, 2
 LEVEL_NAMES: tuple[Level, Level, Level] = ("OK", "WARN", "FAULT")
 RecordState = Literal["raised", "cleared"]
 _NOT_HOLDING = np.iinfo(np.int64).min
+_NONE = np.zeros(0, dtype=np.intp)
+_NONE.flags.writeable = False
 _LEVEL_RANK: dict[str, int] = {"OK": 0, "WARN": 1, "FAULT": 2, "STALE": 3}
 
 
@@ -74,8 +76,26 @@ class LevelDetector:
             self.level[rows] = OK
 
     def update(self, rows: np.ndarray, values: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
-        """Feed |values| at sample times ``t_ns`` for ``rows``; return the indices (into rows) whose level changed."""
+        """Feed |values| at sample times ``t_ns`` for ``rows``; return the indices (into rows) whose level changed.
+
+        A row at OK whose value is under both thresholds (most rows of a healthy fleet) stays at OK, and only its
+        'above' timers break: that is all this does for it. Its 'below' timers are left as they were. They are
+        read only to lower a raised level, and raising one takes values at or above the threshold, which reset
+        them first (hysteresis <= 1). So the levels are exactly those of updating every row in full.
+        """
         magnitude = np.abs(values)
+        quiet = (magnitude < min(self.warn, self.fault)) & (self.level[rows] == OK)
+        if quiet.all():
+            self._above[:, rows] = _NOT_HOLDING
+            return _NONE
+        if not quiet.any():
+            return self._update_in_full(rows, magnitude, t_ns)
+        self._above[:, rows[quiet]] = _NOT_HOLDING
+        busy = np.flatnonzero(~quiet)
+        return busy[self._update_in_full(rows[busy], magnitude[busy], t_ns[busy])]
+
+    def _update_in_full(self, rows: np.ndarray, magnitude: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+        """Every timer and the level of ``rows`` for |values| ``magnitude``; indices (into rows) whose level changed."""
         thresholds = np.array([self.warn, self.fault])[:, None]
         above = magnitude[None, :] >= thresholds
         below = magnitude[None, :] < self.hysteresis * thresholds

@@ -53,6 +53,50 @@ def test_rows_are_independent():
     assert changed.tolist() == [0, 1] and d.level.tolist() == [FAULT, OK, WARN]
 
 
+class InFull(LevelDetector):
+    """The detector without its shortcut for quiet rows: every row's timers and level updated in full."""
+
+    def update(self, rows: np.ndarray, values: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+        return self._update_in_full(rows, np.abs(values), t_ns)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_shortcut_for_quiet_rows_gives_the_levels_of_the_full_update(seed):
+    """Random rows and values that wander across both thresholds and back, with quiet spells and spikes: the
+    detector's levels and changed rows match, sample for sample, those of updating every row in full."""
+    rng = np.random.default_rng(seed)
+    rows_total, settings = 12, {"warn": 10.0, "fault": 20.0, "hysteresis": 0.8}
+    fast = LevelDetector(rows_total, **settings, raise_after_ns=40 * MS, clear_after_ns=70 * MS)
+    full = InFull(rows_total, **settings, raise_after_ns=40 * MS, clear_after_ns=70 * MS)
+    value = np.zeros(rows_total)  # each row's value: pulled towards 0 in quiet spells, towards its target otherwise
+    targets = rng.uniform(-28.0, 28.0, rows_total)
+    clocks = np.zeros(rows_total, dtype=np.int64)
+    seen = {OK: 0, WARN: 0, FAULT: 0}
+    ticks = {"all quiet": 0, "some quiet": 0, "none quiet": 0}
+    for step in range(4000):
+        rows = np.flatnonzero(rng.random(rows_total) < 0.6)
+        if len(rows) == 0:
+            continue
+        if step % 400 == 0:
+            targets = rng.uniform(-28.0, 28.0, rows_total)
+        target = 0.0 if (step // 400) % 2 == 0 else targets[rows]
+        value[rows] += 0.1 * (target - value[rows]) + rng.normal(0.0, 1.5, len(rows))
+        spike = rng.random(len(rows)) < 0.01
+        value[rows[spike]] = rng.uniform(-30.0, 30.0, int(spike.sum()))
+        clocks[rows] += 10 * MS
+        values, t_ns = value[rows].copy(), clocks[rows].copy()
+        quiet = (np.abs(values) < 10.0) & (fast.level[rows] == OK)
+        ticks["all quiet" if quiet.all() else "some quiet" if quiet.any() else "none quiet"] += 1
+        changed = fast.update(rows, values, t_ns)
+        expected = full.update(rows, values, t_ns)
+        assert changed.tolist() == expected.tolist()
+        assert fast.level.tolist() == full.level.tolist()
+        for lvl in fast.level.tolist():
+            seen[lvl] += 1
+    # the run went through every level, and through ticks where all, some and none of the rows took the shortcut
+    assert min(seen.values()) > 100 and min(ticks.values()) > 100, (seen, ticks)
+
+
 def test_alarm_latches_until_cleared_and_acknowledged():
     book = AlarmBook()
     raised = book.raise_level("v", "p", "torque_fault", "WARN", 1, 12.0, 10.0, "m")
