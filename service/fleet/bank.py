@@ -253,20 +253,22 @@ class ProfileBank:
         x5 = res.x_hat[:, :_N_EST]
         finite: np.ndarray = np.asarray(np.isfinite(x5).all(axis=1) & np.isfinite(z_next).all(axis=1))
         self.z[slots] = z_next
+        good, x5_good, in_domain, seq_good, t_good = slots, x5, res.in_domain, seq, t_ns
         if not finite.all():
             bad = slots[~finite]
             self.needs_init[bad] = True
             self.warm[bad] = np.nan
-        good = slots[finite]
-        self.last_x5[good] = x5[finite]
-        self.last_in_domain[good] = res.in_domain[finite]
-        self.last_seq[good] = seq[finite]
-        self.last_t_ns[good] = t_ns[finite]
+            good, x5_good, in_domain = slots[finite], x5[finite], in_domain[finite]
+            seq_good, t_good = seq[finite], t_ns[finite]
+        self.last_x5[good] = x5_good
+        self.last_in_domain[good] = in_domain
+        self.last_seq[good] = seq_good
+        self.last_t_ns[good] = t_good
         pos = self.hist_count[good] % self.history_samples
-        self.hist_x5[good, pos] = x5[finite]
-        self.hist_in_domain[good, pos] = res.in_domain[finite]
-        self.hist_seq[good, pos] = seq[finite]
-        self.hist_t_ns[good, pos] = t_ns[finite]
+        self.hist_x5[good, pos] = x5_good
+        self.hist_in_domain[good, pos] = in_domain
+        self.hist_seq[good, pos] = seq_good
+        self.hist_t_ns[good, pos] = t_good
         self.hist_count[good] += 1
         return StepOutput(
             x5=x5,

@@ -235,6 +235,9 @@ class FleetEngine:
         self._limits = np.zeros((0, 5))
         self._ordinal: dict[str, int] = {}
         self._stale_count = 0  # vehicles marked stale now (a tick with none skips gathering the flags)
+        # the common tick's shortcuts in stepping (one round, no restart, every estimate finite and published);
+        # off, every tick takes the general path, which gives the same results (a test compares the two)
+        self._shortcuts = True
 
     # ------------------------------------------------------------------ profiles and vehicles
 
@@ -385,7 +388,7 @@ class FleetEngine:
                 vehicle.last_seq = seq
             names = list(self.banks)
             fast_banks = bank_of[fast_at]
-            for o in np.unique(fast_banks).tolist():
+            for o in [0] if len(names) == 1 else np.unique(fast_banks).tolist():
                 at = at_list if len(names) == 1 else fast_at[fast_banks == o].tolist()
                 rows = per_bank.get(names[o])
                 if rows is None:
@@ -540,6 +543,13 @@ class FleetEngine:
         at = np.array(rows.positions, dtype=np.int64)
         values, seq, t_ns = tick_values[at], tick_seq[at], tick_t_ns[at]
         slots = np.array(rows.slots, dtype=np.int64)
+        if self._shortcuts and not rows.later and not rows.restart:  # the common tick: one sample each, no restart
+            idx = np.arange(len(slots))
+            out = bank.step(slots, values[:, :2], values[:, 2:], seq, t_ns)
+            self._after_step(bank, rows, idx, slots, out, seq, t_ns, values, result)
+            result.accepted += len(slots)
+            self.stats["accepted"] += len(slots)
+            return
         rounds = np.zeros(len(slots), dtype=np.int64)
         if rows.later:
             later_at, rnd = np.array(rows.later, dtype=np.int64).T
@@ -576,43 +586,58 @@ class FleetEngine:
     ) -> None:
         x5, in_domain, vy_in_bounds, finite = out.x5, out.in_domain, out.vy_in_bounds, out.finite
         t = t_ns[idx]
-        if not finite.all():
+        all_finite = bool(finite.all())  # the common case: no row needs picking out
+        if not all_finite:
             self.stats["numerical_restarts"] += int((~finite).sum())
         # alarms: fault channels after the warm-up, domain always
         alarms = bank.spec.alarms
-        warm = finite & (t - bank.started_t_ns[slots] >= round(alarms.warmup_s * 1e9))
-        w = np.flatnonzero(warm)
+        warm = t - bank.started_t_ns[slots] >= round(alarms.warmup_s * 1e9)
         changed: set[int] = set()
-        if len(w):
-            changed.update(w[bank.torque.update(slots[w], x5[w, 3], t[w])].tolist())
-            changed.update(w[bank.steer.update(slots[w], x5[w, 4], t[w])].tolist())
-        f = np.flatnonzero(finite)
-        outside = (~in_domain[f] | ~vy_in_bounds[f]).astype(float)
-        changed.update(f[bank.domain.update(slots[f], outside, t[f])].tolist())
+        if self._shortcuts and all_finite and warm.all():
+            changed.update(bank.torque.update(slots, x5[:, 3], t).tolist())
+            changed.update(bank.steer.update(slots, x5[:, 4], t).tolist())
+        else:
+            w = np.flatnonzero(finite & warm)
+            if len(w):
+                changed.update(w[bank.torque.update(slots[w], x5[w, 3], t[w])].tolist())
+                changed.update(w[bank.steer.update(slots[w], x5[w, 4], t[w])].tolist())
+        if self._shortcuts and all_finite:
+            changed.update(bank.domain.update(slots, (~in_domain | ~vy_in_bounds).astype(float), t).tolist())
+        else:
+            f = np.flatnonzero(finite)
+            outside = (~in_domain[f] | ~vy_in_bounds[f]).astype(float)
+            changed.update(f[bank.domain.update(slots[f], outside, t[f])].tolist())
         for j in sorted(changed):
             self._alarm_transitions(bank, rows.vehicles[idx[j]], int(t[j]), x5[j], result)
         # counts, and which estimates to publish: every n-th finite estimate of each vehicle
         bank.accepted[slots] += 1
-        done = slots[finite]
-        bank.estimates[done] += 1
         every_n = self.config.estimate_every_n
-        phase = bank.phase[done]
-        bank.phase[done] = (phase + 1) % every_n
-        pub = np.flatnonzero(finite)[phase == 0]
-        bank.published[slots[pub]] += 1
-        self.stats["estimates"] += len(done)
-        if not len(pub):
-            return
+        if self._shortcuts and all_finite and every_n == 1:  # every row's estimate, as it is
+            bank.estimates[slots] += 1
+            bank.published[slots] += 1
+            self.stats["estimates"] += len(slots)
+            pub_slots, pub_idx, pub_t, pub_x5, pub_in_domain, fast = slots, idx, t, x5, in_domain, out.fast
+        else:
+            done = slots[finite]
+            bank.estimates[done] += 1
+            phase = bank.phase[done]
+            bank.phase[done] = (phase + 1) % every_n
+            pub = np.flatnonzero(finite)[phase == 0]
+            bank.published[slots[pub]] += 1
+            self.stats["estimates"] += len(done)
+            if not len(pub):
+                return
+            pub_slots, pub_idx, pub_t, pub_x5, pub_in_domain = slots[pub], idx[pub], t[pub], x5[pub], in_domain[pub]
+            fast = None if out.fast is None else out.fast[pub]
         level = np.maximum(
-            np.maximum(bank.torque.level[slots[pub]], bank.steer.level[slots[pub]]), bank.domain.level[slots[pub]]
+            np.maximum(bank.torque.level[pub_slots], bank.steer.level[pub_slots]), bank.domain.level[pub_slots]
         )
-        at = idx[pub].tolist()
+        at = pub_idx.tolist()
         vehicles = rows.vehicles
         ids = [vehicles[i].id for i in at]
         # every vehicle of the tick had its STALE state cleared before it was stepped (process, pass 2)
         names = [LEVEL_NAMES[lvl] for lvl in level.tolist()]
-        fast = None if out.fast is None else out.fast[pub]
-        batch = EstimateBatch(ids, seq[idx[pub]], t[pub], x5[pub], in_domain[pub], names, bank.version or "", fast)
+        batch = EstimateBatch(ids, seq[pub_idx], pub_t, pub_x5, pub_in_domain, names, bank.version or "", fast)
         result.estimate_batches.append(batch)
         if not self.events.wants("estimate"):
             return
