@@ -576,30 +576,42 @@ The 10 ms latency target is judged separately. Three Python processes share two 
 so the generator and the receiver (which decodes every estimate: see its CPU column) take CPU the
 service would otherwise have; a service on its own machine carries more.
 
-Where the service's time goes (2026-11-24, 1,000 vehicles, an estimate for every sample taken from
-the fleet stream, 20 s runs, timing code added for the runs and not kept):
+When the vehicles send (2026-11-24). Until this report the generator sent every vehicle's sample at
+the start of each period, as aligned clocks would: the whole fleet as one burst, so the last sample of
+a burst waits until the service has worked through the rest, and the latency floor is the time to
+process a whole period's samples. Real vehicles run on their own clocks and send all through the
+period; the first three sweeps now do that, the last keeps the aligned burst as the worst case. Spread
+arrivals exposed a cost the bursts hid: the ingest loop drained as soon as a tick ended, so it ran a
+tick for every few samples, and 100 vehicles took 0.84-0.87 cores (0.30 aligned). A tick now starts at
+most once per `ingest.tick_interval_s` (1 ms): 0.58 cores for the same 100 vehicles, and the tick's
+fixed work (about 25 numpy calls per alarm detector, three detectors) was cut for the common tick.
 
-* CPU per thread: the ingest loop 0.57 cores, Zenoh's two receive threads 0.17, the rest 0.03.
+Where the service's time goes (2026-11-24, 1,000 vehicles, an estimate for every sample taken from
+the fleet stream, aligned, 20 s runs, timing code added for the runs and not kept):
+
+* CPU per thread: the ingest loop 0.57-0.72 cores, Zenoh's two receive threads 0.17-0.21; the
+  generator process 0.33 cores, the receiver 0.18.
 * Per measurement in the ingest loop: draining the Zenoh channel 1.2 us, the fleet engine 3.7 us,
-  publishing 0.8 us. The engine alone, in this benchmark's process, does the same work in 1.3-1.7 us:
-  inside the loaded service the same code runs 2-2.5 times slower (caches and cores shared with the
-  Zenoh threads and two more processes).
+  publishing 0.8 us. The engine alone, in this benchmark's process, does the same work in 1.3-1.7 us.
+* Why the same code runs 2-2.5 times slower inside the loaded service: the engine alone (1,000
+  vehicles, ticks of 400 samples) took 1.71 us per measurement, and 1.71 us again with a pure-Python
+  loop spinning on the other core, but 4.09 us with a numpy loop summing a 32 MB array there, 2.54 us
+  with an 800 KB array and 2.87 us with a 64 MB memory copy. What slows it is memory and vector work on
+  the other core (Zenoh's threads, the other processes), not a second interpreter.
+* With the service's ingest thread pinned to one core and everything else (its Zenoh threads, the
+  generator, the receiver) to the other, p99 was 4.4-8.9 ms in four steps (5 s and 10 s) against 6.3-12.1 ms
+  unpinned, alternating. An operator can do this with `taskset`; the benchmark does not.
 * With the generator and the receiver at nice 10, so that the service gets a core first: p99 11.2 ms,
-  against 12.3-13.5 ms in three runs at normal priority. The other processes are not most of the tail;
-  the service's own tick work is.
-* What came out of it, in this report's commit: the start-up heap frozen for the garbage collector (one
-  full collection took 65 ms, and an estimate for every sample triggered several a minute); a tick's
+  against 12.3-13.5 ms in three runs at normal priority.
+* Earlier changes from this analysis: the start-up heap frozen for the garbage collector (one full
+  collection took 65 ms, and an estimate for every sample triggered several a minute); a tick's
   estimates written by one orjson call; in-sequence samples sequenced at once; and the fleet stream,
   which carries a tick's estimates as columns in one message.
 * From run to run the figures move a lot on this shared machine. Two runs of this benchmark on
-  2026-11-24, an hour apart, at 1,000 vehicles: from the fleet stream, p99 9.0 ms in the sweep and
-  10.5-14.8 ms per hold window with at least 2,000 vehicles sustained (commit 5fb65cd), then 14.3 ms
-  and 13.5-28.7 ms with 1,250 sustained (commit 855d79a, whose changes since only removed work from
-  the default publish path); every 10th sample, 14.7 and 13.4 ms. The report before these (commit
-  2d91fc4) had 9.8 ms for every 10th sample. To tell a regression from the machine, the previous
-  stop's commit (c893544) and this code ran alternately within one hour (1,000 vehicles, every 10th,
-  20 s): p99 15.7 and 20.4 ms against 12.3 and 14.9 ms; service CPU 0.91 and 0.89 against 0.79 and
-  0.93 cores.
+  2026-11-24, an hour apart, at 1,000 vehicles with aligned bursts: from the fleet stream, p99 9.0 ms
+  in the sweep and 10.5-14.8 ms per hold window (commit 5fb65cd), then 14.3 ms and 13.5-28.7 ms
+  (commit 855d79a, whose changes since only removed work from the default publish path); every 10th
+  sample, 14.7 and 13.4 ms.
 
 Tried and not adopted (2026-11-23, one service per run, 10 s steps, 1,000 vehicles, an estimate for
 every 10th sample): one Zenoh RX worker thread in the service instead of two
