@@ -10,7 +10,7 @@ from typing import Any
 from agv_fe.benchmarks import report_header
 from edge_client.evaluation import RMSE_AFTER_S, RMSE_LATE_S, DetectionRule, compare, step_cost_us
 from edge_client.library import EVALUATION_SCENARIOS, builtin_scenario
-from edge_client.scenario import Scenario, SensorNoise
+from edge_client.scenario import REALISTIC_NOISE, Scenario, SensorNoise
 from edge_client.simulation import ekf_factory, observer_factory
 from synth.analysis import frozen_comparison
 from synth.design import synthesize
@@ -27,6 +27,13 @@ FROZEN_SPEEDS = (5.0, 10.0, 25.0, 30.0)
 
 def _noise_free(name: str, seed: int) -> Scenario:
     return builtin_scenario(name, noise=SensorNoise(), seed=seed)
+
+
+def _measured_start(name: str, seed: int) -> Scenario:
+    """The scenario with both estimators started as the service starts an observer: from the first
+    measurement (v_x and r measured, v_y = 0), not from the paper's [5, -1, 0]."""
+    scenario = builtin_scenario(name, noise=REALISTIC_NOISE, seed=seed)
+    return scenario.model_copy(update={"observer_initial_state": None})
 
 
 class _CountingSwitched(FuzzyObserver):
@@ -109,6 +116,15 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
         runs = [r for r in switched_runs if r.samples > 100]  # the accuracy runs, not the cost probes
         fast_share[name] = sum(r.fast_samples for r in runs) / max(1, sum(r.samples for r in runs))
         clean.append(compare(name, factories, 1, rule, batch=10, scenario_factory=_noise_free))
+    # the scenarios that start the observer away from the measurement (the paper's), started from it as well
+    restarted = [
+        n for n in EVALUATION_SCENARIOS if builtin_scenario(n, noise=REALISTIC_NOISE).observer_initial_state is not None
+    ]
+    as_deployed = {
+        name: compare(name, {k: factories[k] for k in ("observer", "EKF", "switched")}, seeds, rule, batch=10,
+                      scenario_factory=_measured_start)
+        for name in restarted
+    }  # fmt: skip
     costs = [step_cost_us({k: factories[k] for k in ("observer", "EKF")}, BATCH) for _ in range(COST_REPEATS)]
     # each switched variant interleaved with the EKF alone, as the observer is (the step after the EKF's
     # pays for the cache the EKF's covariances evicted, so the pairing must be the same)
@@ -234,6 +250,35 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
         )
     lines += [
         "",
+        "## The paper's scenarios, started as the service starts an observer\n",
+        "The paper starts its observer at [v_x, v_y, r] = [5, -1, 0] while the vehicle drives at about "
+        "10 m/s, to show convergence, and the tables above keep that start for both estimators. The service "
+        "starts an observer from the vehicle's first measurement (measured v_x and r, v_y = 0), as the "
+        "highway and urban scenarios do. Here the paper's scenarios start that way too, the EKF with them "
+        "(same seeds, same noise):\n",
+        "| scenario | **T_f ratio obs/EKF** | **delta_f ratio obs/EKF** | T_f ratio switched/EKF "
+        "| delta_f ratio switched/EKF | T_f RMSE EKF [N m] |",
+        "|---|---|---|---|---|---|",
+    ]
+    deployed_worst = {"T_f": 0.0, "delta_f": 0.0}
+    for c in rows:
+        d = as_deployed.get(c.scenario, c)
+        ratio = {
+            (e, ch): (d.median(e, "rmse", ch) or float("nan")) / (d.median("EKF", "rmse", ch) or float("nan"))
+            for e in ("observer", "switched")
+            for ch in ("T_f", "delta_f")
+        }
+        for ch in ("T_f", "delta_f"):
+            deployed_worst[ch] = max(deployed_worst[ch], ratio["observer", ch])
+        if c.scenario not in as_deployed:
+            continue
+        lines.append(
+            f"| {c.scenario} | **{ratio['observer', 'T_f']:.3f}** | **{ratio['observer', 'delta_f']:.3f}** "
+            f"| {ratio['switched', 'T_f']:.3f} | {ratio['switched', 'delta_f']:.3f} "
+            f"| {d.median('EKF', 'rmse', 'T_f'):.4g} |"
+        )
+    lines += [
+        "",
         "## Detection (|estimate| above "
         f"{rule.torque_nm:g} N m / {rule.steer_rad:g} rad for {rule.hold_s:g} s; delay after onset, median)\n",
         "| scenario | T_f delay observer [s] | T_f delay EKF [s] | delta_f delay observer [s] | delta_f delay EKF [s] "
@@ -278,7 +323,9 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
         f"({'met' if max(worst.values()) <= 1.0 else 'not met on every scenario'}); cost ratio "
         f"{statistics.median(ratios):.1f} ({'met' if statistics.median(ratios) >= 10 else 'not met'}). "
         f"Switched gain sets (opt-in): worst ratio T_f {worst_switched['T_f']:.3f}, delta_f "
-        f"{worst_switched['delta_f']:.3f}.",
+        f"{worst_switched['delta_f']:.3f}. Every scenario started as the service starts an observer (the "
+        f"section above for the paper's, the first table for the others): worst ratio T_f "
+        f"{deployed_worst['T_f']:.3f}, delta_f {deployed_worst['delta_f']:.3f}.",
         "",
         ANALYSIS,
     ]
@@ -332,6 +379,22 @@ ANALYSIS = """* **Against the paper's design.** The stability-only gains amplify
      They bring urban under 1 and paper-1 to about 1.01; paper-1's sinusoidal steering fault keeps
      the innovation high, so the fast set runs most of that scenario. The step costs more, and the
      cost ratio to the EKF falls below 10 for them (docs/switched-gains.md).
+  6. *Paper-1's torque gap is the paper's start.* The paper starts both estimators 5 m/s below the
+     measured speed. The EKF clears that with a gain that starts large and shrinks; a constant gain
+     clears it at its designed rate, and the tail of that transient is still in the window from 3 s.
+     Started from the measurement, as the service starts an observer (section above), the default
+     observer is under 1 on paper-1 too. Urban, which always started from the measurement, stays
+     about 1 % over with the default gains. The decay-rate knob with both starts (2026-11-24, 5 seeds,
+     window from 3 s; robust_decay_rate 0.995 / 0.996 / 0.997):
+     - paper-1 from the paper's start 1.032 / 1.109 / 1.274, from the measurement 0.995 / 0.989 / 0.987;
+     - paper-2 from the paper's start 0.962 / 0.981 / 1.016, from the measurement 0.954 / 0.961 / 0.970;
+     - highway 0.967 / 0.976 / 0.985; urban 1.007 / 0.997 / 0.992;
+     - delta_f between 0.909 and 0.993 in every case.
+
+     At 0.996 every scenario started from the measurement meets the target on both channels, and
+     paper-1 from the paper's start misses it by 11 %. The default stays 0.995: faster certified
+     convergence and earlier detection, and the paper's own test of convergence is not given up for
+     1 % on urban. A fleet that wants 0.996 sets `robust_decay_rate` in its profile's design options.
 * **Cost.** The observer step is a few broadcast products on [x, V_x x, r x, V_x r x] and one GEMM
   over the fleet that yields both the next state and the filtered faults, with no covariance and
   no Jacobian. The EKF propagates a 5 x 5 covariance per vehicle, written with the same care:
