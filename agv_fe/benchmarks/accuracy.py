@@ -392,9 +392,9 @@ ANALYSIS = """* **Against the paper's design.** The stability-only gains amplify
      - delta_f between 0.909 and 0.993 in every case.
 
      At 0.996 every scenario started from the measurement meets the target on both channels, and
-     paper-1 from the paper's start misses it by 11 %. The default stays 0.995: faster certified
-     convergence and earlier detection, and the paper's own test of convergence is not given up for
-     1 % on urban. A fleet that wants 0.996 sets `robust_decay_rate` in its profile's design options.
+     paper-1 from the paper's start misses it by 11 %. The default stays 0.995: a faster certified
+     convergence, and the paper's own test of convergence is not given up for 1 % on urban. A fleet
+     that wants 0.996 sets `robust_decay_rate` in its profile's design options.
 * **Cost.** The observer step is a few broadcast products on [x, V_x x, r x, V_x r x] and one GEMM
   over the fleet that yields both the next state and the filtered faults, with no covariance and
   no Jacobian. The EKF propagates a 5 x 5 covariance per vehicle, written with the same care:
