@@ -262,20 +262,21 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
     ]
     deployed_worst = {"T_f": 0.0, "delta_f": 0.0}
     for c in rows:
-        d = as_deployed.get(c.scenario, c)
-        ratio = {
-            (e, ch): (d.median(e, "rmse", ch) or float("nan")) / (d.median("EKF", "rmse", ch) or float("nan"))
+        started = as_deployed.get(c.scenario, c)
+        deployed: dict[tuple[str, str], float] = {
+            (e, ch): (started.median(e, "rmse", ch) or float("nan"))
+            / (started.median("EKF", "rmse", ch) or float("nan"))
             for e in ("observer", "switched")
             for ch in ("T_f", "delta_f")
         }
         for ch in ("T_f", "delta_f"):
-            deployed_worst[ch] = max(deployed_worst[ch], ratio["observer", ch])
+            deployed_worst[ch] = max(deployed_worst[ch], deployed["observer", ch])
         if c.scenario not in as_deployed:
             continue
         lines.append(
-            f"| {c.scenario} | **{ratio['observer', 'T_f']:.3f}** | **{ratio['observer', 'delta_f']:.3f}** "
-            f"| {ratio['switched', 'T_f']:.3f} | {ratio['switched', 'delta_f']:.3f} "
-            f"| {d.median('EKF', 'rmse', 'T_f'):.4g} |"
+            f"| {c.scenario} | **{deployed['observer', 'T_f']:.3f}** | **{deployed['observer', 'delta_f']:.3f}** "
+            f"| {deployed['switched', 'T_f']:.3f} | {deployed['switched', 'delta_f']:.3f} "
+            f"| {started.median('EKF', 'rmse', 'T_f'):.4g} |"
         )
     lines += [
         "",
