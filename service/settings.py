@@ -60,9 +60,9 @@ class ZenohSettings(_Section):
     vehicle_estimates: Literal["always", "subscribed"] = Field(
         "always",
         description="'always': every estimate goes to its vehicle's key; 'subscribed': only while a subscriber "
-        "matches that key (read every housekeeping pass), which saves encoding and sending when the estimates "
-        "are taken from the fleet stream, at the price of a new or returning subscriber waiting up to a pass "
-        "or two (after a router restart: up to about a second)",
+        "matches that key (a matching listener per key, its changes applied every housekeeping pass), which "
+        "saves encoding and sending when the estimates are taken from the fleet stream, at the price of a new "
+        "or returning subscriber waiting up to a pass",
     )
 
     @field_validator("endpoint")

@@ -21,6 +21,7 @@ default so that a slow estimate subscriber can never stall ingest (setting
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import time
@@ -46,11 +47,10 @@ if TYPE_CHECKING:
 
 #: Ground-truth samples kept per followed vehicle between two drains (newest kept).
 TRUTH_RING_CAPACITY = 1024
-#: A new estimate publisher is taken as matched for this long: a client session learns of existing
-#: subscribers only after a round trip to its router, and reports "no match" until then [s].
+#: A new estimate publisher is taken as matched for this long, then its matching status is read once: a
+#: client session learns of existing subscribers only after a round trip to its router, and reports "no
+#: match" until then; afterwards its matching listener reports every change [s].
 MATCH_SETTLE_S = 1.0
-#: Publishers whose matching status one refresh reads at most (1.3 us each, measured).
-MATCH_REFRESH_MAX = 2000
 
 
 class TransportError(Exception):
@@ -94,9 +94,12 @@ class Transport:
         self._alive: list[Any] = []
         self._token: Any = None
         self._estimate_pubs: dict[str, Any] = {}
-        self._declared_at: dict[str, float] = {}
-        self._unmatched: set[str] = set()  # vehicles whose estimate key no subscriber matched at the last refresh
-        self._refresh_from = 0
+        # with vehicle_estimates='subscribed': each estimate publisher's matching listener, the changes they
+        # reported (appended from Zenoh's threads), the publishers still settling, and the keys nobody matches
+        self._listeners: list[Any] = []
+        self._match_events: collections.deque[tuple[str, bool]] = collections.deque()
+        self._settling: dict[str, float] = {}
+        self._unmatched: set[str] = set()
         self._fleet_pub: Any = None
         self._alarm_pubs: dict[str, Any] = {}
         self._truth: dict[str, Any] = {}
@@ -203,12 +206,7 @@ class Transport:
             for vehicle_id, document in zip(ids, documents, strict=True):
                 pub = pubs.get(vehicle_id)
                 if pub is None:
-                    pub = pubs[vehicle_id] = self.session.declare_publisher(
-                        vehicle_key(vehicle_id, "estimate", self.prefix),
-                        congestion_control=self._estimate_cc,
-                        encoding=zenoh.Encoding.APPLICATION_JSON,
-                    )
-                    self._declared_at[vehicle_id] = time.monotonic()
+                    pub = pubs[vehicle_id] = self._declare_estimate_publisher(vehicle_id)
                 pub.put(document)
             sent += len(documents)
         in_fleet = 0
@@ -217,29 +215,51 @@ class Transport:
             in_fleet = sum(len(b) for b in batches)
         return sent, in_fleet
 
+    def _declare_estimate_publisher(self, vehicle_id: str) -> Any:
+        pub = self.session.declare_publisher(
+            vehicle_key(vehicle_id, "estimate", self.prefix),
+            congestion_control=self._estimate_cc,
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+        )
+        if self.settings.vehicle_estimates == "subscribed":
+            events = self._match_events  # a deque: appending from Zenoh's threads is safe
+            self._listeners.append(
+                pub.declare_matching_listener(lambda status: events.append((vehicle_id, status.matching)))
+            )
+            self._settling[vehicle_id] = time.monotonic()
+        return pub
+
     def refresh_matching(self, now: float | None = None) -> int:
-        """Re-read whether a subscriber matches each vehicle's estimate key (at most MATCH_REFRESH_MAX per
-        call, round robin); returns how many vehicles' estimates are currently skipped. Nothing is skipped
-        unless the setting ``zenoh.vehicle_estimates`` is 'subscribed'."""
-        now = time.monotonic() if now is None else now
-        items = list(self._estimate_pubs.items())
-        if not items or self.settings.vehicle_estimates == "always":
+        """Bring the set of vehicle estimate keys nobody subscribes to up to date; return its size.
+
+        Each estimate publisher's matching listener reports every change, applied here in the order it came;
+        a publisher whose first MATCH_SETTLE_S have passed has its status read once, since a listener
+        reports changes only. Nothing is skipped unless the setting ``zenoh.vehicle_estimates`` is
+        'subscribed'."""
+        if self.settings.vehicle_estimates == "always":
             return 0
-        start = self._refresh_from % len(items)
-        chunk = items[start : start + MATCH_REFRESH_MAX]
-        self._refresh_from = start + len(chunk)
-        for vehicle_id, pub in chunk:
-            if now - self._declared_at.get(vehicle_id, 0.0) < MATCH_SETTLE_S:
-                continue
+        now = time.monotonic() if now is None else now
+        events, unmatched = self._match_events, self._unmatched
+        while events:
+            vehicle_id, matched = events.popleft()
+            if vehicle_id in self._settling:
+                continue  # taken as matched until its status is read below
+            if matched:
+                unmatched.discard(vehicle_id)
+            else:
+                unmatched.add(vehicle_id)
+        settled = [v for v, declared in self._settling.items() if now - declared >= MATCH_SETTLE_S]
+        for vehicle_id in settled:
+            del self._settling[vehicle_id]
             try:
-                matched = pub.matching_status.matching
+                matched = self._estimate_pubs[vehicle_id].matching_status.matching
             except zenoh.ZError:
                 matched = True  # unknown: keep publishing
             if matched:
-                self._unmatched.discard(vehicle_id)
+                unmatched.discard(vehicle_id)
             else:
-                self._unmatched.add(vehicle_id)
-        return len(self._unmatched)
+                unmatched.add(vehicle_id)
+        return len(unmatched)
 
     def publish_alarm(self, vehicle_id: str, payload: bytes) -> None:
         pub = self._alarm_pubs.get(vehicle_id)
@@ -256,7 +276,7 @@ class Transport:
         """Undeclare everything and close the session (an unclosed session can hang the process at exit)."""
         entities = [*self._meas, *self._alive, *self._truth.values()]
         fleet = [self._fleet_pub] if self._fleet_pub is not None else []
-        for entity in [*entities, *fleet, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
+        for entity in [*entities, *fleet, *self._listeners, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         if self._token is not None:
@@ -264,7 +284,8 @@ class Transport:
                 self._token.undeclare()
         self._meas, self._alive, self._token = [], [], None
         self._estimate_pubs, self._alarm_pubs, self._truth = {}, {}, {}
-        self._declared_at, self._unmatched, self._fleet_pub = {}, set(), None
+        self._listeners, self._settling, self._unmatched, self._fleet_pub = [], {}, set(), None
+        self._match_events.clear()
         if self._session is not None:
             self._session.close()  # type: ignore[no-untyped-call]
             self._session = None

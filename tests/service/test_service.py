@@ -313,6 +313,14 @@ def _fleet_stream_case(server, skips: bool) -> None:
         wait_for(watched, what="fleet-a's estimates on its own key")
         per_vehicle2, _, unmatched2 = counters()
         assert per_vehicle2 > per_vehicle1 and unmatched2 >= len(ids) - 1
+        # the subscriber leaves: the service sees it go and stops sending there again
+        watcher.undeclare()
+        watcher = None
+        wait_for(lambda: counters()[2] >= len(ids), what="fleet-a's key unmatched again")
+        per_vehicle3, in_fleet3, _ = counters()
+        send(range(100_000, 100_100))
+        wait_for(lambda: counters()[1] >= in_fleet3 + 300, what="300 more estimates in fleet messages")
+        assert counters()[0] == per_vehicle3
     finally:
         for entity in [fleet, *pubs.values(), *([watcher] if watcher is not None else [])]:
             entity.undeclare()
