@@ -238,6 +238,7 @@ class Service:
             started = time.perf_counter()
             next_tick = started + interval
             batch = transport.drain(ingest.max_batch)
+            metrics.estimates_unmatched = transport.refresh_matching()  # subscribers that came or went
             if not batch:
                 continue
             result = engine.process(batch)
@@ -265,7 +266,6 @@ class Service:
             changes.extend(self.engine.housekeeping())
             if changes:
                 self.commit_alarms(changes)
-            self.metrics.estimates_unmatched = transport.refresh_matching()
 
     def commit_alarms(self, changes: list[AlarmChange]) -> None:
         """Store alarm changes (one transaction), then publish them."""

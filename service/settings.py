@@ -58,11 +58,10 @@ class ZenohSettings(_Section):
         "ingest; alarms always use 'block'",
     )
     vehicle_estimates: Literal["always", "subscribed"] = Field(
-        "always",
-        description="'always': every estimate goes to its vehicle's key; 'subscribed': only while a subscriber "
-        "matches that key (a matching listener per key, its changes applied every housekeeping pass), which "
-        "saves encoding and sending when the estimates are taken from the fleet stream, at the price of a new "
-        "or returning subscriber waiting up to a pass",
+        "subscribed",
+        description="'subscribed': a vehicle's estimate goes to its key while a subscriber matches that key (a "
+        "matching listener per key, its changes applied before every tick's publication), so that the service "
+        "neither encodes nor sends estimates nobody reads; 'always': every estimate goes to its vehicle's key",
     )
 
     @field_validator("endpoint")

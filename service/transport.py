@@ -226,6 +226,7 @@ class Transport:
             self._listeners.append(
                 pub.declare_matching_listener(lambda status: events.append((vehicle_id, status.matching)))
             )
+            self._settling.pop(vehicle_id, None)  # keep the dict in declaration order
             self._settling[vehicle_id] = time.monotonic()
         return pub
 
@@ -234,23 +235,26 @@ class Transport:
 
         Each estimate publisher's matching listener reports every change, applied here in the order it came;
         a publisher whose first MATCH_SETTLE_S have passed has its status read once, since a listener
-        reports changes only. Nothing is skipped unless the setting ``zenoh.vehicle_estimates`` is
-        'subscribed'."""
-        if self.settings.vehicle_estimates == "always":
-            return 0
-        now = time.monotonic() if now is None else now
-        events, unmatched = self._match_events, self._unmatched
+        reports changes only. The ingest loop calls this before every publication, so a new subscriber gets
+        a vehicle's estimates from the next tick on; with nothing queued and nothing settling it costs two
+        truth tests. Nothing is skipped when the setting ``zenoh.vehicle_estimates`` is 'always'."""
+        events, unmatched, settling = self._match_events, self._unmatched, self._settling
         while events:
             vehicle_id, matched = events.popleft()
-            if vehicle_id in self._settling:
+            if vehicle_id in settling:
                 continue  # taken as matched until its status is read below
             if matched:
                 unmatched.discard(vehicle_id)
             else:
                 unmatched.add(vehicle_id)
-        settled = [v for v, declared in self._settling.items() if now - declared >= MATCH_SETTLE_S]
-        for vehicle_id in settled:
-            del self._settling[vehicle_id]
+        if not settling:
+            return len(unmatched)
+        now = time.monotonic() if now is None else now
+        while settling:  # in the order the publishers were declared, so the oldest comes first
+            vehicle_id, declared = next(iter(settling.items()))
+            if now - declared < MATCH_SETTLE_S:
+                break
+            del settling[vehicle_id]
             try:
                 matched = self._estimate_pubs[vehicle_id].matching_status.matching
             except zenoh.ZError:

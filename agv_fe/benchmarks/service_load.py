@@ -13,7 +13,8 @@ sample, or an estimate does not arrive.
 Four sweeps. Vehicles have independent clocks, so each sends at its own
 phase of the 10 ms period: the generator spreads them evenly over it. The
 receiver takes the estimates on every vehicle's own key, an estimate for every
-sample (the default); the same, decimated to every 10th sample (setting
+sample (a subscriber on every key: the most the service can be asked to
+send); the same, decimated to every 10th sample (setting
 ingest.estimate_every_n), which is what a fleet that only needs 10 Hz of
 estimates would run; and an estimate for every sample taken from the replica's
 fleet stream, one message per ingest tick (docs/protocol.md), as a recorder or
@@ -380,8 +381,8 @@ def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle", arriva
             "AGV_FE_AUTH__TOKEN": "bench",
             "AGV_FE_INGEST__ESTIMATE_EVERY_N": str(every_n),
             "AGV_FE_ZENOH__ESTIMATE_CONGESTION": "block",
-            # taking the fleet stream, nobody subscribes to the vehicle keys: the service may skip them
-            "AGV_FE_ZENOH__VEHICLE_ESTIMATES": "subscribed" if stream == "fleet" else "always",
+            # zenoh.vehicle_estimates stays 'subscribed' (the default): taking the fleet stream, nobody
+            # subscribes to the vehicle keys and the service skips them
         }
         cmd = [sys.executable, "-m", "agv_fe", "serve", "--http-port", str(http_port), "--zenoh-endpoint", endpoint,
                "--data-dir", data_dir, "--log-level", "warning"]  # fmt: skip
@@ -465,7 +466,7 @@ def _mode_name(every_n: int, stream: str = "vehicle", arrival: str = "spread") -
     if stream == "fleet":
         what = f"{what}, taken from the fleet stream (one message per tick)"
     else:
-        what = f"{what}, on each vehicle's key" + (" (the default)" if every_n == 1 else "")
+        what = f"{what}, on each vehicle's key" + (" (a subscriber on every key)" if every_n == 1 else "")
     if arrival == "aligned":
         return f"{what}, every vehicle sending at the same instant (aligned clocks, the worst case)"
     return what
@@ -499,8 +500,9 @@ def _report(
         f"'{design.get('design')}', fault order {design.get('fault_order')}, {design.get('lyapunov')} P), "
         f"estimate and measurement congestion control BLOCK. Load generator and latency receiver in two more "
         f"processes on the same 2-core machine; the receiver takes every estimate, from every vehicle's key or from "
-        f"the fleet stream (the service then runs with `AGV_FE_ZENOH__VEHICLE_ESTIMATES=subscribed` and, after "
-        f"each vehicle's first second, sends nothing on the vehicle keys: nobody subscribes to them). "
+        f"the fleet stream. The service runs with its default `zenoh.vehicle_estimates=subscribed`: it sends a "
+        f"vehicle's estimate on its key only while someone subscribes there, so with the fleet stream it sends "
+        f"nothing on the vehicle keys after each vehicle's first second. "
         f"Vehicles have independent clocks, so the generator spreads them over each 10 ms period "
         f"({SPREAD_PHASES} phases, {1e3 / RATE_HZ / SPREAD_PHASES:g} ms apart); the last sweep sends the whole "
         f"fleet at the start of each period instead, the worst case. {STEP_S:.0f} s per "

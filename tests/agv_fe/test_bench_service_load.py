@@ -9,9 +9,9 @@ pytestmark = pytest.mark.network
 
 
 def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
-    """Short steps of 10 vehicles against a real `agv-fe serve`, with an estimate for every sample (the default),
-    for every 10th, and for every sample from the fleet stream, the vehicles at spread phases; and the last with all
-    of them aligned: the tables, the engine alone and the verdicts all come from the run's own figures."""
+    """Short steps of 10 vehicles against a real `agv-fe serve`, with an estimate for every sample (a subscriber on
+    every key), for every 10th, and for every sample from the fleet stream, the vehicles at spread phases; and the
+    last with all of them aligned: the tables, the engine alone and the verdicts all come from the run's own figures."""
     monkeypatch.setattr(bench, "STEP_S", 3.0)
     monkeypatch.setattr(bench, "WARMUP_S", 1.0)
     monkeypatch.setattr(bench, "ENGINE_TICKS", 30)
@@ -39,7 +39,7 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
     assert fleet["published_in_fleet_stream"] == 3000 and fleet["published_per_vehicle"] < 3000
     (keys,) = sweeps[0]["service"]
     assert keys["published_per_vehicle"] == 3000 and keys["published_in_fleet_stream"] == 0
-    assert "vehicle's key (the default): **at least 10 vehicles (the largest size tried)**" in text
+    assert "vehicle's key (a subscriber on every key): **at least 10 vehicles (the largest size tried)**" in text
     assert "every 10th sample, on each vehicle's key: **at least 10 vehicles (the largest size tried)**" in text
     assert "the fleet stream (one message per tick): **at least 10 vehicles (the largest size tried)**" in text
     assert "aligned clocks, the worst case): **at least 10 vehicles (the largest size tried)**" in text
