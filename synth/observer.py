@@ -239,7 +239,12 @@ def initial_observer_state(rt: RuntimeGains, y: ArrayLike, x_hat0: ArrayLike | N
 
 
 def observer_step(
-    rt: RuntimeGains, z: FloatArray, y: ArrayLike, u: ArrayLike, fast: np.ndarray | None = None
+    rt: RuntimeGains,
+    z: FloatArray,
+    y: ArrayLike,
+    u: ArrayLike,
+    fast: np.ndarray | None = None,
+    n_fast: int | None = None,
 ) -> tuple[FloatArray, StepResult]:
     """One step of Algorithm 1 for a batch: returns (z_{k+1}, result at k).
 
@@ -247,6 +252,7 @@ def observer_step(
     u : (nv, 2) demanded [T_d [N m], delta_d [rad]]. Inputs must be finite.
     fast : (nv,) for a switched design, which vehicles use the fast set (None: all of them);
     the features are shared, so a mixed batch costs one GEMM with both sets stacked.
+    n_fast : the number of True in ``fast``, when the caller has counted them already.
 
     Internally the batch is laid out vehicles-last (structure of arrays), so
     every elementwise loop runs over the fleet; the returned z_{k+1} is the
@@ -282,7 +288,8 @@ def observer_step(
     Phi[width + 1] = premise[2]  # r / v_x
     np.multiply(v_x, r, out=Phi[width + 2])
     np.multiply(vy_sat, vy_sat, out=Phi[width + 5])
-    n_fast = nv if fast is None else int(np.count_nonzero(fast))
+    if n_fast is None:
+        n_fast = nv if fast is None else int(np.count_nonzero(fast))
     if fast is None or n_fast == nv or rt.WT_quiet is None or rt.WT_pair is None:
         out = rt.WT @ Phi
     elif n_fast == 0:
@@ -324,19 +331,21 @@ def switched_step(
     if rt.WT_quiet is None:
         z_next, result = observer_step(rt, z, y, u)
         return z_next, stat, left, result
-    fast = left > 0
-    z_next, result = observer_step(rt, z, y, u, fast)
+    # a settled fleet has no vehicle on the fast set: then one count and no mask arithmetic
+    n_fast = int(np.count_nonzero(left))
+    fast = left > 0 if n_fast else np.zeros(left.shape[0], dtype=bool)
+    z_next, result = observer_step(rt, z, y, u, fast, n_fast)
     nu = result.innovation
     assert nu is not None  # a switched runtime always reports it
-    nu_rows = nu.T  # (2, nv), contiguous: the GEMM's rows
-    energy = nu_rows[0] * nu_rows[0]
-    energy += nu_rows[1] * nu_rows[1]
-    energy *= 0.5 * (1.0 - rt.switch_forgetting)
-    stat = rt.switch_forgetting * stat
-    stat += energy
-    left = left - fast  # one sample of the fast set used, never below 0
-    exceeded = stat > rt.switch_threshold
-    if exceeded.any():
+    energy = np.square(nu.T)  # (2, nv): the GEMM's rows, contiguous
+    np.add(energy[0], energy[1], out=energy[0])
+    stat = stat * rt.switch_forgetting
+    stat += energy[0] * (0.5 * (1.0 - rt.switch_forgetting))
+    if n_fast:
+        left = left - fast  # one sample of the fast set used, never below 0
+    if stat.max(initial=-np.inf) > rt.switch_threshold:
+        exceeded = stat > rt.switch_threshold
+        left = left.copy() if not n_fast else left
         left[exceeded] = np.maximum(left[exceeded], rt.hold_samples)
     return z_next, stat, left, result
 

@@ -139,6 +139,15 @@ def test_the_rule_counts_down_and_holds_after_an_exceedance(switched):
     assert res.fast.tolist() == [False, True]
     assert stat[0] < RULE.threshold < stat[1]
     assert left.tolist() == [0, rt.hold_samples]  # the exceedance holds the fast set for hold_s
+    # a settled pair (both on the quiet set): the exceedance alone switches vehicle 1, the inputs stay as given
+    settled_stat, settled_left = np.zeros(2), np.zeros(2, dtype=np.int64)
+    _, stat, left, res = switched_step(rt, z, settled_stat, settled_left, y, u)
+    assert res.fast.tolist() == [False, False] and stat[0] < RULE.threshold < stat[1]
+    assert left.tolist() == [0, rt.hold_samples]
+    assert settled_left.tolist() == [0, 0] and settled_stat.tolist() == [0.0, 0.0]
+    # a settled pair whose estimate agrees with the measurement stays on the quiet set
+    _, stat2, left2, res2 = switched_step(rt, initial_observer_state(rt, y), np.zeros(2), np.zeros(2, np.int64), y, u)
+    assert res2.fast.tolist() == [False, False] and left2.tolist() == [0, 0] and stat2.max() < RULE.threshold
     one = RuntimeGains.from_gains(synthesize(options=DesignOptions(design="robust", lyapunov="common")))
     s0, l0 = np.zeros(2), np.zeros(2, dtype=np.int64)
     _, s1, l1, plain = switched_step(one, initial_observer_state(one, y), s0, l0, y, u)
