@@ -77,14 +77,19 @@ class RuntimeGains:
     Phi = [x; V_x x; r x; V_x r x; v_x^2; r/v_x; v_x r; u; phi]                        (4 (n + 2) + 6, nv)
     W   = [Q_0; Q_V; Q_r; Q_Vr; (M T1 K)^T; (M T1 B)^T; (M G_bar)^T]
 
-    so the whole of Algorithm 1, line 9, is a few broadcast products and one GEMM. With an
-    output gain K (robust design), W has more columns: the rows of the reported estimate that
-    K changes, x_hat + K (y - C_bar x_hat) = (I - K C_bar)(z - E y) + K y, a rule-independent
-    map of x; the same GEMM then yields z_{k+1} and the reported rows.
+    so the whole of Algorithm 1, line 9, is a few broadcast products and one GEMM. What depends
+    on x alone comes from a second, small GEMM X^T x: with an output gain K (robust design), the
+    rows of the reported estimate that K changes, x_hat + K (y - C_bar x_hat) = (I - K C_bar)
+    (z - E y) + K y; for a switched design, also the normalised innovation (y - C_bar x_hat) /
+    sigma. Folding them into W would multiply their zero columns against the other 3 (n + 2) + 6
+    rows of Phi.
     """
 
     gains: ObserverGains
+    #: (n, 4 (n + 2) + 6): z_{k+1} = WT Phi
     WT: FloatArray
+    #: (len(K_rows) [+ 2 for a switched design], n + 2): the reported rows K changes [and the innovation] = XT x
+    XT: FloatArray
     E: FloatArray
     E_is_zero: bool
     K_rows: np.ndarray
@@ -94,9 +99,15 @@ class RuntimeGains:
     premise_high: FloatArray
     vy_low: float
     vy_high: float
-    #: a switched design's quiet set (rows as WT) and both sets stacked; None for one gain set
+    #: (2, 1) the design box in measured terms, [v_x, r] low and high: the clip of the premise
+    measured_low: FloatArray
+    measured_high: FloatArray
+    #: a switched design's quiet set (rows as WT, XT) and both sets stacked; None for one gain set. XT_pair
+    #: holds the fast set's reported rows, the quiet set's, then the innovation, which is the same in both
     WT_quiet: FloatArray | None = None
     WT_pair: FloatArray | None = None
+    XT_quiet: FloatArray | None = None
+    XT_pair: FloatArray | None = None
     #: the switching rule (synth.options.SwitchingRule) in samples
     switch_threshold: float = np.inf
     switch_forgetting: float = 0.0
@@ -117,11 +128,12 @@ class RuntimeGains:
             K_rows = np.union1d(K_rows, np.flatnonzero(np.any(quiet.output_gain != 0.0, axis=1)))
             noise = gains.options.noise
             innovation_scale = 1.0 / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
-        WT = np.ascontiguousarray(_stacked_gains(gains, K_rows, innovation_scale).T)
+        WT, XT = _stacked_gains(gains, K_rows, innovation_scale)
         vy_low, vy_high = aug.nts.bounds.lateral_speed_bounds
         one_set = cls(
             gains=gains,
             WT=WT,
+            XT=XT,
             E=gains.E,
             E_is_zero=not np.any(gains.E),
             K_rows=K_rows,
@@ -131,15 +143,20 @@ class RuntimeGains:
             premise_high=aug.nts.premise_high,
             vy_low=vy_low,
             vy_high=vy_high,
+            measured_low=np.array([[1.0 / aug.nts.premise_high[0]], [aug.nts.premise_low[1]]]),
+            measured_high=np.array([[1.0 / aug.nts.premise_low[0]], [aug.nts.premise_high[1]]]),
         )
         if quiet is None or rule is None:
             return one_set
-        WT_quiet = np.ascontiguousarray(_stacked_gains(quiet, K_rows, innovation_scale).T)
+        WT_quiet, XT_quiet = _stacked_gains(quiet, K_rows, innovation_scale)
         period = gains.params.sample_period_s
+        k = K_rows.size
         return replace(
             one_set,
             WT_quiet=WT_quiet,
             WT_pair=np.vstack([WT, WT_quiet]),
+            XT_quiet=XT_quiet,
+            XT_pair=np.vstack([XT[:k], XT_quiet[:k], XT[k:]]),
             switch_threshold=rule.threshold,
             switch_forgetting=rule.forgetting,
             hold_samples=round(rule.hold_s / period),
@@ -152,9 +169,12 @@ class RuntimeGains:
         return self.WT_quiet is not None
 
 
-def _stacked_gains(gains: ObserverGains, K_rows: np.ndarray, innovation_scale: FloatArray | None) -> FloatArray:
-    """W of :class:`RuntimeGains`: the rule blend, g, u and phi columns, then the reported rows ``K_rows``
-    and, for a switched design, the normalised innovation (y - C x_hat) / sigma."""
+def _stacked_gains(
+    gains: ObserverGains, K_rows: np.ndarray, innovation_scale: FloatArray | None
+) -> tuple[FloatArray, FloatArray]:
+    """(W^T, X^T) of :class:`RuntimeGains`: W maps Phi (the rule blend, g, u and phi rows) to z_{k+1};
+    X maps x = [z; y] to the reported rows ``K_rows`` and, for a switched design, the normalised
+    innovation (y - C x_hat) / sigma. Both C-contiguous."""
     aug = gains.model
     n = gains.N.shape[1]
     MT1 = gains.M @ aug.T1
@@ -172,23 +192,19 @@ def _stacked_gains(gains: ObserverGains, K_rows: np.ndarray, innovation_scale: F
         a_1 * b_1 * dQ_ab,
     ]
     W = np.vstack([*bilinear, (MT1 @ g_feature_matrix(gains)).T, (MT1 @ aug.nts.B).T, (gains.M @ aug.G_bar).T])
-    # maps of the constant block x = [z; y] of Phi, one column each
-    extra: list[FloatArray] = []
+    # maps of x = [z; y], one row each
+    rows: list[FloatArray] = [np.zeros((0, n + 2))]
     K = gains.output_gain
     if K_rows.size:
         # reported rows: (I - K C)(z - E y) + K y = F_z z + F_y y
         F_z = (np.eye(n) - K @ aug.C_bar)[K_rows]
-        extra.append(np.concatenate([F_z, K[K_rows] - F_z @ gains.E], axis=1))
+        rows.append(np.concatenate([F_z, K[K_rows] - F_z @ gains.E], axis=1))
     if innovation_scale is not None:
         # nu = y - C (z - E y) = -C z + (I + C E) y, divided by the sensor sigmas
         C = aug.C_bar
         nu = np.concatenate([-C, np.eye(C.shape[0]) + C @ gains.E], axis=1)
-        extra.append(innovation_scale[:, None] * nu)
-    if extra:
-        cols = np.zeros((W.shape[0], sum(e.shape[0] for e in extra)))
-        cols[: n + 2] = np.vstack(extra).T
-        W = np.hstack([W, cols])
-    return W
+        rows.append(innovation_scale[:, None] * nu)
+    return np.ascontiguousarray(W.T), np.ascontiguousarray(np.vstack(rows))
 
 
 @dataclass(frozen=True)
@@ -273,13 +289,14 @@ def observer_step(
     x_hat = z if rt.E_is_zero else z - y @ rt.E.T
     vy_hat = zT[VY_INDEX] if rt.E_is_zero else x_hat[:, VY_INDEX]
     # premise xi = [1/v_x, r], clipped to the design box, flagged when the clip moved it
-    lo, hi = rt.premise_low, rt.premise_high
-    premise = np.empty((3, nv))  # [V_x, r, V_x r], the multipliers of the bilinear blend
-    v_x = np.minimum(np.maximum(yT[0], 1.0 / hi[0]), 1.0 / lo[0])
-    r = np.minimum(np.maximum(yT[1], lo[1]), hi[1], out=premise[1])
-    in_domain = (v_x == yT[0]) & (r == yT[1])
-    V_x = np.divide(1.0, v_x, out=premise[0])
-    np.multiply(V_x, r, out=premise[2])
+    rows = np.empty((4, nv))  # [v_x, V_x, r, V_x r]: the clipped measurement interleaved with the multipliers
+    clipped = np.clip(yT, rt.measured_low, rt.measured_high, out=rows[0::2])
+    same = clipped == yT
+    in_domain = same[0] & same[1]
+    v_x, r = rows[0], rows[2]
+    premise = rows[1:]  # [V_x, r, V_x r], the multipliers of the bilinear blend
+    np.divide(1.0, v_x, out=rows[1])
+    np.multiply(rows[1], r, out=rows[3])
     vy_sat = np.minimum(np.maximum(vy_hat, rt.vy_low), rt.vy_high)
     vy_in_bounds = vy_sat == vy_hat
     # line 9 as W^T Phi: [x, V_x x, r x, V_x r x] (the rule blend), the monomials of g, u, phi(sat(v_y_hat))
@@ -290,23 +307,28 @@ def observer_step(
     np.multiply(vy_sat, vy_sat, out=Phi[width + 5])
     if n_fast is None:
         n_fast = nv if fast is None else int(np.count_nonzero(fast))
+    k = rt.K_rows.size
     if fast is None or n_fast == nv or rt.WT_quiet is None or rt.WT_pair is None:
-        out = rt.WT @ Phi
-    elif n_fast == 0:
-        out = rt.WT_quiet @ Phi
-    else:  # a mixed batch: both sets in one GEMM, each vehicle's column from its set
+        z_rows = rt.WT @ Phi
+        x_rows = rt.XT @ x
+    elif n_fast == 0 or rt.XT_quiet is None or rt.XT_pair is None:
+        z_rows = rt.WT_quiet @ Phi
+        x_rows = rt.XT_quiet @ x
+    else:  # a mixed batch: both sets in one GEMM each, every vehicle's column from its set
         both = rt.WT_pair @ Phi
-        m = rt.WT.shape[0]
-        out = np.where(fast, both[:m], both[m:])
-    z_next = out[:n].T
-    k = n + rt.K_rows.size
-    if rt.K_rows.size:
-        # the reported estimate x_hat_k + K (y_k - C_bar x_hat_k): its changed rows came out of the GEMM
+        z_rows = np.where(fast, both[:n], both[n:])
+        x_both = rt.XT_pair @ x
+        x_rows = np.empty((x_both.shape[0] - k, nv))
+        x_rows[:k] = np.where(fast, x_both[:k], x_both[k : 2 * k])
+        x_rows[k:] = x_both[2 * k :]
+    z_next = z_rows.T
+    if k:
+        # the reported estimate x_hat_k + K (y_k - C_bar x_hat_k): its changed rows came out of the small GEMM
         reported = np.empty((n, nv))
         reported[...] = zT if rt.E_is_zero else x_hat.T
-        reported[rt.K_rows] = out[n:k]
+        reported[rt.K_rows] = x_rows[:k]
         x_hat = reported.T
-    innovation = out[k:].T if rt.WT_quiet is not None else None
+    innovation = x_rows[k:].T if rt.WT_quiet is not None else None
     mask = None if rt.WT_quiet is None else (np.ones(nv, dtype=bool) if fast is None else fast)
     return z_next, StepResult(
         x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds, fast=mask, innovation=innovation
