@@ -16,7 +16,7 @@ from synth.analysis import frozen_comparison
 from synth.design import synthesize
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver, StepResult
-from synth.options import DesignOptions, SwitchingRule
+from synth.options import ROBUST_DECAY_RATE, DesignOptions, SwitchingRule
 
 SEEDS = 5
 BATCH = 1000
@@ -128,6 +128,7 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
         for name, every in switched_variants.items()
     }  # fmt: skip
     ratios = [c["EKF"] / c["observer"] for c in costs]
+    sw_ratios = [statistics.median(c["EKF"] / c["switched"] for c in runs) for runs in switched_costs.values()]
     obs_us = statistics.median(c["observer"] for c in costs)
     ekf_us = statistics.median(c["EKF"] for c in costs)
     single = step_cost_us({k: factories[k] for k in ("observer", "EKF")}, 1)
@@ -215,7 +216,9 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
     lines += [
         "",
         "## Switched gain sets (`switching`, opt-in)\n",
-        "The default gains as the fast set and a quiet set designed with the 'h2' cost LMIs, both under one "
+        f"The one-set robust design at decay rate {switched.options.robust_decay_rate:g} (a switched design's "
+        f"default; one gain set's is {ROBUST_DECAY_RATE:g}) as the fast set and a quiet set designed with the "
+        "'h2' cost LMIs, both under one "
         f"fuzzy Lyapunov function (certified decay rate {sw_cert.decay_rate:.4f} for any switching sequence; "
         f"quiet set's guaranteed cost {sw_cert.performance['h2_cost_bound']:.3f}), gains version "
         f"{switched.version}. Rule (defaults of `SwitchingRule`): fast set for the first {sw_rule.start_s:g} s "
@@ -264,6 +267,7 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
         }
         for ch in ("T_f", "delta_f"):
             deployed_worst[ch] = max(deployed_worst[ch], deployed["observer", ch])
+            worst_switched[ch] = max(worst_switched[ch], deployed["switched", ch])
         if c.scenario not in as_deployed:
             continue
         lines.append(
@@ -316,8 +320,11 @@ def run(out_dir: Path, seeds: int = SEEDS) -> Path:
         f"worst ratio T_f {worst['T_f']:.3f}, delta_f {worst['delta_f']:.3f} "
         f"({'met' if max(worst.values()) <= 1.0 else 'not met on every scenario'}); cost ratio "
         f"{statistics.median(ratios):.1f} ({'met' if statistics.median(ratios) >= 10 else 'not met'}). "
-        f"Switched gain sets (opt-in): worst ratio T_f {worst_switched['T_f']:.3f}, delta_f "
-        f"{worst_switched['delta_f']:.3f}. Every scenario started as the service starts an observer (the "
+        f"Switched gain sets (opt-in), over every scenario and both starts: worst ratio T_f "
+        f"{worst_switched['T_f']:.3f}, delta_f {worst_switched['delta_f']:.3f} "
+        f"({'met' if max(worst_switched.values()) <= 1.0 else 'not met on every scenario'}); cost ratio "
+        f"{min(sw_ratios):.1f} to {max(sw_ratios):.1f} ({'met' if min(sw_ratios) >= 10 else 'not met'}). "
+        "Every scenario started as the service starts an observer (the "
         f"section above for the paper's, the first table for the others): worst ratio T_f "
         f"{deployed_worst['T_f']:.3f}, delta_f {deployed_worst['delta_f']:.3f}.",
         "",

@@ -16,7 +16,7 @@ from synth.design import synthesize
 from synth.errors import VerificationFailed
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver, RuntimeGains, initial_observer_state, observer_step, switched_step
-from synth.options import DesignOptions, SwitchingRule
+from synth.options import ROBUST_DECAY_RATE, SWITCHED_DECAY_RATE, DesignOptions, SwitchingRule
 from tests.tolerances import BATCH_EQUALITY_ATOL
 
 RULE = SwitchingRule()
@@ -29,7 +29,18 @@ def switched() -> ObserverGains:
 
 @pytest.fixture(scope="module")
 def one_set() -> ObserverGains:
-    return synthesize(options=DesignOptions())
+    """The one-set design at the switched design's rate: its fast set."""
+    return synthesize(options=DesignOptions(robust_decay_rate=SWITCHED_DECAY_RATE))
+
+
+def test_a_switched_design_defaults_to_its_own_decay_rate():
+    assert DesignOptions().robust_decay_rate == ROBUST_DECAY_RATE
+    assert DesignOptions(switching=RULE).robust_decay_rate == SWITCHED_DECAY_RATE < ROBUST_DECAY_RATE
+    assert DesignOptions.model_validate({"switching": {}}).robust_decay_rate == SWITCHED_DECAY_RATE
+    # a rate given is kept, and a stored design reads back as it was made
+    assert DesignOptions(switching=RULE, robust_decay_rate=0.995).robust_decay_rate == 0.995
+    stored = DesignOptions(switching=RULE, robust_decay_rate=0.996).model_dump()
+    assert DesignOptions.model_validate(stored).robust_decay_rate == 0.996
 
 
 def test_switching_needs_the_joint_robust_design():
