@@ -119,10 +119,11 @@ def add_design_arguments(parser: argparse.ArgumentParser, *, default_design: str
     )
     parser.add_argument(
         "--switching",
-        action="store_true",
-        help="robust design: add a quiet gain set under the same Lyapunov function and switch to the default "
-        "(fast) set at start and after large innovations (the rule's defaults; set them in a profile's "
-        "'switching' options). Less noise in steady state, certified for any switching",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="robust design: a quiet gain set beside the fast one, under the same Lyapunov function, with the "
+        "fast set at a start and after large innovations (the default; the rule's settings go in a profile's "
+        "'switching' options). --no-switching: one gain set, certified decay rate 0.995",
     )
     parser.set_defaults(default_design=default_design)
 
@@ -141,8 +142,11 @@ def design_options(args: argparse.Namespace, profile: VehicleProfileFile) -> Des
     data.update({k: v for k, v in overrides.items() if v is not None})
     if args.no_decay_rate:
         data["optimise_decay_rate"] = False
-    if getattr(args, "switching", False) and data.get("switching") is None:
+    switching = getattr(args, "switching", None)
+    if switching and data.get("switching") is None:
         data["switching"] = {}
+    elif switching is False:
+        data["switching"] = None
     options: DesignOptions = validate(DesignOptions, data, "design.")
     return options
 

@@ -308,16 +308,17 @@ def observer_step(
     if n_fast is None:
         n_fast = nv if fast is None else int(np.count_nonzero(fast))
     k = rt.K_rows.size
-    if fast is None or n_fast == nv or rt.WT_quiet is None or rt.WT_pair is None:
+    WT_quiet, WT_pair, XT_quiet, XT_pair = rt.WT_quiet, rt.WT_pair, rt.XT_quiet, rt.XT_pair
+    if fast is None or n_fast == nv or WT_quiet is None or WT_pair is None or XT_quiet is None or XT_pair is None:
         z_rows = rt.WT @ Phi
         x_rows = rt.XT @ x
-    elif n_fast == 0 or rt.XT_quiet is None or rt.XT_pair is None:
-        z_rows = rt.WT_quiet @ Phi
-        x_rows = rt.XT_quiet @ x
+    elif n_fast == 0:
+        z_rows = WT_quiet @ Phi
+        x_rows = XT_quiet @ x
     else:  # a mixed batch: both sets in one GEMM each, every vehicle's column from its set
-        both = rt.WT_pair @ Phi
+        both = WT_pair @ Phi
         z_rows = np.where(fast, both[:n], both[n:])
-        x_both = rt.XT_pair @ x
+        x_both = XT_pair @ x
         x_rows = np.empty((x_both.shape[0] - k, nv))
         x_rows[:k] = np.where(fast, x_both[:k], x_both[k : 2 * k])
         x_rows[k:] = x_both[2 * k :]

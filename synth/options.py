@@ -79,7 +79,8 @@ class SwitchingRule(BaseModel):
     )
 
 
-#: Certified decay rate per sample of the robust design with one gain set, and of a switched design's sets.
+#: Certified decay rate per sample of the robust design with one gain set, and of a switched design's sets
+#: (the default).
 #: One set at 0.994 lets more sensor noise into the estimates than at 0.995; a switched design runs its fast
 #: set only at a start and after large innovations, and at 0.994 it clears the paper's wrong initial state
 #: sooner (docs/benchmarks/accuracy.md).
@@ -90,7 +91,8 @@ SWITCHED_DECAY_RATE = 0.994
 class DesignOptions(BaseModel):
     """Options of an observer design.
 
-    ``robust`` (default): the noise-aware guaranteed-cost design (synth.robust).
+    ``robust`` (default): the noise-aware guaranteed-cost design (synth.robust), by default with two gain
+    sets switched at run time (``switching``; null for one set).
     ``paper``: Theorem 2 without exact decoupling (wind as a bounded
     disturbance), stability with the best certified decay rate.
     ``paper-decoupled``: Theorem 2 as printed, M D_bar = 0; impossible for
@@ -147,9 +149,9 @@ class DesignOptions(BaseModel):
 
     switching: SwitchingRule | None = Field(
         None,
-        description="'robust' design only: add a quiet gain set (the 'h2' cost form) that shares the Lyapunov "
-        "function of the default gains, and switch between the two at run time by this rule. None (default): "
-        "one gain set",
+        description="'robust' design with the 'joint' cost only: a fast gain set (the one-set design) and a quiet "
+        "one (the 'h2' cost form) under one Lyapunov function, switched at run time by this rule. The default "
+        "for that design is the rule's defaults; null: one gain set. Any other design has one gain set",
     )
 
     @model_validator(mode="after")
@@ -163,10 +165,16 @@ class DesignOptions(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _default_switched_decay_rate(cls, data: Any) -> Any:
-        """A switched design's fast set defaults to a faster certified rate than one gain set."""
-        if isinstance(data, dict) and data.get("switching") is not None and "robust_decay_rate" not in data:
-            return {**data, "robust_decay_rate": SWITCHED_DECAY_RATE}
+    def _default_switching(cls, data: Any) -> Any:
+        """The robust design with the 'joint' cost switches between two gain sets unless ``switching`` is given
+        (null: one set); a switched design's fast set defaults to a faster certified rate than one gain set."""
+        if not isinstance(data, dict):
+            return data
+        joint_robust = data.get("design", "robust") == "robust" and data.get("robust_cost", "joint") == "joint"
+        if "switching" not in data and joint_robust:
+            data = {**data, "switching": {}}
+        if data.get("switching") is not None and "robust_decay_rate" not in data:
+            data = {**data, "robust_decay_rate": SWITCHED_DECAY_RATE}
         return data
 
     @model_validator(mode="before")

@@ -104,7 +104,7 @@ def test_a_switched_design_runs_in_the_engine_as_offline():
     fleet = FleetEstimates.decode(encode_fleet_estimates("r", late.estimate_batches)).estimates()
     assert [e.gain_set for e in fleet] == [Estimate.decode(p).gain_set for _, p in late.estimates]
     assert {e.gain_set for e in fleet} <= {"fast", "quiet"} and len(fleet) == 4
-    one_set = make_engine(synthesize(options=DesignOptions(design="robust", lyapunov="common")))
+    one_set = make_engine(synthesize(options=DesignOptions(design="robust", lyapunov="common", switching=None)))
     result = one_set.process(pairs(samples[0]))
     assert one_set.vehicle_status(one_set.vehicles["a"])["gain_set"] is None
     assert all(b'"gain_set"' not in p for _, p in result.estimates)  # one set: the documents are as before

@@ -46,7 +46,7 @@ def robust_gains_for_ekf():
     from synth.design import synthesize
     from synth.options import DesignOptions
 
-    return synthesize(options=DesignOptions(design="robust", lyapunov="common"))
+    return synthesize(options=DesignOptions(design="robust", lyapunov="common", switching=None))
 
 
 def test_covariance_stays_symmetric_positive_definite():

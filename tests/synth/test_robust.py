@@ -7,20 +7,22 @@ from edge_client.simulation import estimate, observer_factory, simulate_plant
 from synth.analysis import frozen_comparison
 from synth.design import synthesize
 from synth.gains import ObserverGains
-from synth.options import DesignOptions, NoiseModel
+from synth.options import DesignOptions, NoiseModel, SwitchingRule
 from synth.robust import noise_inputs
 from tests.tolerances import FROZEN_H2_FORM_COST_RTOL
 
 
 @pytest.fixture(scope="session")
 def robust_gains() -> ObserverGains:
-    return synthesize(options=DesignOptions(design="robust"))
+    """The robust design with one gain set: a switched design's fast set (tests/synth/test_switched.py)."""
+    return synthesize(options=DesignOptions(design="robust", switching=None))
 
 
 def test_robust_is_the_default_design_with_a_random_walk_fault_model():
     options = DesignOptions()
     assert options.design == "robust"
     assert options.fault_order == 1
+    assert options.switching == SwitchingRule()  # two gain sets by default
     assert DesignOptions(design="paper").fault_order == 3
 
 
@@ -147,7 +149,7 @@ def test_one_operating_point_design_equals_the_kalman_filter_from_scipy():
     bounds = OperatingBounds(
         vx_min_mps=12.0, vx_max_mps=12.0001, vy_min_mps=-1e-4, vy_max_mps=1e-4, r_min_radps=0.1, r_max_radps=0.1001
     )
-    g = synthesize(bounds=bounds, options=DesignOptions(design="robust", robust_decay_rate=0.99999))
+    g = synthesize(bounds=bounds, options=DesignOptions(design="robust", robust_decay_rate=0.99999, switching=None))
     aug = g.model
     ni = noise_inputs(aug, g.options.noise)
     h = aug.nts.memberships(aug.nts.premise(12.00005, 0.10005))

@@ -30,13 +30,19 @@ def switched() -> ObserverGains:
 @pytest.fixture(scope="module")
 def one_set() -> ObserverGains:
     """The one-set design at the switched design's rate: its fast set."""
-    return synthesize(options=DesignOptions(robust_decay_rate=SWITCHED_DECAY_RATE))
+    return synthesize(options=DesignOptions(robust_decay_rate=SWITCHED_DECAY_RATE, switching=None))
 
 
-def test_a_switched_design_defaults_to_its_own_decay_rate():
-    assert DesignOptions().robust_decay_rate == ROBUST_DECAY_RATE
-    assert DesignOptions(switching=RULE).robust_decay_rate == SWITCHED_DECAY_RATE < ROBUST_DECAY_RATE
+def test_the_default_design_is_switched_at_its_own_decay_rate():
+    default = DesignOptions()
+    assert default.switching == RULE and default.robust_decay_rate == SWITCHED_DECAY_RATE < ROBUST_DECAY_RATE
+    one = DesignOptions(switching=None)
+    assert one.switching is None and one.robust_decay_rate == ROBUST_DECAY_RATE
     assert DesignOptions.model_validate({"switching": {}}).robust_decay_rate == SWITCHED_DECAY_RATE
+    # designs that cannot switch have one set, whatever is left out
+    assert DesignOptions(design="paper").switching is None and DesignOptions(robust_cost="h2").switching is None
+    # one set stays one set through a round trip (stored gain documents)
+    assert DesignOptions.model_validate(one.model_dump()).switching is None
     # a rate given is kept, and a stored design reads back as it was made
     assert DesignOptions(switching=RULE, robust_decay_rate=0.995).robust_decay_rate == 0.995
     stored = DesignOptions(switching=RULE, robust_decay_rate=0.996).model_dump()
@@ -159,7 +165,7 @@ def test_the_rule_counts_down_and_holds_after_an_exceedance(switched):
     # a settled pair whose estimate agrees with the measurement stays on the quiet set
     _, stat2, left2, res2 = switched_step(rt, initial_observer_state(rt, y), np.zeros(2), np.zeros(2, np.int64), y, u)
     assert res2.fast.tolist() == [False, False] and left2.tolist() == [0, 0] and stat2.max() < RULE.threshold
-    one = RuntimeGains.from_gains(synthesize(options=DesignOptions(design="robust", lyapunov="common")))
+    one = RuntimeGains.from_gains(synthesize(options=DesignOptions(design="robust", lyapunov="common", switching=None)))
     s0, l0 = np.zeros(2), np.zeros(2, dtype=np.int64)
     _, s1, l1, plain = switched_step(one, initial_observer_state(one, y), s0, l0, y, u)
     assert s1 is s0 and l1 is l0 and plain.fast is None and plain.innovation is None
