@@ -38,8 +38,8 @@ GAINS_FORMAT = "agv-fe-gains/1"
 
 
 def _hashed_options(options: DesignOptions) -> dict[str, Any]:
-    """The options in the hash; ``robust_cost`` and ``switching`` only when not their defaults, so earlier
-    designs keep their hash."""
+    """The options in the hash; ``robust_cost`` only when not 'joint' and ``switching`` only for a switched
+    design, so one-set designs made before these options existed keep their hash."""
     data = options.model_dump(mode="json")
     if data.get("robust_cost") == "joint":
         del data["robust_cost"]

@@ -155,27 +155,22 @@ class DesignOptions(BaseModel):
     )
 
     @model_validator(mode="after")
-    def _switching_needs_robust(self) -> DesignOptions:
+    def _switching_defaults(self) -> DesignOptions:
+        """The robust design with the 'joint' cost switches between two gain sets unless ``switching`` is given
+        (null: one set); a switched design's fast set defaults to a faster certified rate than one gain set.
+        Defaults are filled in without marking the fields as set, so a stored profile that left them out keeps
+        following them (``model_dump(exclude_unset=True)``)."""
+        given = self.model_fields_set
+        if "switching" not in given and self.design == "robust" and self.robust_cost == "joint":
+            self.__dict__["switching"] = SwitchingRule()
+        if self.switching is not None and "robust_decay_rate" not in given:
+            self.__dict__["robust_decay_rate"] = SWITCHED_DECAY_RATE
         if self.switching is not None and (self.design != "robust" or self.robust_cost != "joint"):
             raise ValueError(
                 "switching needs design='robust' with robust_cost='joint' (the fast set); "
                 f"got design={self.design!r}, robust_cost={self.robust_cost!r}"
             )
         return self
-
-    @model_validator(mode="before")
-    @classmethod
-    def _default_switching(cls, data: Any) -> Any:
-        """The robust design with the 'joint' cost switches between two gain sets unless ``switching`` is given
-        (null: one set); a switched design's fast set defaults to a faster certified rate than one gain set."""
-        if not isinstance(data, dict):
-            return data
-        joint_robust = data.get("design", "robust") == "robust" and data.get("robust_cost", "joint") == "joint"
-        if "switching" not in data and joint_robust:
-            data = {**data, "switching": {}}
-        if data.get("switching") is not None and "robust_decay_rate" not in data:
-            data = {**data, "robust_decay_rate": SWITCHED_DECAY_RATE}
-        return data
 
     @model_validator(mode="before")
     @classmethod

@@ -43,6 +43,9 @@ def test_the_default_design_is_switched_at_its_own_decay_rate():
     assert DesignOptions(design="paper").switching is None and DesignOptions(robust_cost="h2").switching is None
     # one set stays one set through a round trip (stored gain documents)
     assert DesignOptions.model_validate(one.model_dump()).switching is None
+    # filled-in defaults are not marked as set: a stored profile that left them out keeps following them
+    assert DesignOptions().model_dump(exclude_unset=True) == {"fault_order": 1}
+    assert DesignOptions(switching={}).model_dump(exclude_unset=True) == {"fault_order": 1, "switching": {}}
     # a rate given is kept, and a stored design reads back as it was made
     assert DesignOptions(switching=RULE, robust_decay_rate=0.995).robust_decay_rate == 0.995
     stored = DesignOptions(switching=RULE, robust_decay_rate=0.996).model_dump()
