@@ -88,10 +88,11 @@ class RuntimeGains:
     gains: ObserverGains
     #: (n, 4 (n + 2) + 6): z_{k+1} = WT Phi
     WT: FloatArray
-    #: (len(K_rows) [+ 2 for a switched design], n + 2): the reported rows K changes [and the innovation] = XT x
+    #: (len(K_rows) [+ 2 for a switched design], n + 2): the reported estimate [and the innovation] = XT x
     XT: FloatArray
     E: FloatArray
     E_is_zero: bool
+    #: rows of the reported estimate that come from XT: all n when the design has an output gain, none otherwise
     K_rows: np.ndarray
     n: int
     n_rules: int
@@ -126,6 +127,8 @@ class RuntimeGains:
         innovation_scale = None
         if quiet is not None:
             K_rows = np.union1d(K_rows, np.flatnonzero(np.any(quiet.output_gain != 0.0, axis=1)))
+        if K_rows.size:  # every row of the reported estimate out of the small GEMM: no copy of the rest
+            K_rows = np.arange(n)
             noise = gains.options.noise
             innovation_scale = 1.0 / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
         WT, XT = _stacked_gains(gains, K_rows, innovation_scale)
@@ -323,12 +326,8 @@ def observer_step(
         x_rows[:k] = np.where(fast, x_both[:k], x_both[k : 2 * k])
         x_rows[k:] = x_both[2 * k :]
     z_next = z_rows.T
-    if k:
-        # the reported estimate x_hat_k + K (y_k - C_bar x_hat_k): its changed rows came out of the small GEMM
-        reported = np.empty((n, nv))
-        reported[...] = zT if rt.E_is_zero else x_hat.T
-        reported[rt.K_rows] = x_rows[:k]
-        x_hat = reported.T
+    if k:  # the reported estimate x_hat_k + K (y_k - C_bar x_hat_k), every row out of the small GEMM
+        x_hat = x_rows[:k].T
     innovation = x_rows[k:].T if rt.WT_quiet is not None else None
     mask = None if rt.WT_quiet is None else (np.ones(nv, dtype=bool) if fast is None else fast)
     return z_next, StepResult(
@@ -361,12 +360,13 @@ def switched_step(
     nu = result.innovation
     assert nu is not None  # a switched runtime always reports it
     energy = np.square(nu.T)  # (2, nv): the GEMM's rows, contiguous
-    np.add(energy[0], energy[1], out=energy[0])
+    e = np.add(energy[0], energy[1], out=energy[0])
+    e *= 0.5 * (1.0 - rt.switch_forgetting)
     stat = stat * rt.switch_forgetting
-    stat += energy[0] * (0.5 * (1.0 - rt.switch_forgetting))
+    stat += e
     if n_fast:
         left = left - fast  # one sample of the fast set used, never below 0
-    if stat.max(initial=-np.inf) > rt.switch_threshold:
+    if stat.size and stat.max() > rt.switch_threshold:
         exceeded = stat > rt.switch_threshold
         left = left.copy() if not n_fast else left
         left[exceeded] = np.maximum(left[exceeded], rt.hold_samples)

@@ -126,16 +126,18 @@ def test_round_trip_and_tampering(switched):
         ObserverGains.from_dict(no_rule)
 
 
-def test_a_mixed_batch_equals_each_vehicle_stepped_with_its_own_set(switched):
+@pytest.mark.parametrize("modes", ["F..F.F.", "..F....."])  # "F": the vehicle runs the fast set
+def test_a_mixed_batch_equals_each_vehicle_stepped_with_its_own_set(switched, modes):
     rt = RuntimeGains.from_gains(switched)
     quiet_rt = RuntimeGains.from_gains(switched.quiet_gains())
+    nv = len(modes)
     rng = np.random.default_rng(0)
-    y = np.column_stack([rng.uniform(6.0, 28.0, 7), rng.uniform(-0.4, 0.4, 7)])
-    u = np.column_stack([rng.uniform(0.0, 300.0, 7), rng.uniform(-0.05, 0.05, 7)])
-    z = initial_observer_state(rt, y) + rng.normal(0.0, 0.1, (7, rt.n))
-    fast = np.array([True, False, False, True, False, True, False])
+    y = np.column_stack([rng.uniform(6.0, 28.0, nv), rng.uniform(-0.4, 0.4, nv)])
+    u = np.column_stack([rng.uniform(0.0, 300.0, nv), rng.uniform(-0.05, 0.05, nv)])
+    z = initial_observer_state(rt, y) + rng.normal(0.0, 0.1, (nv, rt.n))
+    fast = np.array([m == "F" for m in modes])
     z_next, res = observer_step(rt, z, y, u, fast)
-    for i in range(7):
+    for i in range(nv):
         own = RuntimeGains.from_gains(switched) if fast[i] else quiet_rt
         z_i, res_i = observer_step(own, z[i : i + 1], y[i : i + 1], u[i : i + 1])
         np.testing.assert_allclose(z_next[i], z_i[0], atol=BATCH_EQUALITY_ATOL)
