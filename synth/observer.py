@@ -127,10 +127,10 @@ class RuntimeGains:
         innovation_scale = None
         if quiet is not None:
             K_rows = np.union1d(K_rows, np.flatnonzero(np.any(quiet.output_gain != 0.0, axis=1)))
-        if K_rows.size:  # every row of the reported estimate out of the small GEMM: no copy of the rest
-            K_rows = np.arange(n)
             noise = gains.options.noise
             innovation_scale = 1.0 / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
+        if K_rows.size:  # every row of the reported estimate out of the small GEMM: no copy of the rest
+            K_rows = np.arange(n)
         WT, XT = _stacked_gains(gains, K_rows, innovation_scale)
         vy_low, vy_high = aug.nts.bounds.lateral_speed_bounds
         one_set = cls(
