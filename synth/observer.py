@@ -344,7 +344,7 @@ def switched_step(
     this one (``rt.start_samples`` at a (re)start; 0 and a statistic of 0 are a settled vehicle).
     For gains with one set this is :func:`observer_step`, with stat and left passed through.
 
-        fast set at k if left > 0;   nu_k = (y_k - C x_hat_k) / sigma   (out of the same GEMM)
+        fast set at k if left > 0;   nu_k = (y_k - C x_hat_k) / sigma   (out of the small GEMM on [z; y])
         s_k = lambda s_{k-1} + (1 - lambda) |nu_k|^2 / 2
         left <- max(left - 1, 0), then max(left, hold) where s_k > threshold
 
