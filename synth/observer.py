@@ -72,24 +72,29 @@ class RuntimeGains:
         sum_i h_i W_i = W_4 + a (W_2 - W_4) + b (W_3 - W_4) + a b (W_1 - W_2 - W_3 + W_4)
                       = Q_0 + V_x Q_V + r Q_r + V_x r Q_Vr.
 
-    With x = [z; y] per vehicle and Q_i = [N_i, L_i]^T:
+    With x = [y; z] per vehicle and Q_i = [L_i, N_i]^T:
 
-    Phi = [x; V_x x; r x; V_x r x; v_x^2; r/v_x; v_x r; u; phi]                        (4 (n + 2) + 6, nv)
-    W   = [Q_0; Q_V; Q_r; Q_Vr; (M T1 K)^T; (M T1 B)^T; (M G_bar)^T]
+    Phi = [x; V_x x'; r x'; V_x r x'; v_x^2; r/v_x; v_x r; u; phi]             (n + 2 + 3 m + 6, nv)
+    W   = [Q_0; Q_V'; Q_r'; Q_Vr'; (M T1 K)^T; (M T1 B)^T; (M G_bar)^T]
 
-    so the whole of Algorithm 1, line 9, is a few broadcast products and one GEMM. What depends
-    on x alone comes from a second, small GEMM X^T x: with an output gain K (robust design), the
-    rows of the reported estimate that K changes, x_hat + K (y - C_bar x_hat) = (I - K C_bar)
-    (z - E y) + K y; for a switched design, also the normalised innovation (y - C_bar x_hat) /
-    sigma. Folding them into W would multiply their zero columns against the other 3 (n + 2) + 6
-    rows of Phi.
+    so the whole of Algorithm 1, line 9, is a few broadcast products and one GEMM. x' = x[:m] is
+    the part of x the premise acts on: the rows of Q_V, Q_r and Q_Vr below m are zero in every gain
+    set (the fault states enter through constant matrices, so the blend never multiplies them), and
+    leaving them out of Phi saves their products, their share of the GEMM and of the memory it
+    reads. What depends on x alone comes from a second, small GEMM X^T x: with an output gain K
+    (robust design), the reported estimate x_hat + K (y - C_bar x_hat) = (I - K C_bar)(z - E y) + K y;
+    for a switched design, also the innovation (y - C_bar x_hat), scaled so that its squared norm
+    is the switching statistic's increment. Folding them into W would multiply their zero columns
+    against the other rows of Phi.
     """
 
     gains: ObserverGains
-    #: (n, 4 (n + 2) + 6): z_{k+1} = WT Phi
+    #: (n, n + 2 + 3 m + 6): z_{k+1} = WT Phi
     WT: FloatArray
     #: (len(K_rows) [+ 2 for a switched design], n + 2): the reported estimate [and the innovation] = XT x
     XT: FloatArray
+    #: the leading rows of x = [y; z] that the premise multiplies (x' of the class docstring)
+    m: int
     E: FloatArray
     E_is_zero: bool
     #: rows of the reported estimate that come from XT: all n when the design has an output gain, none otherwise
@@ -109,7 +114,8 @@ class RuntimeGains:
     WT_pair: FloatArray | None = None
     XT_quiet: FloatArray | None = None
     XT_pair: FloatArray | None = None
-    #: the switching rule (synth.options.SwitchingRule) in samples
+    #: the switching rule (synth.options.SwitchingRule) in samples; the innovation rows of XT carry
+    #: the statistic's weight sqrt((1 - lambda) / 2) / sigma
     switch_threshold: float = np.inf
     switch_forgetting: float = 0.0
     hold_samples: int = 0
@@ -123,20 +129,29 @@ class RuntimeGains:
             raise BadParameters(f"the runtime step needs the {len(RULE_CORNERS)} rules of eq. (16), got {r}")
         rule = gains.options.switching
         quiet = gains.quiet_gains() if gains.quiet is not None and rule is not None else None
-        K_rows = np.flatnonzero(np.any(gains.output_gain != 0.0, axis=1))
+        sets = [gains] if quiet is None or rule is None else [gains, quiet]
+        # every row of the reported estimate out of the small GEMM (no copy of the rest) when a set has an output gain
+        K_rows = np.arange(n) if any(np.any(g.output_gain) for g in sets) else np.arange(0)
         innovation_scale = None
-        if quiet is not None:
-            K_rows = np.union1d(K_rows, np.flatnonzero(np.any(quiet.output_gain != 0.0, axis=1)))
+        if rule is not None and len(sets) == 2:
             noise = gains.options.noise
-            innovation_scale = 1.0 / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
-        if K_rows.size:  # every row of the reported estimate out of the small GEMM: no copy of the rest
-            K_rows = np.arange(n)
-        WT, XT = _stacked_gains(gains, K_rows, innovation_scale)
+            weight = np.sqrt(0.5 * (1.0 - rule.forgetting))
+            innovation_scale = weight / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
+        stacked = [_stacked_gains(g, K_rows, innovation_scale) for g in sets]
+        # x' = x[:m]: the rows of x = [y; z] that some set's premise-dependent blocks (Q_V, Q_r, Q_Vr) use
+        n2 = n + 2
+        used = np.zeros(n2, dtype=bool)
+        for W, _ in stacked:
+            used |= np.any(W[n2 : 4 * n2].reshape(3, n2, n) != 0.0, axis=(0, 2))
+        m = int(np.flatnonzero(used)[-1]) + 1 if used.any() else 0
+        keep = np.r_[np.arange(n2), *(np.arange(m) + n2 * (1 + b) for b in range(3)), np.arange(4 * n2, 4 * n2 + 6)]
+        (WT, XT), *rest = [(np.ascontiguousarray(W[keep].T), X) for W, X in stacked]
         vy_low, vy_high = aug.nts.bounds.lateral_speed_bounds
         one_set = cls(
             gains=gains,
             WT=WT,
             XT=XT,
+            m=m,
             E=gains.E,
             E_is_zero=not np.any(gains.E),
             K_rows=K_rows,
@@ -149,9 +164,9 @@ class RuntimeGains:
             measured_low=np.array([[1.0 / aug.nts.premise_high[0]], [aug.nts.premise_low[1]]]),
             measured_high=np.array([[1.0 / aug.nts.premise_low[0]], [aug.nts.premise_high[1]]]),
         )
-        if quiet is None or rule is None:
+        if not rest or rule is None:
             return one_set
-        WT_quiet, XT_quiet = _stacked_gains(quiet, K_rows, innovation_scale)
+        WT_quiet, XT_quiet = rest[0]
         period = gains.params.sample_period_s
         k = K_rows.size
         return replace(
@@ -175,14 +190,15 @@ class RuntimeGains:
 def _stacked_gains(
     gains: ObserverGains, K_rows: np.ndarray, innovation_scale: FloatArray | None
 ) -> tuple[FloatArray, FloatArray]:
-    """(W^T, X^T) of :class:`RuntimeGains`: W maps Phi (the rule blend, g, u and phi rows) to z_{k+1};
-    X maps x = [z; y] to the reported rows ``K_rows`` and, for a switched design, the normalised
-    innovation (y - C x_hat) / sigma. Both C-contiguous."""
+    """(W, X^T) of :class:`RuntimeGains` for one gain set, before x' is cut out of W's blocks: W maps
+    [x; V_x x; r x; V_x r x; g monomials; u; phi] to z_{k+1} (rows) and X^T maps x = [y; z] to the
+    reported rows ``K_rows`` and, for a switched design, the weighted innovation
+    ``innovation_scale`` (y - C x_hat). X^T C-contiguous."""
     aug = gains.model
     n = gains.N.shape[1]
     MT1 = gains.M @ aug.T1
-    # Q_i = [N_i, L_i]^T, (n + 2, n): the rule's map of x = [z; y]
-    Q = np.concatenate([gains.N, gains.L], axis=2).transpose(0, 2, 1)
+    # Q_i = [L_i, N_i]^T, (n + 2, n): the rule's map of x = [y; z]
+    Q = np.concatenate([gains.L, gains.N], axis=2).transpose(0, 2, 1)
     dQ_a, dQ_b, dQ_ab = Q[1] - Q[3], Q[2] - Q[3], Q[0] - Q[1] - Q[2] + Q[3]
     # a = (V_hi - V_x) / (V_hi - V_lo) = a_0 + a_1 V_x, b = (r_hi - r) / (r_hi - r_lo) = b_0 + b_1 r
     lo, hi = aug.nts.premise_low, aug.nts.premise_high
@@ -195,22 +211,22 @@ def _stacked_gains(
         a_1 * b_1 * dQ_ab,
     ]
     W = np.vstack([*bilinear, (MT1 @ g_feature_matrix(gains)).T, (MT1 @ aug.nts.B).T, (gains.M @ aug.G_bar).T])
-    # maps of x = [z; y], one row each
+    # maps of x = [y; z], one row each
     rows: list[FloatArray] = [np.zeros((0, n + 2))]
     K = gains.output_gain
     if K_rows.size:
-        # reported rows: (I - K C)(z - E y) + K y = F_z z + F_y y
+        # reported rows: (I - K C)(z - E y) + K y = F_y y + F_z z
         F_z = (np.eye(n) - K @ aug.C_bar)[K_rows]
-        rows.append(np.concatenate([F_z, K[K_rows] - F_z @ gains.E], axis=1))
+        rows.append(np.concatenate([K[K_rows] - F_z @ gains.E, F_z], axis=1))
     if innovation_scale is not None:
-        # nu = y - C (z - E y) = -C z + (I + C E) y, divided by the sensor sigmas
+        # nu = y - C (z - E y) = (I + C E) y - C z, weighted
         C = aug.C_bar
-        nu = np.concatenate([-C, np.eye(C.shape[0]) + C @ gains.E], axis=1)
+        nu = np.concatenate([np.eye(C.shape[0]) + C @ gains.E, -C], axis=1)
         rows.append(innovation_scale[:, None] * nu)
-    return np.ascontiguousarray(W.T), np.ascontiguousarray(np.vstack(rows))
+    return W, np.ascontiguousarray(np.vstack(rows))
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class StepResult:
     """Output of one observer step for a batch.
 
@@ -225,7 +241,8 @@ class StepResult:
     vy_in_bounds: np.ndarray
     #: (nv,) the fast set ran (switched designs; None for one gain set)
     fast: np.ndarray | None = None
-    #: (nv, 2) the innovation y_k - C x_hat_k divided by the sensor sigmas (switched designs; None otherwise)
+    #: (nv, 2) the innovation y_k - C x_hat_k divided by the sensor sigmas and weighted by sqrt((1 - lambda) / 2),
+    #: so that its squared norm is the switching statistic's increment (switched designs; None otherwise)
     innovation: FloatArray | None = None
 
     @property
@@ -280,34 +297,33 @@ def observer_step(
     """
     y = np.asarray(y, dtype=float)
     nv = y.shape[0]
-    n, n2 = rt.n, rt.n + 2
-    width = 4 * n2
-    Phi = np.empty((width + 6, nv))
-    x = Phi[:n2]  # the constant block [z; y]: filled first, every loop at unit stride
-    x[:n] = z.T
-    x[n:] = y.T
-    zT, yT = x[:n], x[n:]
-    Phi[width + 3 : width + 5] = np.asarray(u, dtype=float).T
+    n, n2, m = rt.n, rt.n + 2, rt.m
+    tail = n2 + 3 * m  # first row after the rule blend: [v_x^2, r/v_x, v_x r, u, phi]
+    Phi = np.empty((tail + 6, nv))
+    x = Phi[:n2]  # the constant block [y; z]: filled first, every loop at unit stride
+    x[:2] = y.T
+    x[2:] = z.T
+    yT = x[:2]
+    Phi[tail + 3 : tail + 5] = np.asarray(u, dtype=float).T
     # line 8: x_hat_k = z_k - E y_k
-    x_hat = z if rt.E_is_zero else z - y @ rt.E.T
-    vy_hat = zT[VY_INDEX] if rt.E_is_zero else x_hat[:, VY_INDEX]
-    # premise xi = [1/v_x, r], clipped to the design box, flagged when the clip moved it
-    rows = np.empty((4, nv))  # [v_x, V_x, r, V_x r]: the clipped measurement interleaved with the multipliers
-    clipped = np.clip(yT, rt.measured_low, rt.measured_high, out=rows[0::2])
+    vy_hat = x[2 + VY_INDEX] if rt.E_is_zero else z[:, VY_INDEX] - y @ rt.E[VY_INDEX]
+    # premise xi = [1/v_x, r], clipped to the design box, flagged when the clip moved it. Ufuncs, not
+    # np.clip, throughout the step: np.clip and the array methods (max, any) go through Python
+    # wrappers that cost microseconds each when the caches are cold, as next to an EKF's step
+    measured = np.empty((3, nv))  # [v_x, r, V_x = 1 / v_x], clipped
+    clipped = np.minimum(np.maximum(yT, rt.measured_low, out=measured[:2]), rt.measured_high, out=measured[:2])
     same = clipped == yT
     in_domain = same[0] & same[1]
-    v_x, r = rows[0], rows[2]
-    premise = rows[1:]  # [V_x, r, V_x r], the multipliers of the bilinear blend
-    np.divide(1.0, v_x, out=rows[1])
-    np.multiply(rows[1], r, out=rows[3])
-    vy_sat = np.minimum(np.maximum(vy_hat, rt.vy_low), rt.vy_high)
+    v_x, r, V_x = measured
+    np.divide(1.0, v_x, out=V_x)
+    V_x_r = np.multiply(V_x, r, out=Phi[tail + 1])  # also the monomial r / v_x of g
+    # line 9 as W^T Phi: [x, V_x x', r x', V_x r x'] (the rule blend), the monomials of g, u, phi(sat(v_y_hat))
+    for i, multiplier in enumerate((V_x, r, V_x_r)):  # three 2-d products cost less than one 3-d broadcast
+        np.multiply(multiplier, x[:m], out=Phi[n2 + i * m : n2 + (i + 1) * m])
+    np.multiply(v_x, clipped, out=Phi[tail : tail + 3 : 2])  # v_x^2 and v_x r
+    vy_sat = np.minimum(np.maximum(vy_hat, rt.vy_low, out=Phi[tail + 5]), rt.vy_high, out=Phi[tail + 5])
     vy_in_bounds = vy_sat == vy_hat
-    # line 9 as W^T Phi: [x, V_x x, r x, V_x r x] (the rule blend), the monomials of g, u, phi(sat(v_y_hat))
-    np.multiply(premise[:, None, :], x[None, :, :], out=Phi[n2:width].reshape(3, n2, nv))
-    np.multiply(v_x, v_x, out=Phi[width])
-    Phi[width + 1] = premise[2]  # r / v_x
-    np.multiply(v_x, r, out=Phi[width + 2])
-    np.multiply(vy_sat, vy_sat, out=Phi[width + 5])
+    np.multiply(vy_sat, vy_sat, out=vy_sat)
     if n_fast is None:
         n_fast = nv if fast is None else int(np.count_nonzero(fast))
     k = rt.K_rows.size
@@ -318,21 +334,35 @@ def observer_step(
     elif n_fast == 0:
         z_rows = WT_quiet @ Phi
         x_rows = XT_quiet @ x
-    else:  # a mixed batch: both sets in one GEMM each, every vehicle's column from its set
+    else:  # a mixed batch: both sets in one GEMM each, the fast vehicles' columns copied over the quiet ones
         both = WT_pair @ Phi
-        z_rows = np.where(fast, both[:n], both[n:])
-        x_both = XT_pair @ x
-        x_rows = np.empty((x_both.shape[0] - k, nv))
-        x_rows[:k] = np.where(fast, x_both[:k], x_both[k : 2 * k])
-        x_rows[k:] = x_both[2 * k :]
+        z_rows = both[n:]
+        np.copyto(z_rows, both[:n], where=fast)
+        x_both = XT_pair @ x  # [fast set's reported rows; quiet set's; innovation]
+        x_rows = x_both[k:]
+        np.copyto(x_rows[:k], x_both[:k], where=fast)
     z_next = z_rows.T
-    if k:  # the reported estimate x_hat_k + K (y_k - C_bar x_hat_k), every row out of the small GEMM
-        x_hat = x_rows[:k].T
+    # the reported estimate: x_hat_k + K (y_k - C_bar x_hat_k), every row out of the small GEMM, when
+    # there is an output gain; else x_hat_k = z_k - E y_k (line 8)
+    x_hat = x_rows[:k].T if k else (z if rt.E_is_zero else z - y @ rt.E.T)
     innovation = x_rows[k:].T if rt.WT_quiet is not None else None
     mask = None if rt.WT_quiet is None else (np.ones(nv, dtype=bool) if fast is None else fast)
     return z_next, StepResult(
         x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds, fast=mask, innovation=innovation
     )
+
+
+_QUIET = np.zeros(0, dtype=bool)
+
+
+def _all_quiet(nv: int) -> np.ndarray:
+    """A read-only (nv,) all-False mask: a view of one shared array, grown when a larger batch comes."""
+    global _QUIET
+    if _QUIET.shape[0] < nv:
+        grown = np.zeros(max(nv, 2 * _QUIET.shape[0]), dtype=bool)
+        grown.flags.writeable = False
+        _QUIET = grown
+    return _QUIET[:nv]
 
 
 def switched_step(
@@ -344,7 +374,7 @@ def switched_step(
     this one (``rt.start_samples`` at a (re)start; 0 and a statistic of 0 are a settled vehicle).
     For gains with one set this is :func:`observer_step`, with stat and left passed through.
 
-        fast set at k if left > 0;   nu_k = (y_k - C x_hat_k) / sigma   (out of the small GEMM on [z; y])
+        fast set at k if left > 0;   nu_k = (y_k - C x_hat_k) / sigma   (out of the small GEMM on [y; z])
         s_k = lambda s_{k-1} + (1 - lambda) |nu_k|^2 / 2
         left <- max(left - 1, 0), then max(left, hold) where s_k > threshold
 
@@ -353,20 +383,22 @@ def switched_step(
     if rt.WT_quiet is None:
         z_next, result = observer_step(rt, z, y, u)
         return z_next, stat, left, result
-    # a settled fleet has no vehicle on the fast set: then one count and no mask arithmetic
-    n_fast = int(np.count_nonzero(left))
-    fast = left > 0 if n_fast else np.zeros(left.shape[0], dtype=bool)
+    # a settled fleet has no vehicle on the fast set: then one reduction and no mask arithmetic
+    if left.size and np.maximum.reduce(left) > 0:
+        fast = left > 0
+        n_fast = int(np.count_nonzero(fast))
+    else:
+        fast, n_fast = _all_quiet(left.shape[0]), 0
     z_next, result = observer_step(rt, z, y, u, fast, n_fast)
     nu = result.innovation
     assert nu is not None  # a switched runtime always reports it
-    energy = np.square(nu.T)  # (2, nv): the GEMM's rows, contiguous
-    e = np.add(energy[0], energy[1], out=energy[0])
-    e *= 0.5 * (1.0 - rt.switch_forgetting)
+    energy = np.square(nu.T)  # (2, nv): the GEMM's rows, contiguous, already weighted by sqrt((1 - lambda) / 2)
     stat = stat * rt.switch_forgetting
-    stat += e
+    stat += energy[0]
+    stat += energy[1]
     if n_fast:
         left = left - fast  # one sample of the fast set used, never below 0
-    if stat.size and stat.max() > rt.switch_threshold:
+    if stat.size and np.maximum.reduce(stat) > rt.switch_threshold:
         exceeded = stat > rt.switch_threshold
         left = left.copy() if not n_fast else left
         left[exceeded] = np.maximum(left[exceeded], rt.hold_samples)

@@ -142,9 +142,11 @@ def test_a_mixed_batch_equals_each_vehicle_stepped_with_its_own_set(switched, mo
         z_i, res_i = observer_step(own, z[i : i + 1], y[i : i + 1], u[i : i + 1])
         np.testing.assert_allclose(z_next[i], z_i[0], atol=BATCH_EQUALITY_ATOL)
         np.testing.assert_allclose(res.x_hat[i], res_i.x_hat[0], atol=BATCH_EQUALITY_ATOL)
-    # the innovation that came out of the GEMM is (y - C x_hat) / sigma
-    noise = switched.options.noise
-    expected = (y - z[:, [0, 2]]) / [noise.vx_sigma_mps, noise.r_sigma_radps]
+    # the innovation that came out of the GEMM is (y - C x_hat) / sigma, weighted for the statistic
+    noise, rule = switched.options.noise, switched.options.switching
+    assert rule is not None
+    weight = np.sqrt(0.5 * (1.0 - rule.forgetting))
+    expected = weight * (y - z[:, [0, 2]]) / [noise.vx_sigma_mps, noise.r_sigma_radps]
     np.testing.assert_allclose(res.innovation, expected, atol=BATCH_EQUALITY_ATOL)
     assert res.fast is fast
 
@@ -160,6 +162,10 @@ def test_the_rule_counts_down_and_holds_after_an_exceedance(switched):
     _, stat, left, res = switched_step(rt, z, stat, left, y, u)
     assert res.fast.tolist() == [False, True]
     assert stat[0] < RULE.threshold < stat[1]
+    # from a zero statistic, s_k = (1 - lambda) |(y - C x_hat) / sigma|^2 / 2
+    noise = switched.options.noise
+    nu = (y - z[:, [0, 2]]) / [noise.vx_sigma_mps, noise.r_sigma_radps]
+    np.testing.assert_allclose(stat, 0.5 * (1.0 - RULE.forgetting) * np.sum(nu**2, axis=1), rtol=1e-9, atol=1e-12)
     assert left.tolist() == [0, rt.hold_samples]  # the exceedance holds the fast set for hold_s
     # a settled pair (both on the quiet set): the exceedance alone switches vehicle 1, the inputs stay as given
     settled_stat, settled_left = np.zeros(2), np.zeros(2, dtype=np.int64)
