@@ -280,7 +280,7 @@ def observer_step(
     y: ArrayLike,
     u: ArrayLike,
     fast: np.ndarray | None = None,
-    n_fast: int | None = None,
+    mixed: bool | None = None,
 ) -> tuple[FloatArray, StepResult]:
     """One step of Algorithm 1 for a batch: returns (z_{k+1}, result at k).
 
@@ -288,7 +288,7 @@ def observer_step(
     u : (nv, 2) demanded [T_d [N m], delta_d [rad]]. Inputs must be finite.
     fast : (nv,) for a switched design, which vehicles use the fast set (None: all of them);
     the features are shared, so a mixed batch costs one GEMM with both sets stacked.
-    n_fast : the number of True in ``fast``, when the caller has counted them already.
+    mixed : whether ``fast`` has both True and False, when the caller knows already.
 
     Internally the batch is laid out vehicles-last (structure of arrays), so
     every elementwise loop runs over the fleet; the returned z_{k+1} is the
@@ -314,7 +314,7 @@ def observer_step(
     clipped = np.minimum(np.maximum(yT, rt.measured_low, out=measured[:2]), rt.measured_high, out=measured[:2])
     same = clipped == yT
     in_domain = same[0] & same[1]
-    v_x, r, V_x = measured
+    v_x, r, V_x = measured[0], measured[1], measured[2]
     np.divide(1.0, v_x, out=V_x)
     V_x_r = np.multiply(V_x, r, out=Phi[tail + 1])  # also the monomial r / v_x of g
     # line 9 as W^T Phi: [x, V_x x', r x', V_x r x'] (the rule blend), the monomials of g, u, phi(sat(v_y_hat))
@@ -324,14 +324,15 @@ def observer_step(
     vy_sat = np.minimum(np.maximum(vy_hat, rt.vy_low, out=Phi[tail + 5]), rt.vy_high, out=Phi[tail + 5])
     vy_in_bounds = vy_sat == vy_hat
     np.multiply(vy_sat, vy_sat, out=vy_sat)
-    if n_fast is None:
-        n_fast = nv if fast is None else int(np.count_nonzero(fast))
     k = rt.K_rows.size
     WT_quiet, WT_pair, XT_quiet, XT_pair = rt.WT_quiet, rt.WT_pair, rt.XT_quiet, rt.XT_pair
-    if fast is None or n_fast == nv or WT_quiet is None or WT_pair is None or XT_quiet is None or XT_pair is None:
+    if mixed is None and fast is not None:
+        mixed = 0 < np.count_nonzero(fast) < nv
+    all_fast = fast is None or (not mixed and (nv == 0 or bool(fast[0])))
+    if WT_quiet is None or WT_pair is None or XT_quiet is None or XT_pair is None or all_fast:
         z_rows = rt.WT @ Phi
         x_rows = rt.XT @ x
-    elif n_fast == 0:
+    elif not mixed:
         z_rows = WT_quiet @ Phi
         x_rows = XT_quiet @ x
     else:  # a mixed batch: both sets in one GEMM each, the fast vehicles' columns copied over the quiet ones
@@ -346,23 +347,23 @@ def observer_step(
     # there is an output gain; else x_hat_k = z_k - E y_k (line 8)
     x_hat = x_rows[:k].T if k else (z if rt.E_is_zero else z - y @ rt.E.T)
     innovation = x_rows[k:].T if rt.WT_quiet is not None else None
-    mask = None if rt.WT_quiet is None else (np.ones(nv, dtype=bool) if fast is None else fast)
+    mask = None if rt.WT_quiet is None else (_constant_mask(nv, True) if fast is None else fast)
     return z_next, StepResult(
         x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds, fast=mask, innovation=innovation
     )
 
 
-_QUIET = np.zeros(0, dtype=bool)
+_MASKS = {False: np.zeros(0, dtype=bool), True: np.ones(0, dtype=bool)}
 
 
-def _all_quiet(nv: int) -> np.ndarray:
-    """A read-only (nv,) all-False mask: a view of one shared array, grown when a larger batch comes."""
-    global _QUIET
-    if _QUIET.shape[0] < nv:
-        grown = np.zeros(max(nv, 2 * _QUIET.shape[0]), dtype=bool)
-        grown.flags.writeable = False
-        _QUIET = grown
-    return _QUIET[:nv]
+def _constant_mask(nv: int, value: bool) -> np.ndarray:
+    """A read-only (nv,) mask of ``value``: a view of one shared array, grown when a larger batch comes."""
+    shared = _MASKS[value]
+    if shared.shape[0] < nv:
+        shared = np.full(max(nv, 2 * shared.shape[0]), value)
+        shared.flags.writeable = False
+        _MASKS[value] = shared
+    return shared[:nv]
 
 
 def switched_step(
@@ -383,24 +384,23 @@ def switched_step(
     if rt.WT_quiet is None:
         z_next, result = observer_step(rt, z, y, u)
         return z_next, stat, left, result
-    # a settled fleet has no vehicle on the fast set: then one reduction and no mask arithmetic
-    if left.size and np.maximum.reduce(left) > 0:
-        fast = left > 0
-        n_fast = int(np.count_nonzero(fast))
-    else:
-        fast, n_fast = _all_quiet(left.shape[0]), 0
-    z_next, result = observer_step(rt, z, y, u, fast, n_fast)
+    # a settled fleet has no vehicle on the fast set, a starting one all: then no mask arithmetic
+    nv = left.shape[0]
+    any_fast = nv > 0 and np.maximum.reduce(left) > 0
+    all_fast = any_fast and np.minimum.reduce(left) > 0
+    fast = left > 0 if any_fast and not all_fast else _constant_mask(nv, all_fast)
+    z_next, result = observer_step(rt, z, y, u, fast, mixed=any_fast and not all_fast)
     nu = result.innovation
     assert nu is not None  # a switched runtime always reports it
     energy = np.square(nu.T)  # (2, nv): the GEMM's rows, contiguous, already weighted by sqrt((1 - lambda) / 2)
     stat = stat * rt.switch_forgetting
     stat += energy[0]
     stat += energy[1]
-    if n_fast:
-        left = left - fast  # one sample of the fast set used, never below 0
+    if any_fast:  # one sample of the fast set used, never below 0
+        left = left - 1 if all_fast else left - fast
     if stat.size and np.maximum.reduce(stat) > rt.switch_threshold:
         exceeded = stat > rt.switch_threshold
-        left = left.copy() if not n_fast else left
+        left = left.copy() if not any_fast else left
         left[exceeded] = np.maximum(left[exceeded], rt.hold_samples)
     return z_next, stat, left, result
 
