@@ -602,7 +602,9 @@ the fleet stream, aligned, 20 s runs, timing code added for the runs and not kep
   the other core (Zenoh's threads, the other processes), not a second interpreter.
 * With the service's ingest thread pinned to one core and everything else (its Zenoh threads, the
   generator, the receiver) to the other, p99 was 4.4-8.9 ms in four steps (5 s and 10 s) against 6.3-12.1 ms
-  unpinned, alternating. An operator can do this with `taskset`; the benchmark does not.
+  unpinned, alternating. An operator can do this with `taskset`; the benchmark does not. Repeated
+  later the same day on a quieter machine (1,000 vehicles, fleet stream, spread, 20 s holds,
+  alternating): p99 6.4 and 4.6 ms pinned, 5.3 and 4.9 ms unpinned, so no setting for it was built.
 * With the generator and the receiver at nice 10, so that the service gets a core first: p99 11.2 ms,
   against 12.3-13.5 ms in three runs at normal priority.
 * Earlier changes from this analysis: the start-up heap frozen for the garbage collector (one full
