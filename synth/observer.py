@@ -239,7 +239,8 @@ class StepResult:
     x_hat: FloatArray
     in_domain: np.ndarray
     vy_in_bounds: np.ndarray
-    #: (nv,) the fast set ran (switched designs; None for one gain set)
+    #: (nv,) the fast set ran (switched designs; None for one gain set); a shared read-only array when every
+    #: vehicle of the batch ran the same set
     fast: np.ndarray | None = None
     #: (nv, 2) the innovation y_k - C x_hat_k divided by the sensor sigmas and weighted by sqrt((1 - lambda) / 2),
     #: so that its squared norm is the switching statistic's increment (switched designs; None otherwise)

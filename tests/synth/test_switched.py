@@ -215,3 +215,23 @@ def test_the_rule_switches_to_the_fast_set_on_a_fault_step_and_back(switched):
     # the estimate converges on the step
     late = t > 15.0
     assert abs(np.median(result.f_hat[late, 0, 0]) - 500.0) < 25.0
+
+
+def test_batches_on_one_set_share_read_only_masks_and_count_down(switched):
+    rt = RuntimeGains.from_gains(switched)
+    quiet_rt = dataclasses.replace(rt, WT=rt.WT_quiet, XT=rt.XT_quiet, WT_quiet=None, WT_pair=None)
+    for nv in (3, 5):  # a larger batch after a smaller one: the shared mask grows
+        y = np.column_stack([np.linspace(8.0, 20.0, nv), np.linspace(-0.1, 0.1, nv)])
+        u = np.zeros((nv, 2))
+        z = initial_observer_state(rt, y)
+        # settled: the quiet set, an all-False mask of the batch's length that nobody can write
+        z_next, _, left, res = switched_step(rt, z, np.zeros(nv), np.zeros(nv, dtype=np.int64), y, u)
+        assert res.fast.tolist() == [False] * nv and not res.fast.flags.writeable
+        assert left.tolist() == [0] * nv
+        np.testing.assert_allclose(z_next, observer_step(quiet_rt, z, y, u)[0], atol=BATCH_EQUALITY_ATOL)
+        # starting: every vehicle on the fast set, each countdown one sample shorter
+        start = np.full(nv, 7, dtype=np.int64)
+        z_next, _, left, res = switched_step(rt, z, np.zeros(nv), start, y, u)
+        assert res.fast.tolist() == [True] * nv and not res.fast.flags.writeable
+        assert left.tolist() == [6] * nv and start.tolist() == [7] * nv
+        np.testing.assert_allclose(z_next, observer_step(rt, z, y, u)[0], atol=BATCH_EQUALITY_ATOL)
