@@ -13,6 +13,7 @@ BENCHMARKS = {
     "accuracy": "agv_fe.benchmarks.accuracy",
     "service_load": "agv_fe.benchmarks.service_load",
     "publisher": "agv_fe.benchmarks.publisher",
+    "soak": "agv_fe.benchmarks.soak",
 }
 
 
@@ -24,6 +25,13 @@ def register(sub: Any) -> None:
     )
     parser.add_argument("--only", default=None, help=f"comma-separated subset of: {', '.join(BENCHMARKS)}")
     parser.add_argument("--out", default="docs/benchmarks", metavar="DIR", help="where to write the reports")
+    parser.add_argument(
+        "--soak-minutes",
+        type=float,
+        default=None,
+        metavar="M",
+        help="how long the soak benchmark holds its fleet (default 10; run it alone for hours: --only soak)",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -37,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name in names:
         print(f"benchmark {name} ...", flush=True)
-        path = importlib.import_module(BENCHMARKS[name]).run(out)
+        options = {"minutes": args.soak_minutes} if name == "soak" and args.soak_minutes is not None else {}
+        path = importlib.import_module(BENCHMARKS[name]).run(out, **options)
         print(f"  written {path}")
     return 0

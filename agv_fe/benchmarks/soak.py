@@ -1,0 +1,410 @@
+# mypy: disable-error-code="no-untyped-call"
+"""Soak: the latency target's fleet held for minutes, watching for drift, growth and stalls.
+
+The capacity benchmark (service_load) runs 10 s steps and a 30 s hold; a service runs for weeks.
+Here one `agv-fe serve` (embedded Zenoh router on loopback, default profile and design) carries
+SOAK_VEHICLES vehicles at 100 Hz, sending at spread phases as independent clocks do, for
+SOAK_MINUTES, while a receiver process takes every estimate from the fleet stream and a poller does
+what operators do on the side: a Prometheus scrape of /metrics and a GET /vehicles every POLL_S.
+
+Per WINDOW_S window: end-to-end latency (p50, p99, p99.9, max, from a histogram of HIST_BIN_US bins
+kept in the receiver), the service's resident memory, threads, open files and CPU, its database's
+size, the REST calls' response times, and the ingest counters. The verdict says whether the run
+lost anything, whether p99 stayed under the target in every window, whether any estimate took more
+than a second (a stall), and how fast the memory grew after the first window.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from agv_fe.benchmarks import report_header
+from agv_fe.benchmarks.service_load import (
+    RATE_HZ,
+    SPREAD_PHASES,
+    TARGET_P99_MS,
+    _cpu_s,
+    _free_port,
+    _generator,
+    _metric,
+)
+
+SOAK_VEHICLES = 1000
+SOAK_MINUTES = 10.0
+WINDOW_S = 60.0
+#: Seconds from the first estimate to the first window: the fleet registers (a database write and a
+#: publisher per vehicle) and every vehicle's estimate history fills.
+WARMUP_S = 10.0
+#: Period of the side load: GET /metrics (a Prometheus scrape) and GET /vehicles (an operator's script).
+POLL_S = 5.0
+HIST_BIN_US = 50
+#: Latency histogram bins of HIST_BIN_US; one more bin counts everything beyond (its max is kept exactly).
+HIST_BINS = 4000
+#: An estimate later than this is a stall (the symptom of zenoh-python issue #540, seen after long runs) [ms].
+STALL_MS = 1000.0
+#: Memory is steady when, after the first window, it grew by less than this many MB per hour.
+STEADY_MB_PER_HOUR = 10.0
+COUNTERS = (
+    "agv_fe_measurements_received_total",
+    "agv_fe_measurements_accepted_total",
+    "agv_fe_measurements_rejected_total",
+    "agv_fe_samples_missing_total",
+    "agv_fe_fleet_estimates_published_total",
+)
+
+
+def _receiver(
+    endpoint: str, t0: Any, stop: Any, ready: Any, out: Any, windows: int, window_s: float, warmup_s: float
+) -> None:
+    """Take every estimate of the fleet stream; keep a latency histogram per window, counts outside them.
+
+    The first window starts ``warmup_s`` after the first estimate's stamp; ``t0`` (shared) tells the parent when."""
+    import numpy as np
+    import orjson
+    import zenoh
+
+    from service.protocol import fleet_estimates_selector
+    from service.transport import open_session
+
+    session = open_session("client", endpoint)
+    sub = session.declare_subscriber(fleet_estimates_selector(), zenoh.handlers.FifoChannel(1 << 20))
+    time.sleep(0.3)
+    ready.set()
+    bin_ns, window_ns = HIST_BIN_US * 1000, int(window_s * 1e9)
+    hist = np.zeros((windows, HIST_BINS + 1), dtype=np.int64)
+    max_ns = np.zeros(windows, dtype=np.int64)
+    before = after = received = 0
+    start_ns = -1
+    idle_since = None
+    while True:
+        sample = sub.try_recv()
+        if sample is None:
+            if stop.is_set():  # drained after the generator finished: done once the channel stays empty 1 s
+                idle_since = idle_since or time.monotonic()
+                if time.monotonic() - idle_since > 1.0:
+                    break
+            time.sleep(0.0002)
+            continue
+        idle_since = None
+        now = time.time_ns()
+        groups = orjson.loads(sample.payload.to_bytes())["groups"]
+        stamps = np.array([t for group in groups for t in group["t_ns"]], dtype=np.int64)
+        if not stamps.size:
+            continue
+        received += stamps.size
+        if start_ns < 0:
+            start_ns = int(stamps.min()) + int(warmup_s * 1e9)
+            t0.value = start_ns
+        which = (stamps - start_ns) // window_ns
+        latency = now - stamps
+        before += int(np.count_nonzero(which < 0))
+        after += int(np.count_nonzero(which >= windows))
+        inside = (which >= 0) & (which < windows)
+        if not inside.all():
+            which, latency = which[inside], latency[inside]
+        for w in np.unique(which).tolist():
+            lat = latency if which.size == 0 or which[0] == which[-1] == w else latency[which == w]
+            hist[w] += np.bincount(np.minimum(lat // bin_ns, HIST_BINS), minlength=HIST_BINS + 1)
+            max_ns[w] = max(int(max_ns[w]), int(lat.max()))
+    out.put(
+        {
+            "received": received,
+            "before_windows": before,
+            "after_windows": after,
+            "hist": hist.tolist(),
+            "max_ns": max_ns.tolist(),
+        }
+    )
+    sub.undeclare()
+    session.close()
+
+
+def percentile_ms(hist: list[int], q: float, max_ms: float) -> float:
+    """The q-quantile of a latency histogram of HIST_BIN_US bins [ms], the upper edge of its bin (never above
+    the exact maximum); the overflow bin answers with the maximum."""
+    total = sum(hist)
+    if total == 0:
+        return float("nan")
+    rank = q * total
+    seen = 0
+    for i, count in enumerate(hist):
+        seen += count
+        if seen >= rank and count:
+            return max_ms if i >= HIST_BINS else min((i + 1) * HIST_BIN_US / 1000.0, max_ms)
+    return max_ms
+
+
+def growth_mb_per_hour(minutes: list[float], rss_mb: list[float]) -> float:
+    """Least-squares slope of resident memory against time, in MB per hour."""
+    if len(minutes) < 2:
+        return float("nan")
+    mt, mr = statistics.fmean(minutes), statistics.fmean(rss_mb)
+    var = sum((t - mt) ** 2 for t in minutes)
+    if var == 0:
+        return float("nan")
+    return 60.0 * sum((t - mt) * (r - mr) for t, r in zip(minutes, rss_mb, strict=True)) / var
+
+
+def _proc(pid: int) -> dict[str, float]:
+    """Resident memory [MB], its peak, threads and open files of a process."""
+    status = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        status[key] = value.split()
+    return {
+        "rss_mb": int(status["VmRSS"][0]) / 1024,
+        "hwm_mb": int(status["VmHWM"][0]) / 1024,
+        "threads": int(status["Threads"][0]),
+        "open_files": len(os.listdir(f"/proc/{pid}/fd")),
+    }
+
+
+def _dir_mb(path: Path) -> float:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2**20
+
+
+def _timed_get(http: httpx.Client, path: str) -> float:
+    """Response time of one GET [ms]; raises on an error status."""
+    started = time.perf_counter()
+    http.get(path).raise_for_status()
+    return (time.perf_counter() - started) * 1e3
+
+
+def run(
+    out_dir: Path, vehicles: int = SOAK_VEHICLES, minutes: float = SOAK_MINUTES, window_s: float = WINDOW_S
+) -> Path:
+    windows = max(1, round(minutes * 60.0 / window_s))
+    print(f"  {vehicles} vehicles for {windows} windows of {window_s:.0f} s", flush=True)
+    http_port, zenoh_port = _free_port(), _free_port()
+    endpoint = f"tcp/127.0.0.1:{zenoh_port}"
+    ctx = multiprocessing.get_context("spawn")
+    with tempfile.TemporaryDirectory() as data_dir:
+        env = {**os.environ, "AGV_FE_AUTH__TOKEN": "bench", "AGV_FE_ZENOH__ESTIMATE_CONGESTION": "block"}
+        cmd = [sys.executable, "-m", "agv_fe", "serve", "--http-port", str(http_port), "--zenoh-endpoint", endpoint,
+               "--data-dir", data_dir, "--log-level", "warning"]  # fmt: skip
+        proc = subprocess.Popen(cmd, env=env)
+        http = httpx.Client(base_url=f"http://127.0.0.1:{http_port}", timeout=30)
+        try:
+            deadline = time.monotonic() + 300
+            while time.monotonic() < deadline:
+                try:
+                    if http.get("/ready").json()["ready"]:
+                        break
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.5)
+            else:
+                raise RuntimeError("the service did not become ready within 300 s")
+            design = http.get("/profiles/default/gains").json()["options"]
+            t0, stop, ready = ctx.Value("q", 0), ctx.Event(), ctx.Event()
+            gen_q, rec_q = ctx.Queue(), ctx.Queue()
+            receiver = ctx.Process(
+                target=_receiver, args=(endpoint, t0, stop, ready, rec_q, windows, window_s, WARMUP_S)
+            )
+            receiver.start()
+            if not ready.wait(60):
+                raise RuntimeError("the receiver did not start within 60 s")
+            counters0 = http.get("/metrics").text
+            duration_s = WARMUP_S + windows * window_s + 2.0
+            generator = ctx.Process(target=_generator, args=(endpoint, vehicles, duration_s, gen_q, SPREAD_PHASES))
+            generator.start()
+            deadline = time.monotonic() + 120
+            while t0.value == 0:
+                if time.monotonic() > deadline:
+                    raise RuntimeError("no estimate arrived within 120 s")
+                time.sleep(0.05)
+            start_ns = t0.value
+            while time.time_ns() < start_ns:
+                time.sleep(0.01)
+            rows = _windows(http, proc.pid, Path(data_dir), start_ns, windows, window_s)
+            gen = gen_q.get(timeout=duration_s + 120)
+            generator.join(30)
+            stop.set()
+            rec = rec_q.get(timeout=120)
+            receiver.join(30)
+            counters1 = http.get("/metrics").text
+        finally:
+            http.close()
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    totals = {name: int(_metric(counters1, name) - _metric(counters0, name)) for name in COUNTERS}
+    for row, hist, max_ns in zip(rows, rec["hist"], rec["max_ns"], strict=True):
+        row["estimates"] = sum(hist)
+        row["max_ms"] = max_ns / 1e6
+        for q, name in ((0.5, "p50_ms"), (0.99, "p99_ms"), (0.999, "p999_ms")):
+            row[name] = percentile_ms(hist, q, row["max_ms"])
+    result = {
+        "vehicles": vehicles,
+        "windows": windows,
+        "window_s": window_s,
+        "warmup_s": WARMUP_S,
+        "design": design,
+        "sent": gen["sent"],
+        "rate_msg_s": gen["sent"] / gen["elapsed_s"],
+        "late_ticks": gen["late_ticks"],
+        "received": rec["received"],
+        "accepted": totals["agv_fe_measurements_accepted_total"],
+        "rejected": totals["agv_fe_measurements_rejected_total"],
+        "missing": totals["agv_fe_samples_missing_total"],
+        "published_in_fleet_stream": totals["agv_fe_fleet_estimates_published_total"],
+        "rows": rows,
+    }
+    result["zero_loss"] = (
+        result["accepted"] == result["sent"] == result["received"]
+        and result["missing"] == 0
+        and result["rejected"] == 0
+    )
+    path = out_dir / "soak.md"
+    path.write_text(_report(result))
+    return path
+
+
+def _windows(
+    http: httpx.Client, pid: int, data_dir: Path, start_ns: int, windows: int, window_s: float
+) -> list[dict[str, Any]]:
+    """Poll the REST side load every POLL_S and sample the service at the end of every window."""
+    rows: list[dict[str, Any]] = []
+    cpu = _cpu_s(pid)
+    metrics_ms: list[float] = []
+    vehicles_ms: list[float] = []
+    next_poll = time.monotonic()
+    for k in range(windows):
+        end_ns = start_ns + int((k + 1) * window_s * 1e9)
+        while time.time_ns() < end_ns:
+            if time.monotonic() >= next_poll:
+                next_poll += POLL_S
+                metrics_ms.append(_timed_get(http, "/metrics"))
+                vehicles_ms.append(_timed_get(http, "/vehicles"))
+            time.sleep(min(0.05, max(0.0, (end_ns - time.time_ns()) / 1e9)))
+        now_cpu = _cpu_s(pid)
+        row: dict[str, Any] = {
+            "window": k + 1,
+            "minute": (k + 1) * window_s / 60.0,
+            **_proc(pid),
+            "service_cpu": (now_cpu - cpu) / window_s,
+            "data_mb": _dir_mb(data_dir),
+            "metrics_ms": _summary(metrics_ms),
+            "vehicles_ms": _summary(vehicles_ms),
+        }
+        cpu, metrics_ms, vehicles_ms = now_cpu, [], []
+        rows.append(row)
+        print(
+            f"  window {k + 1}/{windows}: RSS {row['rss_mb']:.1f} MB, CPU {row['service_cpu']:.2f}, "
+            f"GET /vehicles max {row['vehicles_ms']['max']:.1f} ms",
+            flush=True,
+        )
+    return rows
+
+
+def _summary(times_ms: list[float]) -> dict[str, float]:
+    if not times_ms:
+        return {"n": 0, "median": float("nan"), "max": float("nan")}
+    return {"n": len(times_ms), "median": statistics.median(times_ms), "max": max(times_ms)}
+
+
+def _report(result: dict[str, Any]) -> str:
+    rows = result["rows"]
+    design = result["design"]
+    lines = [
+        report_header("Soak: the target fleet for minutes", "soak"),
+        f"`agv-fe serve` (embedded Zenoh router on 127.0.0.1, default profile: design '{design.get('design')}', "
+        f"fault order {design.get('fault_order')}) with {result['vehicles']:,} vehicles at {RATE_HZ:.0f} Hz, "
+        f"sending at {SPREAD_PHASES} phases of the period as independent clocks do, congestion control BLOCK. A "
+        "receiver process takes every estimate from the fleet stream; beside it, every "
+        f"{POLL_S:.0f} s, a Prometheus scrape (GET /metrics) and an operator's GET /vehicles (every vehicle's "
+        f"status). {result['windows']} windows of {result['window_s']:.0f} s after {result['warmup_s']:.0f} s of "
+        "warm-up; load generator, receiver and service share the machine's two cores.\n",
+        "| window | minute | estimates | p50 [ms] | p99 [ms] | p99.9 [ms] | max [ms] | service CPU [cores] "
+        "| RSS [MB] | threads | open files | data dir [MB] | GET /metrics median / max [ms] "
+        "| GET /vehicles median / max [ms] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        m, v = r["metrics_ms"], r["vehicles_ms"]
+        lines.append(
+            f"| {r['window']} | {r['minute']:.3g} | {r['estimates']} | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} "
+            f"| {r['p999_ms']:.2f} | {r['max_ms']:.1f} | {r['service_cpu']:.2f} | {r['rss_mb']:.1f} | {r['threads']} "
+            f"| {r['open_files']} | {r['data_mb']:.2f} | {m['median']:.1f} / {m['max']:.1f} "
+            f"| {v['median']:.1f} / {v['max']:.1f} |"
+        )
+    lines += ["", _verdict(result), "", READING]
+    return "\n".join(lines) + "\n```json\n" + json.dumps(result, indent=1) + "\n```\n"
+
+
+def _verdict(result: dict[str, Any]) -> str:
+    """What the run shows, from its own figures."""
+    rows = result["rows"]
+    parts = ["**Verdict (this run).**"]
+    if result["zero_loss"]:
+        parts.append(
+            f"Zero loss: {result['sent']:,} samples sent, every one accepted (no gap, no reject) and its estimate "
+            f"received."
+        )
+    else:
+        parts.append(
+            f"Not clean: {result['sent']:,} sent, {result['accepted']:,} accepted, {result['missing']:,} missing, "
+            f"{result['rejected']:,} rejected, {result['received']:,} estimates received."
+        )
+    p99 = [r["p99_ms"] for r in rows]
+    met = sum(1 for x in p99 if x < TARGET_P99_MS)
+    parts.append(
+        f"p99 under {TARGET_P99_MS:.0f} ms in {met} of {len(rows)} windows ({min(p99):.2f} to {max(p99):.2f} ms); "
+        f"p50 {min(r['p50_ms'] for r in rows):.2f} to {max(r['p50_ms'] for r in rows):.2f} ms."
+    )
+    worst = max(r["max_ms"] for r in rows)
+    parts.append(
+        f"Slowest estimate {worst:.1f} ms: "
+        + ("no stall." if worst < STALL_MS else f"a stall (over {STALL_MS / 1e3:.0f} s).")
+    )
+    rss = [r["rss_mb"] for r in rows]
+    if len(rows) >= 3:
+        slope = growth_mb_per_hour([r["minute"] for r in rows[1:]], rss[1:])
+        steady = slope < STEADY_MB_PER_HOUR
+        parts.append(
+            f"Resident memory {rss[0]:.1f} MB after the first window, {rss[-1]:.1f} MB at the end (peak "
+            f"{rows[-1]['hwm_mb']:.1f} MB); from the second window on it grew {slope:+.1f} MB per hour, "
+            + (
+                f"steady (under {STEADY_MB_PER_HOUR:.0f} MB per hour)."
+                if steady
+                else f"more than {STEADY_MB_PER_HOUR:.0f} MB per hour: growing."
+            )
+        )
+    else:
+        parts.append(f"Resident memory {rss[0]:.1f} to {rss[-1]:.1f} MB (too few windows for a growth rate).")
+    threads = {r["threads"] for r in rows}
+    files = [r["open_files"] for r in rows]
+    parts.append(
+        f"Threads {min(threads)}-{max(threads)}, open files {min(files)}-{max(files)}; the data directory "
+        f"{rows[0]['data_mb']:.2f} MB after the first window, {rows[-1]['data_mb']:.2f} MB at the end."
+    )
+    return " ".join(parts)
+
+
+READING = """## Reading
+
+Latency runs from the generator's stamp (just before `put`) to the receiver taking the fleet
+stream message out of its Zenoh channel, as in the capacity benchmark; percentiles come from a
+histogram of 50 us bins, each quoted at its bin's upper edge (the maximum is exact). A window holds
+the estimates of the samples stamped in it.
+
+Memory is the service process's resident set (the design worker process, idle here, is not
+counted). Each vehicle keeps a bounded estimate history (`ingest.history_samples`) that is full
+within the warm-up, so the first window already holds the steady state; growth after it is what a
+leak would show. The database holds the vehicle registry, profiles, gains and alarms: nothing per
+sample, so it should not grow while no alarm changes.
+"""
