@@ -225,7 +225,7 @@ class Transport:
             events = self._match_events  # a deque: appending from Zenoh's threads is safe
             # indirect=False: the append runs on Zenoh's own thread. The default runs every callback handler on a
             # Python thread of its own: one thread per vehicle (1,014 threads at 1,000 vehicles, soak benchmark)
-            callback = zenoh.handlers.Callback(
+            callback: zenoh.handlers.Callback[Any] = zenoh.handlers.Callback(
                 lambda status: events.append((vehicle_id, status.matching)), indirect=False
             )
             self._listeners.append(pub.declare_matching_listener(callback))

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from pydantic import TypeAdapter
 
+from service.api.models import VehicleStatus
 from service.protocol import Measurement
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver
@@ -73,6 +75,27 @@ def test_each_vehicle_is_observed_with_its_own_profiles_gains(tmp_path):
             mixed_up = offline_estimates(other, [row[i] for row in samples])
             assert np.abs(as_array(got) - mixed_up).max() > 1e6 * BATCH_EQUALITY_ATOL
         assert_metrics_show_the_work(srv, measurements=N_SAMPLES * len(FLEET))
+        assert_the_vehicle_list_filters_and_keeps_its_schema(srv)
+
+
+def assert_the_vehicle_list_filters_and_keeps_its_schema(srv: RunningService) -> None:
+    """GET /vehicles is written without a model per vehicle: every item still validates as the documented
+    VehicleStatus and agrees with GET /vehicles/{id}; the profile and level filters select."""
+    listed = srv.get("/vehicles").json()
+    assert [v["id"] for v in listed] == sorted(FLEET)
+    statuses = TypeAdapter(list[VehicleStatus]).validate_python(listed, strict=True)
+    for status in statuses:
+        assert status.profile == FLEET[status.id] and status.counters["accepted"] == N_SAMPLES
+        one = srv.get(f"/vehicles/{status.id}").json()
+        assert {k: one[k] for k in ("id", "profile", "level", "gain_version", "last_seq")} == {
+            k: listed[statuses.index(status)][k] for k in ("id", "profile", "level", "gain_version", "last_seq")
+        }
+    assert [v["id"] for v in srv.get("/vehicles", params={"profile": "heavy"}).json()] == ["van-1"]
+    assert srv.get("/vehicles", params={"profile": "nobody"}).json() == []
+    for level in {v["level"] for v in listed}:
+        chosen = srv.get("/vehicles", params={"level": level}).json()
+        assert [v["id"] for v in chosen] == [v["id"] for v in listed if v["level"] == level]
+    assert srv.get("/vehicles", params={"level": "NOT-A-LEVEL"}).json() == []
 
 
 def assert_metrics_show_the_work(srv: RunningService, measurements: int) -> None:
