@@ -25,6 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,8 @@ POLL_S = 5.0
 HIST_BIN_US = 50
 #: Latency histogram bins of HIST_BIN_US; one more bin counts everything beyond (its max is kept exactly).
 HIST_BINS = 4000
+#: Observer steps timed at each window's end to gauge the machine's speed.
+CALIBRATION_STEPS = 100
 #: An estimate later than this is a stall (the symptom of zenoh-python issue #540, seen after long runs) [ms].
 STALL_MS = 1000.0
 #: Memory is steady when, after the first window, it grew by less than this many MB per hour, or by less than
@@ -173,6 +176,37 @@ def _proc(pid: int) -> dict[str, float]:
     }
 
 
+def _steal_jiffies() -> int:
+    """CPU time the hypervisor gave other guests, summed over this machine's CPUs (/proc/stat)."""
+    fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
+    return int(fields[8]) if len(fields) > 8 else 0
+
+
+class _Speedometer:
+    """How fast the machine runs right now: the median of CALIBRATION_STEPS observer steps for 1,000 vehicles,
+    with the service's own gains, in this process. A drift in the service's figures that this does not share is
+    the service's."""
+
+    def __init__(self, gains_doc: dict[str, Any]) -> None:
+        import numpy as np
+
+        from synth.gains import ObserverGains
+        from synth.observer import FuzzyObserver
+
+        rng = np.random.default_rng(0)
+        self.y = np.column_stack([rng.uniform(6.0, 28.0, 1000), rng.uniform(-0.4, 0.4, 1000)])
+        self.u = np.column_stack([rng.uniform(0.0, 300.0, 1000), rng.uniform(-0.05, 0.05, 1000)])
+        self.observer = FuzzyObserver(ObserverGains.from_dict(gains_doc, reverify=False), self.y)
+
+    def __call__(self) -> float:
+        times = []
+        for _ in range(CALIBRATION_STEPS):
+            started = time.perf_counter()
+            self.observer.step(self.y, self.u)
+            times.append(time.perf_counter() - started)
+        return statistics.median(times) * 1e6
+
+
 def _dir_mb(path: Path) -> float:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2**20
 
@@ -209,7 +243,8 @@ def run(
                 time.sleep(0.5)
             else:
                 raise RuntimeError("the service did not become ready within 300 s")
-            design = http.get("/profiles/default/gains").json()["options"]
+            gains_doc = http.get("/profiles/default/gains", params={"matrices": "true"}).json()
+            design, speed = gains_doc["options"], _Speedometer(gains_doc)
             t0, stop, ready = ctx.Value("q", 0), ctx.Event(), ctx.Event()
             gen_q, rec_q = ctx.Queue(), ctx.Queue()
             receiver = ctx.Process(
@@ -230,7 +265,7 @@ def run(
             start_ns = t0.value
             while time.time_ns() < start_ns:
                 time.sleep(0.01)
-            rows = _windows(http, proc.pid, Path(data_dir), start_ns, windows, window_s)
+            rows = _windows(http, proc.pid, Path(data_dir), start_ns, windows, window_s, speed)
             gen = gen_q.get(timeout=duration_s + 120)
             generator.join(30)
             stop.set()
@@ -277,11 +312,17 @@ def run(
 
 
 def _windows(
-    http: httpx.Client, pid: int, data_dir: Path, start_ns: int, windows: int, window_s: float
+    http: httpx.Client,
+    pid: int,
+    data_dir: Path,
+    start_ns: int,
+    windows: int,
+    window_s: float,
+    speed: Callable[[], float],
 ) -> list[dict[str, Any]]:
-    """Poll the REST side load every POLL_S and sample the service at the end of every window."""
+    """Poll the REST side load every POLL_S and sample the service and the machine at the end of every window."""
     rows: list[dict[str, Any]] = []
-    cpu = _cpu_s(pid)
+    cpu, steal = _cpu_s(pid), _steal_jiffies()
     metrics_ms: list[float] = []
     vehicles_ms: list[float] = []
     next_poll = time.monotonic()
@@ -293,21 +334,23 @@ def _windows(
                 metrics_ms.append(_timed_get(http, "/metrics"))
                 vehicles_ms.append(_timed_get(http, "/vehicles"))
             time.sleep(min(0.05, max(0.0, (end_ns - time.time_ns()) / 1e9)))
-        now_cpu = _cpu_s(pid)
+        now_cpu, now_steal = _cpu_s(pid), _steal_jiffies()
         row: dict[str, Any] = {
             "window": k + 1,
             "minute": (k + 1) * window_s / 60.0,
             **_proc(pid),
             "service_cpu": (now_cpu - cpu) / window_s,
+            "steal_cores": (now_steal - steal) / os.sysconf("SC_CLK_TCK") / window_s,
+            "step_us": speed(),
             "data_mb": _dir_mb(data_dir),
             "metrics_ms": _summary(metrics_ms),
             "vehicles_ms": _summary(vehicles_ms),
         }
-        cpu, metrics_ms, vehicles_ms = now_cpu, [], []
+        cpu, steal, metrics_ms, vehicles_ms = now_cpu, now_steal, [], []
         rows.append(row)
         print(
             f"  window {k + 1}/{windows}: RSS {row['rss_mb']:.1f} MB, CPU {row['service_cpu']:.2f}, "
-            f"GET /vehicles max {row['vehicles_ms']['max']:.1f} ms",
+            f"GET /vehicles max {row['vehicles_ms']['max']:.1f} ms, machine: step {row['step_us']:.1f} us",
             flush=True,
         )
     return rows
@@ -333,8 +376,8 @@ def _report(result: dict[str, Any]) -> str:
         "warm-up; load generator, receiver and service share the machine's two cores.\n",
         "| window | minute | estimates | p50 [ms] | p99 [ms] | p99.9 [ms] | max [ms] | service CPU [cores] "
         "| RSS [MB] | threads | open files | data dir [MB] | GET /metrics median / max [ms] "
-        "| GET /vehicles median / max [ms] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| GET /vehicles median / max [ms] | machine: observer step [us] | machine: stolen [cores] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         m, v = r["metrics_ms"], r["vehicles_ms"]
@@ -342,7 +385,7 @@ def _report(result: dict[str, Any]) -> str:
             f"| {r['window']} | {r['minute']:.3g} | {r['estimates']} | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} "
             f"| {r['p999_ms']:.2f} | {r['max_ms']:.1f} | {r['service_cpu']:.2f} | {r['rss_mb']:.1f} | {r['threads']} "
             f"| {r['open_files']} | {r['data_mb']:.2f} | {m['median']:.1f} / {m['max']:.1f} "
-            f"| {v['median']:.1f} / {v['max']:.1f} |"
+            f"| {v['median']:.1f} / {v['max']:.1f} | {r['step_us']:.1f} | {r['steal_cores']:.3f} |"
         )
     lines += ["", _verdict(result), "", READING]
     return "\n".join(lines) + "\n```json\n" + json.dumps(result, indent=1) + "\n```\n"

@@ -27,7 +27,8 @@ def test_soak_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
         assert abs(r["estimates"] - 3000) <= 20
         assert 0 < r["p50_ms"] <= r["p99_ms"] <= r["p999_ms"] <= r["max_ms"]
         assert r["rss_mb"] > 10 and r["hwm_mb"] >= r["rss_mb"] and r["threads"] > 1 and r["open_files"] > 3
-        assert r["service_cpu"] > 0 and r["data_mb"] > 0
+        assert r["service_cpu"] > 0 and r["data_mb"] > 0 and r["step_us"] > 0 and r["steal_cores"] >= 0
+        assert f"| {r['step_us']:.1f} | {r['steal_cores']:.3f} |" in text
         assert r["metrics_ms"]["n"] >= 2 and r["vehicles_ms"]["n"] >= 2 and r["vehicles_ms"]["max"] > 0
         assert (
             f"| {r['window']} | {r['minute']:.3g} | {r['estimates']} | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} " in text
