@@ -340,6 +340,36 @@ def test_counters_follow_a_vehicle_that_moves_to_another_profile(fast_gains):
     assert newcomer.slot == 0 and newcomer.counters["accepted"] == 0
 
 
+def test_the_fleet_status_list_agrees_with_each_vehicles_own_state(fast_gains):
+    """GET /vehicles reads each profile's arrays once for the whole list: every document must say what the
+    vehicle's own accessors say, for a faulty, a healthy, a stale, a moved and a silent vehicle, in any order."""
+    engine = make_engine(fast_gains, alarms=FAULT_ALARMS, estimate_every_n=2)
+    engine.add_profile("other", engine.banks["default"].spec)
+    engine.activate("other", fast_gains)
+    run_scenario(engine, paper_1(), 900, vehicle="faulty")
+    for k in range(7):
+        engine.process(pairs([constant_measurement(v, k) for v in ("healthy", "lost", "moved")]))
+    engine.liveliness("lost", alive=False)
+    engine.register("moved", "other")
+    engine.process(pairs([constant_measurement("moved", 7)]))
+    engine.register("silent", "other")
+    vehicles = [engine.vehicles[v] for v in ("silent", "moved", "faulty", "lost", "healthy")]
+    statuses = engine.vehicle_statuses(vehicles)
+    assert [s["id"] for s in statuses] == ["silent", "moved", "faulty", "lost", "healthy"]
+    for vehicle, status in zip(vehicles, statuses, strict=True):
+        assert status["level"] == engine.level_of(vehicle)
+        assert status["counters"] == vehicle.counters
+        assert status["gain_set"] == vehicle.bank.gain_set(vehicle.slot)
+        assert status["profile"] == vehicle.profile and status["stale"] == vehicle.stale
+        assert status == engine.vehicle_status(vehicle) | {"seconds_since_seen": status["seconds_since_seen"]}
+    levels = {s["id"]: s["level"] for s in statuses}
+    assert levels == {"silent": "OK", "moved": "OK", "faulty": "FAULT", "lost": "STALE", "healthy": "OK"}
+    moved, silent = statuses[1], statuses[0]
+    assert (moved["counters"]["accepted"], moved["counters"]["published"], moved["last_seq"]) == (8, 4, 7)
+    assert silent["counters"]["accepted"] == 0 and silent["last_seq"] is None
+    assert engine.vehicle_statuses([]) == []
+
+
 def test_gain_activation_continues_from_the_last_estimate(fast_gains):
     engine = make_engine(fast_gains)
     samples = plant_measurements(["v"], 200)

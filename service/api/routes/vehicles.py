@@ -36,7 +36,7 @@ async def list_vehicles(
 ) -> Response:
     engine = service.engine
     vehicles = sorted(engine.vehicles.values(), key=lambda v: v.id)
-    rows = [engine.vehicle_status(v) for v in vehicles if profile is None or v.profile == profile]
+    rows = engine.vehicle_statuses([v for v in vehicles if profile is None or v.profile == profile])
     if level is not None:
         rows = [row for row in rows if row["level"] == level]
     # the documents as they are, by one orjson call: this handler runs on the event loop that runs ingest, and
