@@ -202,6 +202,10 @@ class ProfileBank:
         self.free.extend(range(capacity - 1, self.capacity - 1, -1))
         self.capacity = capacity
 
+    def levels(self, slots: np.ndarray | int) -> np.ndarray:
+        """Each row's level rank (alarms.LEVEL_NAMES): the highest of its torque, steering and domain detectors."""
+        return np.maximum(np.maximum(self.torque.level[slots], self.steer.level[slots]), self.domain.level[slots])
+
     def gain_set(self, slot: int) -> str | None:
         """'fast' or 'quiet': the set of the row's latest estimate (switched designs); None otherwise."""
         if self.runtime is None or not self.runtime.switched or self.last_seq[slot] < 0:

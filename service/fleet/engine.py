@@ -315,9 +315,7 @@ class FleetEngine:
     def level_of(self, vehicle: Vehicle) -> Level:
         if vehicle.stale:
             return "STALE"
-        bank, slot = vehicle.bank, vehicle.slot
-        rank = max(int(bank.torque.level[slot]), int(bank.steer.level[slot]), int(bank.domain.level[slot]))
-        return LEVEL_NAMES[rank]
+        return LEVEL_NAMES[int(vehicle.bank.levels(vehicle.slot))]
 
     # ------------------------------------------------------------------ ingest
 
@@ -629,9 +627,7 @@ class FleetEngine:
                 return
             pub_slots, pub_idx, pub_t, pub_x5, pub_in_domain = slots[pub], idx[pub], t[pub], x5[pub], in_domain[pub]
             fast = None if out.fast is None else out.fast[pub]
-        level = np.maximum(
-            np.maximum(bank.torque.level[pub_slots], bank.steer.level[pub_slots]), bank.domain.level[pub_slots]
-        )
+        level = bank.levels(pub_slots)
         at = pub_idx.tolist()
         vehicles = rows.vehicles
         ids = [vehicles[i].id for i in at]
@@ -815,7 +811,7 @@ class FleetEngine:
         for positions in by_bank.values():
             bank = vehicles[positions[0]].bank
             slots = np.array([vehicles[i].slot for i in positions], dtype=np.intp)
-            ranks = np.maximum(np.maximum(bank.torque.level[slots], bank.steer.level[slots]), bank.domain.level[slots])
+            ranks = bank.levels(slots)
             columns = (bank.accepted[slots].tolist(), bank.estimates[slots].tolist(), bank.published[slots].tolist())
             counts = zip(*columns, strict=True)
             switched = bank.runtime is not None and bank.runtime.switched
