@@ -26,6 +26,7 @@ case: the whole fleet's samples arrive as one burst per period).
 from __future__ import annotations
 
 import array
+import contextlib
 import gc
 import json
 import multiprocessing
@@ -36,6 +37,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +81,40 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+@contextlib.contextmanager
+def serving(env: dict[str, str]) -> Iterator[tuple[str, httpx.Client, subprocess.Popen[bytes], Path]]:
+    """`agv-fe serve` in a process of its own until it is ready: the embedded router on a free loopback port, a
+    fresh data directory, bearer token 'bench', congestion control BLOCK, and ``env`` on top. Yields (Zenoh
+    endpoint, HTTP client, process, data directory); stops the service with SIGINT on the way out."""
+    http_port, zenoh_port = _free_port(), _free_port()
+    endpoint = f"tcp/127.0.0.1:{zenoh_port}"
+    with tempfile.TemporaryDirectory() as data_dir:
+        env = {**os.environ, "AGV_FE_AUTH__TOKEN": "bench", "AGV_FE_ZENOH__ESTIMATE_CONGESTION": "block", **env}
+        cmd = [sys.executable, "-m", "agv_fe", "serve", "--http-port", str(http_port), "--zenoh-endpoint", endpoint,
+               "--data-dir", data_dir, "--log-level", "warning"]  # fmt: skip
+        proc = subprocess.Popen(cmd, env=env)
+        http = httpx.Client(base_url=f"http://127.0.0.1:{http_port}", timeout=30)
+        try:
+            deadline = time.monotonic() + 300
+            while time.monotonic() < deadline:
+                try:
+                    if http.get("/ready").json()["ready"]:
+                        break
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.5)
+            else:
+                raise RuntimeError("the service did not become ready within 300 s")
+            yield endpoint, http, proc, Path(data_dir)
+        finally:
+            http.close()
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
 
 
 def _templates(ids: list[str]) -> list[bytearray]:
@@ -372,60 +408,30 @@ def run(out_dir: Path, sizes: tuple[int, ...] = FLEET_SIZES, modes: tuple[Mode, 
 
 def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle", arrival: str = "spread") -> dict[str, Any]:
     """One service, fleet sizes in turn until one fails, then the target size again; and the engine alone."""
-    http_port, zenoh_port = _free_port(), _free_port()
-    endpoint = f"tcp/127.0.0.1:{zenoh_port}"
     print(f" {_mode_name(every_n, stream, arrival)}", flush=True)
-    with tempfile.TemporaryDirectory() as data_dir:
-        env = {
-            **os.environ,
-            "AGV_FE_AUTH__TOKEN": "bench",
-            "AGV_FE_INGEST__ESTIMATE_EVERY_N": str(every_n),
-            "AGV_FE_ZENOH__ESTIMATE_CONGESTION": "block",
-            # zenoh.vehicle_estimates stays 'subscribed' (the default): taking the fleet stream, nobody
-            # subscribes to the vehicle keys and the service skips them
-        }
-        cmd = [sys.executable, "-m", "agv_fe", "serve", "--http-port", str(http_port), "--zenoh-endpoint", endpoint,
-               "--data-dir", data_dir, "--log-level", "warning"]  # fmt: skip
-        proc = subprocess.Popen(cmd, env=env)
-        http = httpx.Client(base_url=f"http://127.0.0.1:{http_port}", timeout=30)
+    # zenoh.vehicle_estimates stays 'subscribed' (the default): taking the fleet stream, nobody subscribes to the
+    # vehicle keys and the service skips them
+    with serving({"AGV_FE_INGEST__ESTIMATE_EVERY_N": str(every_n)}) as (endpoint, http, proc, _):
         rows: list[dict[str, Any]] = []
         hold: dict[str, Any] | None = None  # TARGET_VEHICLES held for TARGET_HOLD_S after the sweep
-        try:
-            deadline = time.monotonic() + 300
-            while time.monotonic() < deadline:
-                try:
-                    if http.get("/ready").json()["ready"]:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.5)
-            else:
-                raise RuntimeError("the service did not become ready within 300 s")
-            gains_doc = http.get("/profiles/default/gains", params={"matrices": "true"}).json()
-            design = gains_doc["options"]
-            for n in sizes:
-                row = _step(endpoint, http, proc.pid, n, every_n, stream=stream, arrival=arrival)
-                rows.append(row)
-                print(
-                    f"  {n} vehicles: {row['rate_msg_s']:.0f} msg/s, zero loss {row['zero_loss']}, "
-                    f"paced {row['paced']}, p50 {row['p50_ms']:.2f} ms, p99 {row['p99_ms']:.2f} ms, "
-                    f"service CPU {row['service_cpu']:.2f}, receiver CPU {row['receiver_cpu']:.2f}",
-                    flush=True,
-                )
-                if not _sustained(row):
-                    break
-                if n == TARGET_VEHICLES:  # hold the target size now, with the fleet state the sweep's step had
-                    hold = _step(endpoint, http, proc.pid, TARGET_VEHICLES, every_n, TARGET_HOLD_S, stream, arrival)
-                    print(f"  {TARGET_VEHICLES} vehicles held {TARGET_HOLD_S:.0f} s: p99 per window "
-                          f"{', '.join(f'{x:.2f}' for x in hold['p99_windows_ms'])} ms, zero loss {hold['zero_loss']}",
-                          flush=True)  # fmt: skip
-        finally:
-            http.close()
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        gains_doc = http.get("/profiles/default/gains", params={"matrices": "true"}).json()
+        design = gains_doc["options"]
+        for n in sizes:
+            row = _step(endpoint, http, proc.pid, n, every_n, stream=stream, arrival=arrival)
+            rows.append(row)
+            print(
+                f"  {n} vehicles: {row['rate_msg_s']:.0f} msg/s, zero loss {row['zero_loss']}, "
+                f"paced {row['paced']}, p50 {row['p50_ms']:.2f} ms, p99 {row['p99_ms']:.2f} ms, "
+                f"service CPU {row['service_cpu']:.2f}, receiver CPU {row['receiver_cpu']:.2f}",
+                flush=True,
+            )
+            if not _sustained(row):
+                break
+            if n == TARGET_VEHICLES:  # hold the target size now, with the fleet state the sweep's step had
+                hold = _step(endpoint, http, proc.pid, TARGET_VEHICLES, every_n, TARGET_HOLD_S, stream, arrival)
+                print(f"  {TARGET_VEHICLES} vehicles held {TARGET_HOLD_S:.0f} s: p99 per window "
+                      f"{', '.join(f'{x:.2f}' for x in hold['p99_windows_ms'])} ms, zero loss {hold['zero_loss']}",
+                      flush=True)  # fmt: skip
     engine = _engine_alone(gains_doc, tuple(r["vehicles"] for r in rows), every_n)
     return {
         "estimate_every_n": every_n,
