@@ -9,6 +9,7 @@ from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.app import Service
+from service.fleet import ProfileBank
 
 _bearer = HTTPBearer(auto_error=False, description="the token of setting auth.token (or DATA_DIR/api-token)")
 
@@ -19,6 +20,17 @@ async def get_service(request: Request) -> Service:
 
 
 ServiceDep = Annotated[Service, Depends(get_service)]
+
+
+def profile_bank(service: Service, name: str) -> ProfileBank:
+    """The profile's bank, or 404 naming the known profiles."""
+    bank = service.engine.banks.get(name)
+    if bank is None:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND,
+            detail=f"no profile named {name!r}; known: {', '.join(sorted(service.engine.banks))}",
+        )
+    return bank
 
 
 def _check(service: Service, credentials: HTTPAuthorizationCredentials | None) -> str:

@@ -91,11 +91,16 @@ def assert_the_vehicle_list_filters_and_keeps_its_schema(srv: RunningService) ->
             k: listed[statuses.index(status)][k] for k in ("id", "profile", "level", "gain_version", "last_seq")
         }
     assert [v["id"] for v in srv.get("/vehicles", params={"profile": "heavy"}).json()] == ["van-1"]
-    assert srv.get("/vehicles", params={"profile": "nobody"}).json() == []
     for level in {v["level"] for v in listed}:
         chosen = srv.get("/vehicles", params={"level": level}).json()
         assert [v["id"] for v in chosen] == [v["id"] for v in listed if v["level"] == level]
-    assert srv.get("/vehicles", params={"level": "NOT-A-LEVEL"}).json() == []
+    # a typo in a filter is an error that says so, not an empty fleet
+    unknown = srv.get("/vehicles", params={"profile": "nobody"})
+    assert unknown.status_code == 404 and "no profile named 'nobody'; known: default, heavy" in unknown.text
+    bad_level = srv.get("/vehicles", params={"level": "NOT-A-LEVEL"})
+    assert bad_level.status_code == 422 and "'OK', 'WARN', 'FAULT' or 'STALE'" in bad_level.text
+    for params in ({"limit": 0}, {"after": "no spaces"}):
+        assert srv.get("/vehicles", params=params).status_code == 422, params
 
 
 def assert_metrics_show_the_work(srv: RunningService, measurements: int) -> None:

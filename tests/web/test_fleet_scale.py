@@ -159,3 +159,34 @@ def test_the_fleet_view_stays_responsive_with_1000_live_vehicles(server, page, o
     assert first_render_ms < MAX_FIRST_RENDER_MS
     assert percentile(renders, 0.95) < MAX_RENDER_P95_MS and percentile(applies, 0.95) < MAX_APPLY_P95_MS
     assert max(long_tasks, default=0.0) < MAX_LONG_TASK_MS
+
+
+def test_the_vehicle_list_pages_through_a_large_fleet(server):
+    """GET /vehicles with limit walks the fleet by its Link headers and gives the whole list, unfiltered and
+    with a level filter whose page needs more than one round of status documents (FAULT vehicles are 1 in 50,
+    a page of 15 spans over 700 vehicles)."""
+    whole = {v["id"]: v["level"] for v in server.get("/vehicles").json()}
+    assert list(whole) == sorted(whole) and len(whole) == N_VEHICLES
+
+    def walk(params: dict[str, Any]) -> list[list[str]]:
+        pages: list[list[str]] = []
+        response = server.get("/vehicles", params=params)
+        while True:
+            assert response.status_code == 200, response.text
+            pages.append([v["id"] for v in response.json()])
+            assert len(pages) <= N_VEHICLES, "the paging does not end"
+            if "next" not in response.links:
+                return pages
+            url = httpx.URL(response.links["next"]["url"])
+            assert url.path == "/vehicles" and url.params["limit"] == str(params["limit"])
+            response = server.get("/vehicles", params=dict(url.params))
+
+    pages = walk({"limit": 300})
+    assert [len(p) for p in pages] == [300, 300, 300, 100]
+    assert [i for p in pages for i in p] == list(whole)
+    faults = walk({"level": "FAULT", "limit": 15})
+    assert [len(p) for p in faults] == [15, 5]
+    assert [i for p in faults for i in p] == [i for i, level in whole.items() if level == "FAULT"]
+    # a full last page still has a next link (more vehicles follow it); that page is empty
+    assert walk({"level": "FAULT", "limit": 10}) == [faults[0][:10], faults[0][10:] + faults[1], []]
+    assert server.get("/vehicles", params={"after": list(whole)[-1]}).json() == []

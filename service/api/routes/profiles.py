@@ -6,7 +6,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Query, Response, status
 
-from service.api.deps import Operator, ServiceDep
+from service.api.deps import Operator, ServiceDep, profile_bank
 from service.api.models import GainsInfo, ProfileChange, ProfileInfo
 from service.app import Service
 from service.fleet import ProfileBank
@@ -16,16 +16,6 @@ router = APIRouter(prefix="/profiles", tags=["profiles"])
 
 ProfileName = Annotated[str, Path(description="profile name", pattern=PROFILE_NAME_PATTERN)]
 AUTH: dict[int | str, dict[str, Any]] = {401: {"description": "missing or invalid token"}}
-
-
-def _bank(service: Service, name: str) -> ProfileBank:
-    bank = service.engine.banks.get(name)
-    if bank is None:
-        raise HTTPException(
-            status.HTTP_404_NOT_FOUND,
-            detail=f"no profile named {name!r}; known: {', '.join(sorted(service.engine.banks))}",
-        )
-    return bank
 
 
 def _info(service: Service, bank: ProfileBank) -> ProfileInfo:
@@ -47,7 +37,7 @@ async def list_profiles(service: ServiceDep) -> list[ProfileInfo]:
 
 @router.get("/{name}", response_model=ProfileInfo, responses={404: {"description": "no such profile"}})
 async def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
-    return _info(service, _bank(service, name))
+    return _info(service, profile_bank(service, name))
 
 
 @router.put(
@@ -78,7 +68,7 @@ async def put_profile(
 async def resynthesise(
     service: ServiceDep, name: ProfileName, _operator: Operator, response: Response
 ) -> ProfileChange:
-    _bank(service, name)
+    profile_bank(service, name)
     job = service.resynthesise(name)
     response.headers["Location"] = f"/jobs/{job.id}"
     return ProfileChange(profile=name, job=job.id, applied=False)
@@ -96,7 +86,7 @@ async def get_gains(
     matrices: Annotated[bool, Query(description="include N, L, M, E, P, R, T")] = False,
     version: Annotated[str | None, Query(description="a stored version instead of the active one")] = None,
 ) -> GainsInfo:
-    bank = _bank(service, name)
+    bank = profile_bank(service, name)
     wanted = version or bank.version
     if wanted is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail=f"profile {name!r} has no active gains yet")
