@@ -157,6 +157,13 @@ def test_with_closed_reads_the_page_is_public_but_its_data_needs_the_token(close
     auth = {"Authorization": f"Bearer {TOKEN}"}
     events = read_stream(f"{srv.url}/ui/stream?view=profiles", 5.0, headers=auth, max_events=2)
     assert [e for e, _ in events[:2]] == ["hello", "alarms"]
+    # the REST reads as well; health and readiness stay open for probes
+    for path in ("/vehicles", "/alarms", "/profiles", "/profiles/default/gains", "/jobs"):
+        denied = srv.get(path)
+        assert denied.status_code == 401 and denied.headers["www-authenticate"].startswith("Bearer"), path
+        assert srv.get(path, headers={"Authorization": "Bearer nope"}).status_code == 401, path
+        assert srv.get(path, headers=auth).status_code == 200, path
+    assert srv.get("/health").status_code == 200
 
 
 def test_the_dashboard_can_be_switched_off(tmp_path):
