@@ -208,6 +208,11 @@ def test_openapi_documents_every_route_with_examples(server):
     for name in ("ProfileSpec", "Estimate", "VehicleStatus", "AlarmInfo", "JobInfo", "GainsInfo"):
         assert schemas[name].get("examples"), name
     assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
+    listing = spec["paths"]["/vehicles"]["get"]
+    parameters = {p["name"]: p for p in listing["parameters"]}
+    assert set(parameters) == {"profile", "level", "limit", "after"}
+    assert all(p["schema"].get("examples") for p in parameters.values())
+    assert "Link" in listing["responses"]["200"]["headers"] and "404" in listing["responses"]
 
 
 def test_unknown_vehicles_are_rejected_when_the_setting_says_so(tmp_path):

@@ -55,15 +55,17 @@ LIST_LIMIT_MAX = 100_000
 async def list_vehicles(
     service: ServiceDep,
     request: Request,
-    profile: Annotated[str | None, Query(description="only this profile")] = None,
-    level: Annotated[Level | None, Query(description="only vehicles at this level")] = None,
+    profile: Annotated[str | None, Query(description="only this profile", examples=["default"])] = None,
+    level: Annotated[Level | None, Query(description="only vehicles at this level", examples=["FAULT"])] = None,
     limit: Annotated[
         int | None, Query(ge=1, le=LIST_LIMIT_MAX, description="at most this many (default: all)", examples=[500])
     ] = None,
     after: Annotated[
         str | None,
         Query(
-            description="only ids after this one (the last id of the previous page)", pattern=VEHICLE_ID_PATTERN.pattern
+            description="only ids after this one (the last id of the previous page)",
+            pattern=VEHICLE_ID_PATTERN.pattern,
+            examples=["agv-0042"],
         ),
     ] = None,
 ) -> Response:
