@@ -160,10 +160,12 @@ class PlantSimulator:
 
         x = self.state[:, :3].copy()
         y = x[:, [0, 2]] + self.noise_bias + self.noise_sigma * self.rng.standard_normal((self.n_vehicles, 2))
-        # driver: speed tracking on the measured speed, drag feed-forward
+        # driver: speed tracking on the measured speed, drag and rolling-resistance feed-forward; the drive
+        # force becomes a torque at the wheels
         speed_meas = np.maximum(y[:, 0], MIN_SPEED_MPS)
         accel = speed_ref_rate + self.speed_kp * (speed_ref - speed_meas)
-        torque = p.longitudinal_inertia_kgm2 * accel + p.longitudinal_drag_coeff * speed_meas**2
+        force = p.effective_mass_kg * accel + p.longitudinal_drag_coeff * speed_meas**2 + p.rolling_resistance_n
+        torque = p.wheel_radius_m * force
         u = np.column_stack([torque, steer_demand])
         f = fault_add + fault_gain * u
         sample = PlantSample(

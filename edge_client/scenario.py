@@ -111,7 +111,7 @@ REALISTIC_NOISE = SensorNoise(vx_sigma_mps=0.05, r_sigma_radps=0.005)
 
 
 class DriverGains(_Strict):
-    """Speed tracking: a = dv_ref/dt + k_p (v_ref - v_meas); T_d = I_e a + C_x v_meas^2."""
+    """Speed tracking: a = dv_ref/dt + k_p (v_ref - v_meas); T_d = R_w (m_eff a + C_x v_meas^2 + F_r)."""
 
     speed_kp_per_s: Positive = 1.0
 

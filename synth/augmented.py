@@ -9,7 +9,15 @@ Augmented state x_bar = [x; f_k; f_{k+1}; ...; f_{k+q-1}] (shift coordinates,
 as printed), dimension n = 3 + 2 q:
 
     x_bar_{k+1} = A_bar(h) x_bar_k + T1 (B u_k + g(xi_k)) + G_bar phi(x_bar_k) + D_bar d_k
+                  [+ G_c_bar phi_c(x_bar_k, u_k) with the cornering drag]
     y_k = C_bar x_bar_k
+
+The unmeasured nonlinearities enter the error dynamics through the DMVT
+(Lemma 1, eq. 26): phi(x) - phi(x_hat) = sum_k rho_k c_k^T e with each rho_k a
+partial derivative bounded over the operating box. :meth:`AugmentedModel.dmvt_terms`
+lists them, the one place they are defined: d(v_y^2)/dv_y of the paper, and
+with the cornering drag phi_c = F_yf sin(delta) its derivatives in v_y and in
+the steering fault (through delta = delta_d + b_delta delta_f).
 
 :func:`difference_coordinates` gives the change of basis to
 [x; f; Delta f; Delta^2 f], in which the fault chain is a Jordan block: the same
@@ -18,7 +26,9 @@ system, better conditioned for the solver (NOTES.md, finding 2).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
+from functools import cached_property
 from math import comb
 
 import numpy as np
@@ -58,6 +68,60 @@ def _check_order(order: int) -> None:
 
 
 @dataclass(frozen=True)
+class DMVTTerm:
+    """One scalar of the DMVT (eq. 26) in the error dynamics: rho G c^T e, with rho in [low, high].
+
+    name : what rho is, e.g. "d(v_y^2)/dv_y"
+    G : (n, 1) where the nonlinearity enters the augmented state (G_bar or G_c_bar)
+    row : (1, n) the error component that rho multiplies, c^T (a unit row)
+    low, high : bounds of rho over the operating box (and the fault bounds), low <= high
+    """
+
+    name: str
+    G: FloatArray
+    row: FloatArray
+    low: float
+    high: float
+
+    @property
+    def centre(self) -> float:
+        return 0.5 * (self.low + self.high)
+
+    @property
+    def radius(self) -> float:
+        return 0.5 * (self.high - self.low)
+
+    def matrix(self, M: FloatArray | None = None) -> FloatArray:
+        """(M) G c^T, (n, n): the error term per unit rho; M = I unless given (the observer's M of eq. 20)."""
+        G = self.G if M is None else M @ self.G
+        return G @ self.row
+
+    def transformed(self, T: FloatArray, T_inv: FloatArray) -> DMVTTerm:
+        """The same term in coordinates x' = T x_bar: G' = T G, c'^T = c^T T^-1."""
+        return DMVTTerm(self.name, T @ self.G, self.row @ T_inv, self.low, self.high)
+
+
+def front_force_bound_n(nts: NTSModel) -> float:
+    """F_max, the bound of |F_yf| [N] the cornering drag's observer saturates to and its DMVT bounds use.
+
+    The bounds' ``front_lateral_force_max_n`` when given, never more than what the operating box allows:
+    2 C_f (delta_max + w_max), w_max = (max |v_y| + l_f max |r|) / v_x,min.
+    """
+    bounds, k = nts.bounds, nts.params.symbols()
+    vy_abs = max(abs(bounds.vy_min_mps), abs(bounds.vy_max_mps))
+    r_abs = max(abs(bounds.r_min_radps), abs(bounds.r_max_radps))
+    w_max = (vy_abs + k["l_f"] * r_abs) / bounds.vx_min_mps
+    box = 2.0 * k["C_f"] * (bounds.steer_max_rad + w_max)
+    given = bounds.front_lateral_force_max_n
+    return box if given is None else min(box, given)
+
+
+def dmvt_vertices(terms: tuple[DMVTTerm, ...]) -> list[tuple[float, ...]]:
+    """Every vertex of the box of (rho_1, ..., rho_K): 2^K tuples, the lower bounds first."""
+    return list(itertools.product(*((t.low, t.high) for t in terms)))
+
+
+@dataclass(frozen=True)
 class AugmentedModel:
     """The augmented N-TS fault model of eq. (18).
 
@@ -65,6 +129,7 @@ class AugmentedModel:
     T1    : (n, 3)     [I; 0]
     B_bar : (n, 2)     T1 B
     G_bar : (n, 1)     T1 G
+    G_c_bar : (n, 1)   T1 G_c (zero without the cornering drag)
     D_bar : (n, 1)     T1 D
     C_bar : (2, n)     [C, 0]
     n = 3 + 2 * fault_order; the current fault f_k sits at indices 3 and 4.
@@ -76,6 +141,7 @@ class AugmentedModel:
     T1: FloatArray
     B_bar: FloatArray
     G_bar: FloatArray
+    G_c_bar: FloatArray
     D_bar: FloatArray
     C_bar: FloatArray
 
@@ -98,6 +164,7 @@ class AugmentedModel:
             T1=T1,
             B_bar=T1 @ nts.B,
             G_bar=T1 @ nts.G,
+            G_c_bar=T1 @ nts.G_c,
             D_bar=T1 @ nts.D,
             C_bar=C_bar,
         )
@@ -116,16 +183,44 @@ class AugmentedModel:
         """A_bar(h) = sum_i h_i A_bar_i for memberships h of shape (..., 4); returns (..., n, n)."""
         return np.einsum("...i,ijk->...jk", h, self.A_bar)
 
-    def rho_row(self, rho: float) -> FloatArray:
-        """The DMVT row of eq. (26): Delta phi = rho_row e, with only d phi/d v_y = rho non-zero, (1, n)."""
+    def unit_row(self, index: int) -> FloatArray:
+        """e_index^T, (1, n)."""
         row = np.zeros((1, self.n))
-        row[0, VY_INDEX] = rho
+        row[0, index] = 1.0
         return row
 
-    def rho_vertices(self) -> tuple[float, float]:
-        """The vertices of S_rho: d(v_y^2)/d v_y = 2 v_y over [v_y,min, v_y,max]."""
-        lo, hi = self.nts.bounds.lateral_speed_bounds
-        return 2.0 * lo, 2.0 * hi
+    @cached_property
+    def dmvt_terms(self) -> tuple[DMVTTerm, ...]:
+        """The scalars of the DMVT (eq. 26) and their bounds over the operating box.
+
+        phi = v_y^2 (eq. 15): rho = 2 v_y in [2 v_y,min, 2 v_y,max], entering through G_bar.
+        With the cornering drag, phi_c = F_yf sin(delta), F_yf = 2 C_f (delta - w), w = (v_y + l_f r) V_x.
+        The observer evaluates it as sat(F_yf_hat) sin(sat(delta_hat)), both saturated to their bounds
+        (synth.observer), so by the mean value theorem on (F, delta) -> F sin(delta) over the box
+        |F| <= F_max, |delta| <= delta_max, with the saturations' factors kappa in [0, 1]:
+
+            phi_c - phi_c_hat = -2 C_f V_x kappa_F sin(delta_c) e_vy
+                                + (2 C_f kappa_F sin(delta_c) + F_c cos(delta_c)) kappa_delta b_delta e_deltaf
+
+            |rho_vy| <= 2 C_f V_max sin(delta_max),   |rho_deltaf| <= b_delta (2 C_f sin(delta_max) + F_max)
+
+        F_max is the bound's ``front_lateral_force_max_n`` when given (a physical bound, the grip), and
+        never more than what the box allows, 2 C_f (delta_max + w_max) with w_max = (max |v_y| + l_f max |r|)
+        V_max. Both intervals are symmetric about zero, as the mirror symmetry needs (synth.symmetry).
+        """
+        nts = self.nts
+        bounds, k = nts.bounds, nts.params.symbols()
+        vy_lo, vy_hi = bounds.lateral_speed_bounds
+        terms = [DMVTTerm("d(v_y^2)/dv_y", self.G_bar, self.unit_row(VY_INDEX), 2.0 * vy_lo, 2.0 * vy_hi)]
+        if nts.has_cornering_drag:
+            V_max = 1.0 / bounds.vx_min_mps
+            delta_max = bounds.steer_max_rad
+            d_vy = 2.0 * k["C_f"] * V_max * np.sin(delta_max)
+            d_delta = k["b_delta"] * (2.0 * k["C_f"] * np.sin(delta_max) + front_force_bound_n(nts))
+            delta_f = self.unit_row(N_STATES + 1)
+            terms.append(DMVTTerm("dphi_c/dv_y", self.G_c_bar, self.unit_row(VY_INDEX), -d_vy, d_vy))
+            terms.append(DMVTTerm("dphi_c/ddelta_f", self.G_c_bar, delta_f, -d_delta, d_delta))
+        return tuple(terms)
 
 
 def difference_coordinates(fault_order: int) -> FloatArray:

@@ -5,11 +5,12 @@ solved, a design is accepted only if, recomputed in numpy from the gains
 (N_i, M) and the multipliers (P_i, R):
 
 1. every P_i is positive definite;
-2. every vertex LMI of eq. (33) (rule i, next rule j, DMVT vertex rho) has a
-   positive minimum eigenvalue at the claimed decay rate; by convexity this
-   proves N(h, rho)^T P(h+) N(h, rho) < alpha^2 P(h) for all h, h+, rho;
-3. the spectral radius of N(h) + M G_bar rho_row(rho) over a dense grid of the
-   premise box and of S_rho stays below the certified decay rate (a
+2. every vertex LMI of eq. (33) (rule i, next rule j, vertex of the box of
+   the DMVT scalars rho_k) has a positive minimum eigenvalue at the claimed
+   decay rate; by convexity this proves N(h, rho)^T P(h+) N(h, rho) < alpha^2 P(h)
+   for all h, h+, rho;
+3. the spectral radius of N(h) + sum_k rho_k M G_k c_k^T over a dense grid of
+   the premise box and of the rho box stays below the certified decay rate (a
    consequence of 2 at h+ = h, so a cross-check of the algebra).
 """
 
@@ -17,15 +18,19 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 import scipy.linalg
 
+from synth.augmented import DMVTTerm, dmvt_vertices
 from synth.errors import VerificationFailed
 from synth.fuzzy import NTSModel
 from synth.model import FloatArray
+from synth.options import DesignOptions
+from synth.solver import SolveInfo, solver_version
 
 #: Relative threshold above which a minimum eigenvalue counts as positive.
 STRICT_TOL = 1e-10
@@ -38,7 +43,7 @@ GRID_RHO_POINTS = 9
 class VerificationReport:
     """What the numpy check found, design coordinates for the LMIs.
 
-    lmi_min_eigenvalues : one per vertex LMI (i, j, rho), in that order
+    lmi_min_eigenvalues : one per vertex LMI (i, j, rho vertex), in that order
     """
 
     lmi_min_eigenvalues: list[float]
@@ -59,18 +64,24 @@ def vertex_lmi(P_i: FloatArray, P_j: FloatArray, R: FloatArray, N_rho: FloatArra
     return 0.5 * (block + block.T)
 
 
+def error_term_matrices(terms: Sequence[DMVTTerm], M: FloatArray) -> list[FloatArray]:
+    """M G_k c_k^T for every DMVT term, (n, n) each: the error dynamics' change per unit rho_k (eqs. 27-28)."""
+    return [term.matrix(M) for term in terms]
+
+
 def verify_lyapunov(
     N: FloatArray,
-    MG_row: FloatArray,
+    error_terms: Sequence[FloatArray],
+    terms: Sequence[DMVTTerm],
     P: FloatArray,
     R: FloatArray,
-    rho_vertices: tuple[float, float],
     alpha: float,
 ) -> tuple[list[float], list[float], float, float]:
     """Checks 1 and 2. Returns (LMI min eigenvalues, P min eigenvalues, slack min eig, certified alpha).
 
-    N : (r, n, n); MG_row : (n, n), the rank-one term M G_bar rho_row per unit rho;
-    P : (r or 1, n, n); R : (n, n).
+    N : (r, n, n); error_terms : one (n, n) matrix M G_k c_k^T per DMVT term, whose bounds ``terms`` give;
+    P : (r or 1, n, n); R : (n, n). Every vertex of the box of rho is checked: the LMI is affine in rho,
+    so the vertices prove it on the whole box.
     """
     r = N.shape[0]
     P_of = (lambda k: P[k]) if P.shape[0] == r else (lambda k: P[0])
@@ -79,11 +90,12 @@ def verify_lyapunov(
     slack_min = min(float(np.linalg.eigvalsh(R + R.T - P_k)[0]) for P_k in P)
     lmi_min: list[float] = []
     alpha_sq_needed = 0.0
+    vertices = dmvt_vertices(tuple(terms))
     for i in range(r):
         for j in range(n_P):
             S_j = R + R.T - P[j]
-            for rho in rho_vertices:
-                N_rho = N[i] + rho * MG_row
+            for rho in vertices:
+                N_rho = N[i] + sum(value * term for value, term in zip(rho, error_terms, strict=True))
                 block = vertex_lmi(P_of(i), P[j], R, N_rho, alpha)
                 lmi_min.append(float(np.linalg.eigvalsh(block)[0]))
                 if slack_min > 0 and min(P_min) > 0:
@@ -98,49 +110,58 @@ def verify_lyapunov(
 def spectral_radius_grid(
     nts: NTSModel,
     N: FloatArray,
-    MG_row: FloatArray,
-    rho_bounds: tuple[float, float],
+    error_terms: Sequence[FloatArray],
+    terms: Sequence[DMVTTerm],
     points_per_axis: int = GRID_POINTS_PER_AXIS,
     rho_points: int = GRID_RHO_POINTS,
 ) -> tuple[float, dict[str, float], int]:
-    """Max spectral radius of N(h) + rho M G_bar rho_row over the premise box x S_rho.
+    """Max spectral radius of N(h) + sum_k rho_k M G_k c_k^T over the premise box x the box of rho.
 
-    Returns (max, where it occurs as {speed_mps, yaw_rate_radps, rho}, number of points).
+    ``rho_points`` points per rho with one DMVT term, 3 (both ends and the centre) per rho with several.
+    Returns (max, where it occurs as {speed_mps, yaw_rate_radps, rho, <other term names>}, number of points).
     """
     V = np.linspace(nts.premise_low[0], nts.premise_high[0], points_per_axis)
     r = np.linspace(nts.premise_low[1], nts.premise_high[1], points_per_axis)
-    rho = np.linspace(rho_bounds[0], rho_bounds[1], rho_points)
-    VV, rr, pp = np.meshgrid(V, r, rho, indexing="ij")
-    h = nts.memberships(np.stack([VV.ravel(), rr.ravel()], axis=-1))
-    stack = np.einsum("gi,ijk->gjk", h, N) + pp.ravel()[:, None, None] * MG_row
+    per_rho = rho_points if len(terms) == 1 else 3
+    rho_axes = [np.linspace(t.low, t.high, per_rho) for t in terms]
+    grid = np.meshgrid(V, r, *rho_axes, indexing="ij")
+    VV, rr, rhos = grid[0].ravel(), grid[1].ravel(), [g.ravel() for g in grid[2:]]
+    h = nts.memberships(np.stack([VV, rr], axis=-1))
+    stack = np.einsum("gi,ijk->gjk", h, N)
+    for rho, matrix in zip(rhos, error_terms, strict=True):
+        stack = stack + rho[:, None, None] * matrix
     radii = np.abs(np.linalg.eigvals(stack)).max(axis=-1)
     worst = int(np.argmax(radii))
-    where = {
-        "speed_mps": float(1.0 / VV.ravel()[worst]),
-        "yaw_rate_radps": float(rr.ravel()[worst]),
-        "rho": float(pp.ravel()[worst]),
-    }
+    where = {"speed_mps": float(1.0 / VV[worst]), "yaw_rate_radps": float(rr[worst])}
+    for k, (rho, term) in enumerate(zip(rhos, terms, strict=True)):
+        where["rho" if k == 0 else term.name] = float(rho[worst])
     return float(radii[worst]), where, int(radii.size)
 
 
 def verify(
     nts: NTSModel,
-    N_design: FloatArray,
-    MG_row_design: FloatArray,
+    terms: Sequence[DMVTTerm],
     P: FloatArray,
     R: FloatArray,
-    rho_bounds: tuple[float, float],
     alpha: float,
     N_physical: FloatArray,
-    MG_row_physical: FloatArray,
+    M_physical: FloatArray,
+    T: FloatArray,
 ) -> VerificationReport:
-    """Run checks 1-3; raise :class:`VerificationFailed` naming the first that fails.
+    """Run checks 1-3 on gains in physical coordinates; raise :class:`VerificationFailed` naming the first that fails.
 
-    The LMIs are checked in the design coordinates (well conditioned); the
-    spectral radius on the runtime gains in physical coordinates.
+    terms : the DMVT terms of the augmented model (physical coordinates); P, R : the multipliers in the
+    design coordinates x' = T x_bar. The LMIs are checked in the design coordinates (well conditioned);
+    the spectral radius on the runtime gains in physical coordinates.
     """
-    lmi_min, P_min, slack_min, certified = verify_lyapunov(N_design, MG_row_design, P, R, rho_bounds, alpha)
-    radius, where, points = spectral_radius_grid(nts, N_physical, MG_row_physical, rho_bounds)
+    T_inv = np.linalg.inv(T)
+    N_design = np.einsum("ab,ibc,cd->iad", T, N_physical, T_inv)
+    design_terms = [term.transformed(T, T_inv) for term in terms]
+    M_design = T @ M_physical @ T_inv
+    lmi_min, P_min, slack_min, certified = verify_lyapunov(
+        N_design, error_term_matrices(design_terms, M_design), design_terms, P, R, alpha
+    )
+    radius, where, points = spectral_radius_grid(nts, N_physical, error_term_matrices(terms, M_physical), terms)
     report = VerificationReport(
         lmi_min_eigenvalues=lmi_min,
         P_min_eigenvalues=P_min,
@@ -173,6 +194,20 @@ def verify(
             details,
         )
     return report
+
+
+def merged(first: VerificationReport, second: VerificationReport) -> VerificationReport:
+    """One report for two gain sets verified with the same P(h), R: the worse figure of each, both LMI lists."""
+    worse = first if first.spectral_radius_max >= second.spectral_radius_max else second
+    return VerificationReport(
+        lmi_min_eigenvalues=first.lmi_min_eigenvalues + second.lmi_min_eigenvalues,
+        P_min_eigenvalues=first.P_min_eigenvalues,
+        slack_min_eigenvalue=min(first.slack_min_eigenvalue, second.slack_min_eigenvalue),
+        certified_decay_rate=max(first.certified_decay_rate, second.certified_decay_rate),
+        spectral_radius_max=worse.spectral_radius_max,
+        spectral_radius_at=worse.spectral_radius_at,
+        grid_points=first.grid_points + second.grid_points,
+    )
 
 
 @dataclass(frozen=True)
@@ -214,6 +249,58 @@ class Certificate:
         data.pop("lmi_min_eigenvalues")
         data.pop("P_min_eigenvalues")
         return data
+
+
+def build_certificate(
+    options: DesignOptions,
+    report: VerificationReport,
+    info: SolveInfo,
+    *,
+    lmi_form: str,
+    alpha: float,
+    n_lmis_solved: int,
+    solves: int,
+    timings: dict[str, float],
+    gains_hash: str,
+    symmetry: str,
+    performance: dict[str, float] | None = None,
+    notes: list[str] | None = None,
+) -> Certificate:
+    """The certificate of a verified design: the one place a :class:`Certificate` is made.
+
+    ``report`` is what the numpy verification found, ``info`` what the solver of the accepted point
+    reported, ``alpha`` the decay rate the LMIs were posed at, ``gains_hash`` the content hash of the
+    runtime gains (synth.gains.gains_hash).
+    """
+    return Certificate(
+        design=options.design,
+        fault_order=options.fault_order,
+        lyapunov=options.lyapunov,
+        lmi_form=lmi_form,
+        decoupled=options.decoupled,
+        verified=True,
+        decay_rate=report.certified_decay_rate,
+        requested_decay_rate=alpha,
+        spectral_radius_max=report.spectral_radius_max,
+        spectral_radius_at=report.spectral_radius_at,
+        grid_points=report.grid_points,
+        n_lmis_solved=n_lmis_solved,
+        n_lmis_verified=len(report.lmi_min_eigenvalues),
+        lmi_min_eigenvalue=min(report.lmi_min_eigenvalues),
+        lmi_min_eigenvalues=report.lmi_min_eigenvalues,
+        P_min_eigenvalues=report.P_min_eigenvalues,
+        margin=options.margin,
+        solver=info.solver,
+        solver_version=solver_version(info.solver),
+        solver_status=info.status,
+        solver_iterations=info.iterations,
+        solves=solves,
+        timings_s={k: round(v, 6) for k, v in timings.items()},
+        content_hash=gains_hash,
+        symmetry=symmetry,
+        performance=dict(performance or {}),
+        notes=list(notes or []),
+    )
 
 
 def content_hash(arrays: dict[str, FloatArray], meta: dict[str, Any]) -> str:

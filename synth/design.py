@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from importlib import metadata
 
 import numpy as np
 
 from synth.augmented import AugmentedModel
-from synth.certificate import Certificate, VerificationReport, verify
-from synth.errors import BadParameters, SolverFailed, VerificationFailed
+from synth.certificate import VerificationReport, build_certificate, verify
+from synth.errors import SolverFailed, VerificationFailed
 from synth.existence import check_decoupled_detectability, check_detectability
 from synth.fuzzy import NTSModel
 from synth.gains import ObserverGains, gains_hash
@@ -23,6 +22,7 @@ from synth.lmi import DesignCoordinates, LMISolution, Theorem2LMIs, design_coord
 from synth.model import FloatArray
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
+from synth.robust import synthesize_robust
 
 
 @dataclass(frozen=True)
@@ -55,8 +55,6 @@ def synthesize(
     bounds = bounds or OperatingBounds()
     options = options or DesignOptions()
     if options.design == "robust":
-        from synth.robust import synthesize_robust
-
         return synthesize_robust(params, bounds, options, use_symmetry=use_symmetry)
     started = time.perf_counter()
     timings: dict[str, float] = {}
@@ -97,8 +95,8 @@ def synthesize(
             f"({', '.join(options.solvers)}): " + "; ".join(str(f) for f in failures)
         )
     timings["solve_s"] = time.perf_counter() - mark
-    timings["compile_s"] = best.solution.extra.get("compile_s", float("nan"))
-    timings["solver_s"] = best.solution.extra.get("solver_s", float("nan"))
+    timings["compile_s"] = best.solution.info.compile_s
+    timings["solver_s"] = best.solution.info.solver_s
 
     if options.optimise_decay_rate:
         mark = time.perf_counter()
@@ -121,35 +119,23 @@ def _solve_verified(
     """Try each solver in turn; return the first solution that passes verification."""
     failures: list[Exception] = []
     for solver in solvers:
-        solution = lmis.solve(alpha, solver, time_limit_s)
-        if isinstance(solution, str):
-            failures.append(SolverFailed(solution))
+        try:
+            solution = lmis.solve(alpha, solver, time_limit_s)
+        except SolverFailed as exc:
+            failures.append(exc)
             continue
         try:
             return _check(aug, dc, solution), failures
         except VerificationFailed as exc:
-            failures.append(VerificationFailed(f"{solver} ({solution.status}): {exc}", exc.details))
+            failures.append(VerificationFailed(f"{solver} ({solution.info.status}): {exc}", exc.details))
     return None, failures
 
 
 def _check(aug: AugmentedModel, dc: DesignCoordinates, solution: LMISolution) -> _Verified:
     M, N, L = gains_from_solution(dc, solution.E, solution.H)
-    MG_row_design = M @ dc.G @ dc.rho_row
     N_phys = np.einsum("ab,ibc,cd->iad", dc.T_inv, N, dc.T)
     M_phys = dc.T_inv @ M @ dc.T
-    row = np.zeros((1, aug.n))
-    row[0, 1] = 1.0
-    report = verify(
-        aug.nts,
-        N,
-        MG_row_design,
-        solution.P,
-        solution.R,
-        dc.rho_vertices(),
-        solution.alpha,
-        N_phys,
-        M_phys @ aug.G_bar @ row,
-    )
+    report = verify(aug.nts, aug.dmvt_terms, solution.P, solution.R, solution.alpha, N_phys, M_phys, dc.T)
     return _Verified(solution=solution, report=report, M=M, N=N, L=L)
 
 
@@ -207,33 +193,16 @@ def _package(
     L = np.einsum("ab,ibc->iac", T_inv, best.L)
     M = T_inv @ best.M @ T
     E = T_inv @ sol.E
-    report = best.report
-    vertex_lmis = len(report.lmi_min_eigenvalues)
-    certificate = Certificate(
-        design=options.design,
-        fault_order=options.fault_order,
-        lyapunov=options.lyapunov,
+    certificate = build_certificate(
+        options,
+        best.report,
+        sol.info,
         lmi_form=options.lmi_form,
-        decoupled=options.decoupled,
-        verified=True,
-        decay_rate=report.certified_decay_rate,
-        requested_decay_rate=sol.alpha,
-        spectral_radius_max=report.spectral_radius_max,
-        spectral_radius_at=report.spectral_radius_at,
-        grid_points=report.grid_points,
+        alpha=sol.alpha,
         n_lmis_solved=lmis.n_lmis,
-        n_lmis_verified=vertex_lmis,
-        lmi_min_eigenvalue=min(report.lmi_min_eigenvalues),
-        lmi_min_eigenvalues=report.lmi_min_eigenvalues,
-        P_min_eigenvalues=report.P_min_eigenvalues,
-        margin=options.margin,
-        solver=sol.solver,
-        solver_version=_solver_version(sol.solver),
-        solver_status=sol.status,
-        solver_iterations=sol.iterations,
         solves=solves,
-        timings_s={k: round(v, 6) for k, v in timings.items()},
-        content_hash=gains_hash(params, bounds, options, N, L, M, E),
+        timings=timings,
+        gains_hash=gains_hash(params, bounds, options, N, L, M, E),
         symmetry="mirror" if lmis.symmetry is not None else "none",
     )
     return ObserverGains(
@@ -249,11 +218,3 @@ def _package(
         T=T,
         certificate=certificate,
     )
-
-
-def _solver_version(solver: str) -> str:
-    package = {"CLARABEL": "clarabel", "SCS": "scs"}.get(solver, solver.lower())
-    try:
-        return f"{package} {metadata.version(package)}, cvxpy {metadata.version('cvxpy')}"
-    except metadata.PackageNotFoundError as exc:
-        raise BadParameters(f"solver {solver!r} is not installed") from exc

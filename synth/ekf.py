@@ -52,11 +52,13 @@ class EKFResult:
         return self.x_hat[:, 3:5]
 
 
-def jacobian(x: FloatArray, p: VehicleParams) -> FloatArray:
+def jacobian(x: FloatArray, p: VehicleParams, steer_rad: FloatArray | None = None) -> FloatArray:
     """d(dx/dt)/d[v_x, v_y, r] of eqs. (1)-(2) at x, shape (nv, 3, 3).
 
-    The inputs enter affinely (the steering angle additively in F_yf), so the
-    Jacobian does not depend on them; the fault columns are F_v.
+    Without the cornering drag the inputs enter affinely (the steering angle
+    additively in F_yf), so the Jacobian does not depend on them and the fault
+    columns are F_v. With it, the applied steering angle ``steer_rad`` (nv,)
+    enters through -F_yf sin(delta) / m_eff (see :func:`cornering_drag_partials`).
     """
     k = p.symbols()
     v_x, v_y, r = x[:, 0], x[:, 1], x[:, 2]
@@ -69,9 +71,12 @@ def jacobian(x: FloatArray, p: VehicleParams) -> FloatArray:
     dFr_dvy = -2 * k["C_r"] * inv
     dFr_dr = 2 * k["C_r"] * k["l_r"] * inv
     J = np.empty((x.shape[0], 3, 3))
-    J[:, 0, 0] = -2 * k["C_x"] * v_x / k["I_e"]
+    J[:, 0, 0] = -2 * k["C_x"] * v_x / k["m_eff"]
     J[:, 0, 1] = r
     J[:, 0, 2] = v_y
+    if p.cornering_drag and steer_rad is not None:
+        d_state, _ = cornering_drag_partials(x, steer_rad, p)
+        J[:, 0, :] -= d_state / k["m_eff"]
     J[:, 1, 0] = (dFf_dvx + dFr_dvx) / k["M_v"] - r
     J[:, 1, 1] = (dFf_dvy + dFr_dvy - 2 * k["C_y"] * v_y) / k["M_v"]
     J[:, 1, 2] = (dFf_dr + dFr_dr) / k["M_v"] - v_x
@@ -79,6 +84,22 @@ def jacobian(x: FloatArray, p: VehicleParams) -> FloatArray:
     J[:, 2, 1] = (k["l_f"] * dFf_dvy - k["l_r"] * dFr_dvy) / k["I_z"]
     J[:, 2, 2] = (k["l_f"] * dFf_dr - k["l_r"] * dFr_dr) / k["I_z"]
     return J
+
+
+def cornering_drag_partials(x: FloatArray, steer_rad: FloatArray, p: VehicleParams) -> tuple[FloatArray, FloatArray]:
+    """Partials of the cornering drag phi_c = F_yf sin(delta) [N]: d/d[v_x, v_y, r] (nv, 3) and d/d delta (nv,).
+
+    F_yf = 2 C_f (delta - (v_y + l_f r) / v_x) of eq. (2).
+    """
+    k = p.symbols()
+    v_x, v_y, r = x[:, 0], x[:, 1], x[:, 2]
+    sin_d, cos_d = np.sin(steer_rad), np.cos(steer_rad)
+    two_C_f = 2.0 * k["C_f"]
+    F_yf = two_C_f * (steer_rad - (v_y + k["l_f"] * r) / v_x)
+    d_state = np.column_stack(
+        [two_C_f * (v_y + k["l_f"] * r) / v_x**2 * sin_d, -two_C_f / v_x * sin_d, -two_C_f * k["l_f"] / v_x * sin_d]
+    )
+    return d_state, two_C_f * sin_d + F_yf * cos_d
 
 
 class AugmentedEKF:
@@ -168,7 +189,12 @@ class AugmentedEKF:
         x_next[:, :3] = veh + s * continuous_dynamics(veh, u, 0.0, x[:, 3:5], p)
         x_next[:, 3:] = x[:, 3:] @ self.chain.T
         F = self._F
-        F[:, :3, :3] = self._eye[:3, :3] + s * jacobian(veh, p)
+        steer = u[:, 1] + p.steer_fault_gain * x[:, 4] if p.cornering_drag else None
+        F[:, :3, :3] = self._eye[:3, :3] + s * jacobian(veh, p, steer)
+        if steer is not None:
+            # the steering fault also acts through the cornering drag: d(dv_x/dt)/d delta_f
+            _, d_delta = cornering_drag_partials(veh, steer, p)
+            F[:, 0, 4] = -s * p.steer_fault_gain * d_delta / p.effective_mass_kg
         P = (F @ P) @ np.ascontiguousarray(F.transpose(0, 2, 1)) + self.Q
         self.x = x_next
         self.P = 0.5 * (P + P.transpose(0, 2, 1))

@@ -6,6 +6,10 @@ value, so that a caller (CLI, REST API) can show it to a user unchanged.
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
+
 
 class SynthesisError(Exception):
     """Base class: anything that prevents certified observer gains."""
@@ -39,3 +43,23 @@ class VerificationFailed(SynthesisError):
         super().__init__(reason)
         self.reason = reason
         self.details = dict(details or {})
+
+
+class ShapeError(BadParameters):
+    """An array entering synth from outside (stored gains, a batch of vehicles) has the wrong dimensions."""
+
+
+def check_shape(
+    value: Any, shape: tuple[int | None, ...], name: str, error: type[Exception] = ShapeError
+) -> np.ndarray:
+    """``value`` as an array of ``shape`` (None: any length on that axis), else ``error`` naming the matrix.
+
+    In python-control's words: "Incompatible dimensions of N matrix; expected (4, 5, 5) but found (4, 5)".
+    """
+    array = np.asarray(value)
+    if array.ndim != len(shape) or any(
+        want is not None and got != want for got, want in zip(array.shape, shape, strict=True)
+    ):
+        shown = tuple("n" if want is None else want for want in shape)
+        raise error(f"Incompatible dimensions of {name} matrix; expected {shown} but found {array.shape}")
+    return array

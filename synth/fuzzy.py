@@ -4,8 +4,16 @@
 xi = [V_x, r] = [1/v_x, r] is measured, a nonlinear consequent g(xi) of
 measured signals only, and the unmeasured nonlinearity G phi(x), phi = v_y^2.
 Typos of the printed eq. (15) are corrected as in NOTES.md: g_1 divides by
-I_e, s multiplies both terms of g_2, g_3 carries the factor r, and the
-numerator of h_2 is (r - r_min).
+I_e (the effective mass m_eff), s multiplies both terms of g_2, g_3 carries the
+factor r, and the numerator of h_2 is (r - r_min).
+
+The longitudinal terms a real vehicle adds (synth.model) keep the form: the
+rolling resistance is a constant in g_1, and the cornering drag
+F_yf sin(delta) is a second unmeasured nonlinearity G_c phi_c(x, delta), with
+G_c = [-s/m_eff, 0, 0]^T and phi_c = F_yf(v_y, delta) sin(delta) [N]; it
+depends on the unmeasured v_y and, through the applied delta = delta_d +
+b_delta delta_f, on the steering fault. The observer evaluates it at the
+estimates and the DMVT bounds the difference (synth.augmented).
 
 :class:`ConventionalTSModel` is the 8-rule sector-nonlinearity model of
 eq. (14), premise [v_x, 1/v_x, v_y], kept for comparison (Remark 2): its
@@ -22,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from synth.errors import BadParameters
 from synth.model import C, FloatArray, continuous_matrices
 from synth.params import OperatingBounds, VehicleParams
 
@@ -50,6 +59,7 @@ class NTSModel:
     D : (3, 1)     s D_v
     F : (3, 2)     s F_v
     G : (3, 1)     [0, -s C_y/M_v, 0]^T
+    G_c : (3, 1)   [-s/m_eff, 0, 0]^T, where the cornering drag phi_c enters (zero without ``cornering_drag``)
     C : (2, 3)     measurement matrix
     premise_low, premise_high : (2,)  bounds of xi = [V_x [s/m], r [rad/s]]
     """
@@ -61,6 +71,7 @@ class NTSModel:
     D: FloatArray
     F: FloatArray
     G: FloatArray
+    G_c: FloatArray
     C: FloatArray
     premise_low: FloatArray
     premise_high: FloatArray
@@ -75,6 +86,7 @@ class NTSModel:
         cm = continuous_matrices(params)
         s = params.sample_period_s
         G = np.array([[0.0], [-s * params.lateral_drag_coeff / params.mass_kg], [0.0]])
+        G_c = np.array([[-s / params.effective_mass_kg if params.cornering_drag else 0.0], [0.0], [0.0]])
         return cls(
             params=params,
             bounds=bounds,
@@ -83,6 +95,7 @@ class NTSModel:
             D=s * cm.D_v,
             F=s * cm.F_v,
             G=G,
+            G_c=G_c,
             C=C.copy(),
             premise_low=np.array([V_lo, r_lo]),
             premise_high=np.array([V_hi, r_hi]),
@@ -119,8 +132,8 @@ class NTSModel:
         s = k["s"]
         v_x = np.asarray(v_x, dtype=float)
         r = np.asarray(r, dtype=float)
-        # g_1 = -s C_x v_x^2 / I_e
-        g1 = -s * k["C_x"] * v_x**2 / k["I_e"]
+        # g_1 = -s (C_x v_x^2 + F_r) / m_eff
+        g1 = -s * (k["C_x"] * v_x**2 + k["F_r"]) / k["m_eff"]
         # g_2 = s (2 (C_r l_r - C_f l_f) / (M_v v_x) - v_x) r
         g2 = s * (2.0 * (k["C_r"] * k["l_r"] - k["C_f"] * k["l_f"]) / (k["M_v"] * v_x) - v_x) * r
         # g_3 = -s 2 (C_f l_f^2 + C_r l_r^2) / (I_z v_x) r
@@ -133,19 +146,45 @@ class NTSModel:
         x = np.asarray(x, dtype=float)
         return np.asarray(x[..., 1] ** 2)
 
-    def step(self, x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike) -> FloatArray:
-        """x_{k+1} of eq. (15), shape (..., 3); equals the Euler step (12) inside S_x."""
+    @property
+    def has_cornering_drag(self) -> bool:
+        return bool(np.any(self.G_c))
+
+    def phi_c(self, x: ArrayLike, steer_rad: ArrayLike) -> FloatArray:
+        """The cornering drag phi_c = F_yf sin(delta) [N] of the applied road-wheel angle, shape (...).
+
+        x : (..., 3) state [v_x, v_y, r]; steer_rad : (...) applied delta = delta_d + b_delta delta_f [rad].
+        F_yf = 2 C_f (delta - (v_y + l_f r) / v_x) of eq. (2). Enters through G_c (zero without cornering drag).
+        """
         x = np.asarray(x, dtype=float)
+        k = self.params.symbols()
+        delta = np.asarray(steer_rad, dtype=float)
+        # phi_c = F_yf sin(delta), F_yf = 2 C_f (delta - (v_y + l_f r) V_x)
+        F_yf = 2.0 * k["C_f"] * (delta - (x[..., 1] + k["l_f"] * x[..., 2]) / x[..., 0])
+        return np.asarray(F_yf * np.sin(delta))
+
+    def step(self, x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike) -> FloatArray:
+        """x_{k+1} of eq. (15), shape (..., 3); equals the Euler step (12) inside S_x.
+
+        With the cornering drag: + G_c phi_c(x, delta_d + b_delta delta_f).
+        """
+        x = np.asarray(x, dtype=float)
+        u_d = np.asarray(u_d, dtype=float)
+        f = np.asarray(f, dtype=float)
         h = self.memberships(self.premise(x[..., 0], x[..., 2]))
         Ax = np.einsum("...i,ijk,...k->...j", h, self.A, x)
-        return (
+        nxt = (
             Ax
-            + np.asarray(u_d, dtype=float) @ self.B.T
+            + u_d @ self.B.T
             + np.asarray(w, dtype=float)[..., None] * self.D[:, 0]
-            + np.asarray(f, dtype=float) @ self.F.T
+            + f @ self.F.T
             + self.g(x[..., 0], x[..., 2])
             + self.phi(x)[..., None] * self.G[:, 0]
         )
+        if self.has_cornering_drag:
+            steer = u_d[..., 1] + self.params.steer_fault_gain * f[..., 1]
+            nxt = nxt + self.phi_c(x, steer)[..., None] * self.G_c[:, 0]
+        return nxt
 
 
 def _vertex_matrix(V_x: float, r: float, p: VehicleParams) -> FloatArray:
@@ -181,6 +220,11 @@ class ConventionalTSModel:
 
     @classmethod
     def build(cls, params: VehicleParams, bounds: OperatingBounds) -> ConventionalTSModel:
+        if params.rolling_resistance_n != 0.0 or params.cornering_drag:
+            raise BadParameters(
+                "the conventional model of eq. (14) has the paper's longitudinal equation: no rolling resistance "
+                "and no cornering drag"
+            )
         low = np.array([bounds.vx_min_mps, 1.0 / bounds.vx_max_mps, bounds.vy_min_mps])
         high = np.array([bounds.vx_max_mps, 1.0 / bounds.vx_min_mps, bounds.vy_max_mps])
         corners = [np.where(np.array(c) == 1, high, low) for c in itertools.product((0, 1), repeat=3)]
@@ -226,7 +270,7 @@ def _affine_state_matrix(v_x: float, inv_v_x: float, v_y: float, p: VehicleParam
     """I + s A_v(x) with v_x, 1/v_x and v_y treated as independent premises, shape (3, 3)."""
     k = p.symbols()
     s = k["s"]
-    a11 = -k["C_x"] * v_x / k["I_e"]
+    a11 = -k["C_x"] * v_x / k["m_eff"]
     a22 = -2.0 * (k["C_f"] + k["C_r"]) / k["M_v"] * inv_v_x - k["C_y"] * v_y / k["M_v"]
     a23 = 2.0 * (k["C_r"] * k["l_r"] - k["C_f"] * k["l_f"]) / k["M_v"] * inv_v_x - v_x
     a32 = 2.0 * (k["l_r"] * k["C_r"] - k["C_f"] * k["l_f"]) / k["I_z"] * inv_v_x

@@ -26,10 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from synth.augmented import AugmentedModel
-from synth.certificate import Certificate, content_hash, verify
-from synth.errors import VerificationFailed
-from synth.fuzzy import NTSModel
+from synth.augmented import N_FAULTS, N_OUTPUTS, N_STATES, AugmentedModel
+from synth.certificate import Certificate, content_hash, error_term_matrices, verify
+from synth.errors import VerificationFailed, check_shape
+from synth.fuzzy import RULE_CORNERS, NTSModel
 from synth.model import FloatArray
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
@@ -75,8 +75,8 @@ def gains_hash(
     """
     meta = {
         "format": GAINS_FORMAT,
-        "params": params.model_dump(),
-        "bounds": bounds.model_dump(),
+        "params": params.hashed(),
+        "bounds": bounds.hashed(),
         "options": _hashed_options(options),
     }
     arrays = {"N": N, "L": L, "M": M, "E": E}
@@ -171,10 +171,15 @@ class ObserverGains:
         if "matrices" not in data:
             raise VerificationFailed("the gains document has no 'matrices' section")
         mats = {k: np.asarray(v, dtype=float) for k, v in data["matrices"].items()}
+        missing = [name for name in ("N", "L", "M", "E", "P", "R", "T") if name not in mats]
+        if missing:
+            raise VerificationFailed(f"the gains document has no {', '.join(missing)} matrix")
+        options = DesignOptions.model_validate(data["options"])
+        _check_gain_shapes(mats, options.fault_order)
         gains = cls(
             params=VehicleParams.model_validate(data["params"]),
             bounds=OperatingBounds.model_validate(data["bounds"]),
-            options=DesignOptions.model_validate(data["options"]),
+            options=options,
             N=mats["N"],
             L=mats["L"],
             M=mats["M"],
@@ -202,36 +207,60 @@ class ObserverGains:
             gains.reverify()
         return gains
 
-    def design_frame(self) -> tuple[FloatArray, FloatArray]:
-        """N_i and the rank-one DMVT term M G_bar rho_row, both in design coordinates."""
+    def error_terms(self) -> list[FloatArray]:
+        """M G_k c_k^T of every DMVT term (synth.augmented.AugmentedModel.dmvt_terms), physical coordinates:
+        the error dynamics are e_{k+1} = (N(h) + sum_k rho_k M G_k c_k^T) e_k (eqs. 27-28)."""
+        return error_term_matrices(self.model.dmvt_terms, self.M)
+
+    def design_frame(self) -> tuple[FloatArray, list[FloatArray]]:
+        """N_i and the DMVT error terms, both in the design coordinates x' = T x_bar of P and R."""
         T, T_inv = self.T, np.linalg.inv(self.T)
         N_design = np.einsum("ab,ibc,cd->iad", T, self.N, T_inv)
-        return N_design, T @ self.MG_row @ T_inv
-
-    @property
-    def MG_row(self) -> FloatArray:
-        """M G_bar e_vy^T, physical coordinates: the error term per unit rho, (n, n)."""
-        aug = self.model
-        row = np.zeros((1, aug.n))
-        row[0, 1] = 1.0
-        return self.M @ aug.G_bar @ row
+        return N_design, [T @ term @ T_inv for term in self.error_terms()]
 
     def reverify(self) -> None:
         """Re-run the numpy verification of the stored design (both sets of a switched one); raise if it fails."""
         if self.quiet is not None:
             self.quiet_gains().reverify()
-        N_design, MG_design = self.design_frame()
         verify(
             self.model.nts,
-            N_design,
-            MG_design,
+            self.model.dmvt_terms,
             self.P,
             self.R,
-            self.model.rho_vertices(),
             self.certificate.requested_decay_rate,
             self.N,
-            self.MG_row,
+            self.M,
+            self.T,
         )
+
+
+def _check_gain_shapes(mats: dict[str, FloatArray], fault_order: int) -> None:
+    """Every matrix of a gains document has the shape its design needs; the first that has not is named."""
+    n = N_STATES + N_FAULTS * fault_order
+    r = len(RULE_CORNERS)
+    expected = {
+        "N": (r, n, n),
+        "L": (r, n, N_OUTPUTS),
+        "M": (n, n),
+        "E": (n, N_OUTPUTS),
+        "R": (n, n),
+        "T": (n, n),
+        "K": (n, N_OUTPUTS),
+        "N_quiet": (r, n, n),
+        "L_quiet": (r, n, N_OUTPUTS),
+        "K_quiet": (n, N_OUTPUTS),
+    }
+    for name, shape in expected.items():
+        if name in mats:
+            check_shape(mats[name], shape, name, VerificationFailed)
+    P = mats["P"]
+    if P.ndim != 3 or P.shape[0] not in (1, r) or P.shape[1:] != (n, n):
+        raise VerificationFailed(
+            f"Incompatible dimensions of P matrix; expected (1, {n}, {n}) or ({r}, {n}, {n}) but found {P.shape}"
+        )
+    for name, value in mats.items():
+        if not np.all(np.isfinite(value)):
+            raise VerificationFailed(f"the {name} matrix of the gains document has non-finite entries")
 
 
 def _quiet_from(mats: dict[str, FloatArray]) -> GainSet | None:

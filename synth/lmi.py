@@ -10,44 +10,52 @@ j and DMVT vertex rho:
     [[alpha^2 P_i,                   *        ],
      [Psi A(i, rho) - X_i C_bar,  R + R^T - P_j]]  >  0,           (33)
 
-    A(i, rho) = A_bar_i + G_bar rho_row(rho).                      (34)
+    A(i, rho) = A_bar_i + sum_k rho_k G_k c_k^T.                   (34)
+
+The paper has one DMVT scalar, rho = d(v_y^2)/dv_y with G_k = G_bar and
+c_k = e_vy; the cornering drag adds two (synth.augmented.AugmentedModel.dmvt_terms).
 
 Pre- and post-multiplying by [I, -N^T] gives N^T P_j N < alpha^2 P_i (eq. 30).
 
 Two equivalent forms are offered:
 
-* ``vertex``: the paper's 4 x 4 x 2 = 32 LMIs of size 2n.
-* ``petersen``: the LMI is affine in the scalar rho and rho enters through the
-  rank-one term Psi G_bar rho_row, so by Petersen's lemma (lossless for one
-  scalar uncertainty) the two rho-vertices of each (i, j) collapse into one LMI
-  of size 2n + 1 with a multiplier lambda_ij > 0:
+* ``vertex``: the paper's 4 x 4 x 2 = 32 LMIs of size 2n (2^K rho vertices
+  per rule pair with K DMVT scalars).
+* ``petersen``: the LMI is affine in each rho_k, which enters through the
+  rank-one term Psi G_k c_k^T, so by Petersen's lemma (lossless for one
+  scalar uncertainty) the rho-vertices of each (i, j) collapse into one LMI
+  of size 2n + K with a multiplier lambda_k,ij > 0 per scalar:
 
-      [[L0_ij - lambda b b^T, a], [a^T, lambda]] > 0,
-      a = [0; rho_rad Psi G_bar],  b = [rho_row^T; 0],
+      [[L0_ij - sum_k lambda_k b_k b_k^T, a_1 .. a_K], [a^T, diag(lambda)]] > 0,
+      a_k = [0; radius_k Psi G_k],  b_k = [c_k; 0],
 
-  where L0_ij is the vertex LMI at the centre of S_rho. 16 LMIs instead of 32:
-  the solver's KKT system is much smaller (docs/benchmarks/synthesis.md).
+  where L0_ij is the vertex LMI at the centre of the rho box. For the paper
+  (K = 1) 16 LMIs instead of 32 and no loss: the solver's KKT system is much
+  smaller (docs/benchmarks/synthesis.md). With K > 1 the form is sufficient,
+  not necessary.
 
 When the yaw-rate bounds are symmetric, either form is posed on the
 mirror-invariant points only (:mod:`synth.symmetry`): half the LMIs, no loss.
 
-Every solution is re-checked in numpy against the 32 vertex LMIs of the
-paper's form, whichever form was solved (:mod:`synth.certificate`).
+Every solution is re-checked in numpy against the vertex LMIs of the
+paper's form (32 for the paper's model), whichever form was solved
+(:mod:`synth.certificate`).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import cvxpy as cp
 import numpy as np
 
-from synth.augmented import VY_INDEX, AugmentedModel, difference_coordinates
-from synth.errors import BadParameters
+from synth.augmented import AugmentedModel, DMVTTerm, difference_coordinates, dmvt_vertices
+from synth.errors import BadParameters, SolverFailed
 from synth.existence import decoupling_matrices
 from synth.model import FloatArray
+from synth.solver import SolveInfo, solve
 from synth.symmetry import MirrorSymmetry, Parametrisation, find_mirror_symmetry
 
 LyapunovKind = Literal["fuzzy", "common"]
@@ -67,21 +75,17 @@ class DesignCoordinates:
     T_inv : (n, n)
     A     : (r, n, n) T A_bar_i T^-1
     C     : (p, n) C_bar T^-1
-    G     : (n, 1) T G_bar
     D     : (n, 1) T D_bar
-    rho_row : (1, n) e_vy^T T^-1: Delta phi = rho * rho_row e'
-    rho_low, rho_high : bounds of rho = d phi / d v_y [m/s]
+    terms : the DMVT terms (synth.augmented.DMVTTerm) with G' = T G and c'^T = c^T T^-1:
+            Delta phi = sum_k rho_k G'_k c'_k^T e'
     """
 
     T: FloatArray
     T_inv: FloatArray
     A: FloatArray
     C: FloatArray
-    G: FloatArray
     D: FloatArray
-    rho_row: FloatArray
-    rho_low: float
-    rho_high: float
+    terms: tuple[DMVTTerm, ...]
 
     @property
     def n(self) -> int:
@@ -91,16 +95,39 @@ class DesignCoordinates:
     def n_rules(self) -> int:
         return int(self.A.shape[0])
 
-    def rho_vertices(self) -> tuple[float, float]:
-        return self.rho_low, self.rho_high
+    def A_at(self, i: int, rho: tuple[float, ...]) -> FloatArray:
+        """A(i, rho) of eq. (34), shape (n, n): A_i + sum_k rho_k G_k c_k^T."""
+        A = self.A[i].copy()
+        for value, term in zip(rho, self.terms, strict=True):
+            A += value * term.matrix()
+        return A
 
-    def A_rho(self, i: int, rho: float) -> FloatArray:
-        """A(i, rho) of eq. (34), shape (n, n)."""
-        return self.A[i] + rho * self.G @ self.rho_row
+    def A_centre(self, i: int) -> FloatArray:
+        """A(i, rho) at the centre of the rho box, shape (n, n)."""
+        return self.A_at(i, tuple(term.centre for term in self.terms))
+
+    def vertices(self) -> list[tuple[float, ...]]:
+        """Every vertex of the rho box (synth.augmented.dmvt_vertices)."""
+        return dmvt_vertices(self.terms)
+
+    def petersen_columns(self, left: cp.Expression | FloatArray) -> tuple[list[cp.Expression], list[FloatArray]]:
+        """(a_k, b_k) of the Petersen form for ``left`` (the R or Psi that multiplies A(i, rho) in the LMI).
+
+        The rho_k part of the LMI's lower-left block is rho_k left G_k c_k^T about the centre; for
+        t_k in [-1, 1] it is t_k (a_k b_k^T + b_k a_k^T) with a_k = [0; radius_k left G_k] and
+        b_k = [c_k^T; 0] (top block n rows, lower block n rows).
+        """
+        n = self.n
+        zeros = np.zeros((n, 1))
+        a = [cp.vstack([zeros, term.radius * (left @ term.G)]) for term in self.terms]
+        b = [np.vstack([term.row.T, zeros]) for term in self.terms]
+        return a, b
 
     def mirror_symmetry(self) -> MirrorSymmetry | None:
         """The left-right mirror of the data in these coordinates, if they have it (synth.symmetry)."""
-        return find_mirror_symmetry(self.T, self.T_inv, self.A, self.C, self.G @ self.rho_row)
+        return find_mirror_symmetry(
+            self.T, self.T_inv, self.A, self.C, [(term.matrix(), term.centre) for term in self.terms]
+        )
 
 
 def design_coordinates(
@@ -128,19 +155,13 @@ def design_coordinates(
             raise BadParameters(f"state_scales must be {n} positive finite numbers, got {state_scales!r}")
     T = np.diag(1.0 / scale) @ basis
     T_inv = np.linalg.inv(T)
-    e_vy = np.zeros((1, n))
-    e_vy[0, VY_INDEX] = 1.0
-    rho_low, rho_high = aug.rho_vertices()
     return DesignCoordinates(
         T=T,
         T_inv=T_inv,
         A=np.einsum("ab,ibc,cd->iad", T, aug.A_bar, T_inv),
         C=aug.C_bar @ T_inv,
-        G=T @ aug.G_bar,
         D=T @ aug.D_bar,
-        rho_row=e_vy @ T_inv,
-        rho_low=float(rho_low),
-        rho_high=float(rho_high),
+        terms=tuple(term.transformed(T, T_inv) for term in aug.dmvt_terms),
     )
 
 
@@ -156,11 +177,8 @@ class LMISolution:
     E: FloatArray
     H: FloatArray
     alpha: float
-    solver: str
-    status: str
-    iterations: int | None
-    solve_time_s: float
-    extra: dict[str, float] = field(default_factory=dict)
+    #: what the solver reported for this point
+    info: SolveInfo
 
 
 def gains_from_solution(
@@ -235,78 +253,67 @@ class Theorem2LMIs:
             constraints += [self.P[k] >> margin * eye_n]
         constraints.append(sum(cp.trace(P_i) for P_i in self.P) <= n * n_P)
         self.multipliers: list[cp.Variable] = []
-        rho_lo, rho_hi = dc.rho_vertices()
         for i, j in var.pairs(r, n_P):
             P_i = self.P[i if lyapunov == "fuzzy" else 0]
             P_j = self.P[j]
             if form == "vertex":
-                for rho in (rho_lo, rho_hi):
-                    Q = Psi @ dc.A_rho(i, rho) - self.X[i] @ dc.C
+                for rho in dc.vertices():
+                    Q = Psi @ dc.A_at(i, rho) - self.X[i] @ dc.C
                     block = cp.bmat([[self.alpha_sq * P_i, Q.T], [Q, sym_R - P_j]])
                     constraints.append(_sym(block) >> margin * np.eye(2 * n))
             else:
-                rho_mid, rho_rad = 0.5 * (rho_lo + rho_hi), 0.5 * (rho_hi - rho_lo)
-                Q0 = Psi @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
+                Q0 = Psi @ dc.A_centre(i) - self.X[i] @ dc.C
                 L0 = cp.bmat([[self.alpha_sq * P_i, Q0.T], [Q0, sym_R - P_j]])
-                b = np.vstack([dc.rho_row.T, np.zeros((n, 1))])
-                a = cp.vstack([np.zeros((n, 1)), rho_rad * (Psi @ dc.G)])
-                block, lam = petersen_block(L0, a, b, f"lambda_{i + 1}{j + 1}")
-                self.multipliers.append(lam)
-                constraints.append(block >> margin * np.eye(2 * n + 1))
+                a, b = dc.petersen_columns(Psi)
+                block, lams = petersen_block(L0, a, b, f"lambda_{i + 1}{j + 1}")
+                self.multipliers.extend(lams)
+                constraints.append(block >> margin * np.eye(2 * n + len(a)))
         self.n_lmis = len(constraints) - len(distinct_P) - 1
         started = time.perf_counter()
         self.problem = cp.Problem(cp.Minimize(0), constraints)
         self.build_time_s = time.perf_counter() - started
 
-    def solve(self, alpha: float, solver: str, time_limit_s: float = 60.0) -> LMISolution | str:
-        """Solve at decay rate ``alpha``: the solution, or why the solver gave none."""
+    def solve(self, alpha: float, solver: str, time_limit_s: float = 60.0) -> LMISolution:
+        """Solve at decay rate ``alpha``; raise :class:`SolverFailed` saying why there is no point."""
         self.alpha_sq.value = alpha**2
-        options = {**_SOLVER_OPTIONS.get(solver, {}), _TIME_LIMIT_OPTION[solver]: time_limit_s}
-        started = time.perf_counter()
-        try:
-            self.problem.solve(solver=solver, **options)
-        except cp.error.SolverError as exc:
-            return f"{solver} stopped without a solution ({str(exc).split('.')[0]})"
-        elapsed = time.perf_counter() - started
-        status = str(self.problem.status)
-        if status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or self.R.value is None:
-            return f"{solver} status {status}"
+        info = solve(self.problem, solver, time_limit_s)
+        if self.R.value is None:
+            raise SolverFailed(f"{solver} returned no value for the slack matrix R (status {info.status})")
         R = np.asarray(self.R.value)
         try:
             R_inv_RE = np.linalg.solve(R, np.asarray(self.RE.value))
             H = np.stack([np.linalg.solve(R, np.asarray(X_i.value)) for X_i in self.X])
-        except np.linalg.LinAlgError:
-            return f"{solver} returned a singular slack matrix R"
+        except np.linalg.LinAlgError as exc:
+            raise SolverFailed(f"{solver} returned a singular slack matrix R") from exc
         # decoupled: E = R^-1 (R U + Z V) = U + Y V with Y = R^-1 Z (eqs. 37, 41)
-        E = R_inv_RE
-        stats = self.problem.solver_stats
         return LMISolution(
             P=np.stack([np.asarray(P_i.value) for P_i in self.P]),
             R=R,
-            E=E,
+            E=R_inv_RE,
             H=H,
             alpha=alpha,
-            solver=solver,
-            status=status,
-            iterations=stats.num_iters if stats is not None else None,
-            solve_time_s=elapsed,
-            extra={
-                "compile_s": float(self.problem.compilation_time or 0.0),
-                "solver_s": float(stats.solve_time or 0.0) if stats is not None else float("nan"),
-            },
+            info=info,
         )
 
 
-def petersen_block(L0: cp.Expression, a: cp.Expression, b: FloatArray, name: str) -> tuple[cp.Expression, cp.Variable]:
-    """[[L0 - lambda b b^T, a], [a^T, lambda]] (symmetrised) and its multiplier lambda.
+def petersen_block(
+    L0: cp.Expression, a: list[cp.Expression], b: list[FloatArray], name: str
+) -> tuple[cp.Expression, list[cp.Variable]]:
+    """[[L0 - sum_k lambda_k b_k b_k^T, a_1 .. a_K], [a_k^T, diag(lambda)]] (symmetrised) and the lambda_k.
 
-    Petersen's lemma: this is positive definite for some lambda > 0 exactly when
-    L0 + t (a b^T + b a^T) > 0 for every t in [-1, 1], i.e. the LMI at both ends of
-    the scalar uncertainty that a b^T carries (here rho about the centre of S_rho).
+    Petersen's lemma: for one term (K = 1) this is positive definite for some lambda > 0 exactly when
+    L0 + t (a b^T + b a^T) > 0 for every t in [-1, 1], i.e. the LMI at both ends of the scalar
+    uncertainty that a b^T carries (rho about the centre of its interval). For several independent
+    scalars t_k in [-1, 1] the same block with one multiplier each is sufficient (completing the square
+    term by term), not necessary; the numpy verification checks every vertex regardless.
     """
-    lam = cp.Variable(name=name)
-    block = cp.bmat([[L0 - lam * (b @ b.T), a], [a.T, cp.reshape(lam, (1, 1), order="C")]])
-    return _sym(block), lam
+    lams = [cp.Variable(name=f"{name}_{k + 1}" if len(a) > 1 else name) for k in range(len(a))]
+    top_left = L0
+    for lam, b_k in zip(lams, b, strict=True):
+        top_left = top_left - lam * (b_k @ b_k.T)
+    diag = cp.diag(cp.hstack(lams)) if len(lams) > 1 else cp.reshape(lams[0], (1, 1), order="C")
+    block = cp.bmat([[top_left, cp.hstack(a)], [cp.hstack(a).T, diag]])
+    return _sym(block), lams
 
 
 def _sym(block: cp.Expression) -> cp.Expression:
@@ -319,15 +326,6 @@ def _decoupling_in(dc: DesignCoordinates) -> tuple[FloatArray, FloatArray]:
     CD_pinv = np.linalg.pinv(CD)
     return -dc.D @ CD_pinv, np.eye(CD.shape[0]) - CD @ CD_pinv
 
-
-#: Solver settings: Clarabel on one thread with chordal decomposition (fastest
-#: here), SCS at a tight tolerance as the fallback (its default tolerance
-#: returned unstable "optimal" gains, NOTES.md finding 3).
-_SOLVER_OPTIONS: dict[str, dict[str, object]] = {
-    "CLARABEL": {"max_threads": 1},
-    "SCS": {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iters": 200_000},
-}
-_TIME_LIMIT_OPTION = {"CLARABEL": "time_limit", "SCS": "time_limit_secs"}
 
 __all__ = [
     "DEFAULT_TORQUE_FAULT_SCALE",

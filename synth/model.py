@@ -4,6 +4,16 @@ State x = [v_x, v_y, r] ([m/s], [m/s], [rad/s]); demanded input
 u_d = [T_d, delta_d] ([N m], [rad]); disturbance w = F_w (lateral wind force
 [N]); actuator faults f = [T_f, delta_f] ([N m], [rad]); output y = [v_x, r].
 
+T_d is the total drive torque at the driven wheels (braking negative), a force
+T_d / R_w at the road; delta_d the front road-wheel angle (+ = left). The
+longitudinal equation of eq. (1), read physically, with the two terms a real
+vehicle adds (both off in the paper's profile):
+
+    dv_x/dt = (T / R_w - C_x v_x^2 - F_r - F_yf sin(delta)) / m_eff + v_y r
+
+F_r is the rolling resistance and -F_yf sin(delta) the front lateral force
+projected on the vehicle's x axis (cornering drag, ``cornering_drag``).
+
 All functions broadcast over leading axes, so one call serves one vehicle or a
 fleet: ``x`` of shape (..., 3), ``u`` of shape (..., 2), ``w`` of shape (...),
 ``f`` of shape (..., 2).
@@ -45,7 +55,8 @@ class ContinuousMatrices:
 def continuous_matrices(p: VehicleParams) -> ContinuousMatrices:
     """B_v, D_v and F_v of eqs. (3) and (6)."""
     k = p.symbols()
-    b11 = 1.0 / k["I_e"]
+    # the drive torque at the wheels is a force T / R_w on the effective mass
+    b11 = 1.0 / (k["R_w"] * k["m_eff"])
     b22 = 2.0 * k["C_f"] / k["M_v"]
     b32 = 2.0 * k["l_f"] * k["C_f"] / k["I_z"]
     B_v = np.array([[b11, 0.0], [0.0, b22], [0.0, b32]])
@@ -66,6 +77,22 @@ def tire_forces(x: ArrayLike, steer_rad: ArrayLike, p: VehicleParams) -> tuple[F
     F_yf = 2.0 * k["C_f"] * (np.asarray(steer_rad, dtype=float) - (v_y + k["l_f"] * r) / v_x)
     F_yr = 2.0 * k["C_r"] * (k["l_r"] * r - v_y) / v_x
     return F_yf, F_yr
+
+
+def longitudinal_resistance_n(x: ArrayLike, steer_rad: ArrayLike, p: VehicleParams) -> FloatArray:
+    """The forces against the motion that eq. (1) leaves out: F_r + F_yf sin(delta) [N], shape (...).
+
+    x : (..., 3) state; steer_rad : (...) applied front road-wheel angle delta [rad]. F_r is the rolling
+    resistance, F_yf sin(delta) the front lateral force of eq. (2) projected on the vehicle's x axis
+    (only with ``cornering_drag``). Zero in the paper's profile.
+    """
+    x = np.asarray(x, dtype=float)
+    steer_rad = np.asarray(steer_rad, dtype=float)
+    resistance = np.full(np.broadcast_shapes(x.shape[:-1], steer_rad.shape), p.rolling_resistance_n)
+    if p.cornering_drag:
+        F_yf, _ = tire_forces(x, steer_rad, p)
+        resistance = resistance + F_yf * np.sin(steer_rad)
+    return resistance
 
 
 def continuous_dynamics(
@@ -90,19 +117,21 @@ def continuous_dynamics(
     steer = u_d[..., 1] + k["b_delta"] * f[..., 1]
     v_x, v_y, r = x[..., 0], x[..., 1], x[..., 2]
     F_yf, F_yr = tire_forces(x, steer, p)
-    # eq. (1)
-    dv_x = (torque - k["C_x"] * v_x**2) / k["I_e"] + v_y * r
+    # eq. (1), physical: dv_x/dt = (T / R_w - C_x v_x^2 - F_r - F_yf sin(delta)) / m_eff + v_y r
+    drive_force = torque / k["R_w"] - k["C_x"] * v_x**2 - longitudinal_resistance_n(x, steer, p)
+    dv_x = drive_force / k["m_eff"] + v_y * r
     dv_y = (F_yf + F_yr - k["C_y"] * v_y**2) / k["M_v"] - v_x * r
     dr = (k["l_f"] * F_yf - k["l_r"] * F_yr) / k["I_z"] + np.asarray(w, dtype=float) / k["I_z"]
     return np.stack([dv_x, dv_y, dr], axis=-1)
 
 
 def state_matrix(x: ArrayLike, p: VehicleParams) -> FloatArray:
-    """A_v(x) of eq. (3), shape (..., 3, 3), such that dx/dt = A_v(x) x + B_v u + D_v w + F_v f."""
+    """A_v(x) of eq. (3), shape (..., 3, 3), such that
+    dx/dt = A_v(x) x + B_v u + D_v w + F_v f - e_1 longitudinal_resistance_n(x, delta) / m_eff."""
     x = np.asarray(x, dtype=float)
     k = p.symbols()
     v_x, v_y = x[..., 0], x[..., 1]
-    a11 = -k["C_x"] * v_x / k["I_e"]
+    a11 = -k["C_x"] * v_x / k["m_eff"]
     a22 = -2.0 * (k["C_f"] + k["C_r"]) / (k["M_v"] * v_x) - k["C_y"] * v_y / k["M_v"]
     a23 = 2.0 * (k["C_r"] * k["l_r"] - k["C_f"] * k["l_f"]) / (k["M_v"] * v_x) - v_x
     a32 = 2.0 * (k["l_r"] * k["C_r"] - k["C_f"] * k["l_f"]) / (k["I_z"] * v_x)

@@ -20,6 +20,9 @@ the letter of Algorithm 1, each keeping the certificate meaningful:
   with rho_eff = (v_y + sat(v_y_hat)) * (v_y - sat(v_y_hat)) / (v_y - v_y_hat)
   in the convex hull S_rho (the saturation is 1-Lipschitz and moves towards
   v_y), so the DMVT bound of eq. (26) holds even when the estimate strays.
+  The cornering drag phi_c (synth.fuzzy) is evaluated the same way, at the
+  saturated v_y_hat and the applied steering angle delta_d + b_delta delta_f_hat
+  saturated to its bound.
 
 A switched design (``DesignOptions.switching``) has a fast and a quiet gain
 set under one Lyapunov function; :func:`switched_step` picks one per vehicle
@@ -39,26 +42,35 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from synth.augmented import VY_INDEX
-from synth.errors import BadParameters
+from synth.augmented import N_STATES, VY_INDEX, front_force_bound_n
+from synth.errors import BadParameters, check_shape
 from synth.fuzzy import RULE_CORNERS
 from synth.gains import ObserverGains
 from synth.model import FloatArray
 
+#: Index of the steering fault delta_f (at sample k) in the augmented state.
+STEER_FAULT_INDEX = N_STATES + 1
 #: The measured nonlinear consequent g(xi) of eq. (15) is linear in these monomials of (v_x, r).
 G_FEATURES = ("v_x^2", "r/v_x", "v_x r")
 
 
 def g_feature_matrix(gains: ObserverGains) -> FloatArray:
-    """(3, 3) matrix K with g(v_x, r) = K @ [v_x^2, r / v_x, v_x r] (eq. 15, corrected)."""
+    """(3, 3) matrix K with g(v_x, r) = K @ [v_x^2, r / v_x, v_x r] + g_0 (eq. 15, corrected; g_0 of
+    :func:`g_constant`)."""
     k = gains.params.symbols()
     s = k["s"]
     K = np.zeros((3, 3))
-    K[0, 0] = -s * k["C_x"] / k["I_e"]  # g_1 = -s C_x v_x^2 / I_e
+    K[0, 0] = -s * k["C_x"] / k["m_eff"]  # g_1 = -s (C_x v_x^2 + F_r) / m_eff, v_x^2 part
     K[1, 1] = s * 2.0 * (k["C_r"] * k["l_r"] - k["C_f"] * k["l_f"]) / k["M_v"]  # g_2, r/v_x part
     K[1, 2] = -s  # g_2, -s v_x r part
     K[2, 1] = -s * 2.0 * (k["C_f"] * k["l_f"] ** 2 + k["C_r"] * k["l_r"] ** 2) / k["I_z"]  # g_3
     return K
+
+
+def g_constant(gains: ObserverGains) -> FloatArray:
+    """(3,) the constant part of g: the rolling resistance, g_0 = [-s F_r / m_eff, 0, 0]."""
+    k = gains.params.symbols()
+    return np.array([-k["s"] * k["F_r"] / k["m_eff"], 0.0, 0.0])
 
 
 @dataclass(frozen=True)
@@ -74,8 +86,8 @@ class RuntimeGains:
 
     With x = [y; z] per vehicle and Q_i = [L_i, N_i]^T:
 
-    Phi = [x; V_x x'; r x'; V_x r x'; v_x^2; r/v_x; v_x r; u; phi]             (n + 2 + 3 m + 6, nv)
-    W   = [Q_0; Q_V'; Q_r'; Q_Vr'; (M T1 K)^T; (M T1 B)^T; (M G_bar)^T]
+    Phi = [x; V_x x'; r x'; V_x r x'; v_x^2; r/v_x; v_x r; u; phi; (1); (phi_c)]  (n + 2 + 3 m + 6 [+ 2], nv)
+    W   = [Q_0; Q_V'; Q_r'; Q_Vr'; (M T1 K)^T; (M T1 B)^T; (M G_bar)^T; (M T1 g_0)^T; (M G_c_bar)^T]
 
     so the whole of Algorithm 1, line 9, is a few broadcast products and one GEMM. x' = x[:m] is
     the part of x the premise acts on: the rows of Q_V, Q_r and Q_Vr below m are zero in every gain
@@ -86,6 +98,10 @@ class RuntimeGains:
     for a switched design, also the innovation (y - C_bar x_hat), scaled so that its squared norm
     is the switching statistic's increment. Folding them into W would multiply their zero columns
     against the other rows of Phi.
+
+    The last two rows exist only for the profiles that need them: a constant 1 for the rolling
+    resistance, and the cornering drag phi_c = F_yf sin(delta) evaluated at the estimates
+    (synth.fuzzy.NTSModel.phi_c), so the paper's profile keeps the paper's step and its cost.
     """
 
     gains: ObserverGains
@@ -120,6 +136,21 @@ class RuntimeGains:
     switch_forgetting: float = 0.0
     hold_samples: int = 0
     start_samples: int = 0
+    #: rows of Phi after phi: 1 with a rolling resistance, phi_c with the cornering drag
+    rolling: bool = False
+    cornering: bool = False
+    #: the cornering drag's constants: 2 C_f [N/rad], l_f [m], b_delta, the bound of |delta| [rad]
+    two_C_f: float = 0.0
+    l_f: float = 0.0
+    b_delta: float = 1.0
+    steer_max: float = np.inf
+    #: the bound of |F_yf| the estimate is saturated to [N] (synth.augmented.front_force_bound_n)
+    front_force_max: float = np.inf
+
+    @property
+    def n_features(self) -> int:
+        """Rows of Phi: [x; V_x x'; r x'; V_x r x'; v_x^2; r/v_x; v_x r; u; phi; (1); (phi_c)]."""
+        return self.n + 2 + 3 * self.m + 6 + int(self.rolling) + int(self.cornering)
 
     @classmethod
     def from_gains(cls, gains: ObserverGains) -> RuntimeGains:
@@ -144,7 +175,11 @@ class RuntimeGains:
         for W, _ in stacked:
             used |= np.any(W[n2 : 4 * n2].reshape(3, n2, n) != 0.0, axis=(0, 2))
         m = int(np.flatnonzero(used)[-1]) + 1 if used.any() else 0
-        keep = np.r_[np.arange(n2), *(np.arange(m) + n2 * (1 + b) for b in range(3)), np.arange(4 * n2, 4 * n2 + 6)]
+        rolling, cornering = gains.params.rolling_resistance_n != 0.0, aug.nts.has_cornering_drag
+        n_tail = 6 + int(rolling) + int(cornering)
+        keep = np.r_[
+            np.arange(n2), *(np.arange(m) + n2 * (1 + b) for b in range(3)), np.arange(4 * n2, 4 * n2 + n_tail)
+        ]
         (WT, XT), *rest = [(np.ascontiguousarray(W[keep].T), X) for W, X in stacked]
         vy_low, vy_high = aug.nts.bounds.lateral_speed_bounds
         one_set = cls(
@@ -163,6 +198,13 @@ class RuntimeGains:
             vy_high=vy_high,
             measured_low=np.array([[1.0 / aug.nts.premise_high[0]], [aug.nts.premise_low[1]]]),
             measured_high=np.array([[1.0 / aug.nts.premise_low[0]], [aug.nts.premise_high[1]]]),
+            rolling=rolling,
+            cornering=cornering,
+            two_C_f=2.0 * gains.params.front_cornering_stiffness_npr,
+            l_f=gains.params.front_axle_distance_m,
+            b_delta=gains.params.steer_fault_gain,
+            steer_max=aug.nts.bounds.steer_max_rad,
+            front_force_max=front_force_bound_n(aug.nts) if cornering else np.inf,
         )
         if not rest or rule is None:
             return one_set
@@ -210,7 +252,12 @@ def _stacked_gains(
         b_1 * dQ_b + a_0 * b_1 * dQ_ab,
         a_1 * b_1 * dQ_ab,
     ]
-    W = np.vstack([*bilinear, (MT1 @ g_feature_matrix(gains)).T, (MT1 @ aug.nts.B).T, (gains.M @ aug.G_bar).T])
+    extra = []
+    if gains.params.rolling_resistance_n != 0.0:
+        extra.append((MT1 @ g_constant(gains))[None, :])
+    if aug.nts.has_cornering_drag:
+        extra.append((gains.M @ aug.G_c_bar).T)
+    W = np.vstack([*bilinear, (MT1 @ g_feature_matrix(gains)).T, (MT1 @ aug.nts.B).T, (gains.M @ aug.G_bar).T, *extra])
     # maps of x = [y; z], one row each
     rows: list[FloatArray] = [np.zeros((0, n + 2))]
     K = gains.output_gain
@@ -232,7 +279,8 @@ class StepResult:
 
     x_hat : (nv, n) reported estimate of x_bar_k: [v_x, v_y, r, T_f, delta_f, ...] (with the output gain)
     in_domain : (nv,) the measured premise lay in the design box
-    vy_in_bounds : (nv,) the estimated v_y lay in [v_y,min, v_y,max]
+    vy_in_bounds : (nv,) the estimated v_y lay in [v_y,min, v_y,max] (and, with the cornering drag, the
+        estimated applied steering angle delta_d + b_delta delta_f_hat in [-delta_max, delta_max])
     fast : (nv,) for a switched design, the fast gain set produced this step
     """
 
@@ -297,15 +345,18 @@ def observer_step(
     transposes free.
     """
     y = np.asarray(y, dtype=float)
+    u = np.asarray(u, dtype=float)
     nv = y.shape[0]
+    if y.shape != (nv, 2) or u.shape != (nv, 2) or z.shape != (nv, rt.n):
+        _check_batch(rt, z, y, u)
     n, n2, m = rt.n, rt.n + 2, rt.m
-    tail = n2 + 3 * m  # first row after the rule blend: [v_x^2, r/v_x, v_x r, u, phi]
-    Phi = np.empty((tail + 6, nv))
+    tail = n2 + 3 * m  # first row after the rule blend: [v_x^2, r/v_x, v_x r, u, phi, (1), (phi_c)]
+    Phi = np.empty((rt.n_features, nv))
     x = Phi[:n2]  # the constant block [y; z]: filled first, every loop at unit stride
     x[:2] = y.T
     x[2:] = z.T
     yT = x[:2]
-    Phi[tail + 3 : tail + 5] = np.asarray(u, dtype=float).T
+    Phi[tail + 3 : tail + 5] = u.T
     # line 8: x_hat_k = z_k - E y_k
     vy_hat = x[2 + VY_INDEX] if rt.E_is_zero else z[:, VY_INDEX] - y @ rt.E[VY_INDEX]
     # premise xi = [1/v_x, r], clipped to the design box, flagged when the clip moved it. Ufuncs, not
@@ -324,6 +375,10 @@ def observer_step(
     np.multiply(v_x, clipped, out=Phi[tail : tail + 3 : 2])  # v_x^2 and v_x r
     vy_sat = np.minimum(np.maximum(vy_hat, rt.vy_low, out=Phi[tail + 5]), rt.vy_high, out=Phi[tail + 5])
     vy_in_bounds = vy_sat == vy_hat
+    if rt.rolling:
+        Phi[tail + 6] = 1.0
+    if rt.cornering:
+        vy_in_bounds &= _cornering_drag(rt, Phi[-1], x, z, y, Phi[tail + 4], vy_sat, r, V_x)
     np.multiply(vy_sat, vy_sat, out=vy_sat)
     k = rt.K_rows.size
     WT_quiet, WT_pair, XT_quiet, XT_pair = rt.WT_quiet, rt.WT_pair, rt.XT_quiet, rt.XT_pair
@@ -352,6 +407,46 @@ def observer_step(
     return z_next, StepResult(
         x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds, fast=mask, innovation=innovation
     )
+
+
+def _check_batch(rt: RuntimeGains, z: FloatArray, y: FloatArray, u: FloatArray) -> None:
+    """Raise :class:`~synth.errors.ShapeError` naming the first of y, u, z whose shape does not fit the batch."""
+    nv = y.shape[0] if y.ndim else 0
+    check_shape(y, (nv, 2), "y")
+    check_shape(u, (nv, 2), "u")
+    check_shape(z, (nv, rt.n), "z")
+
+
+def _cornering_drag(
+    rt: RuntimeGains,
+    out: FloatArray,
+    x: FloatArray,
+    z: FloatArray,
+    y: FloatArray,
+    steer_demand: FloatArray,
+    vy_sat: FloatArray,
+    r: FloatArray,
+    V_x: FloatArray,
+) -> np.ndarray:
+    """phi_c = F_yf sin(delta) at the estimates, written to ``out`` (nv,); returns where delta was in bounds.
+
+    delta = sat(delta_d + b_delta delta_f_hat) to [-delta_max, delta_max], v_y = sat(v_y_hat), and
+    F_yf = sat(2 C_f (delta - (v_y + l_f r) V_x)) to [-F_max, F_max], with the clipped premise (V_x, r):
+    with the true values in their bounds, each saturation is 1-Lipschitz and moves towards them, so the
+    DMVT bounds of synth.augmented hold as they do for phi = v_y^2.
+    """
+    row = STEER_FAULT_INDEX
+    delta_f_hat = x[2 + row] if rt.E_is_zero else z[:, row] - y @ rt.E[row]
+    delta = steer_demand + rt.b_delta * delta_f_hat
+    in_bounds = np.abs(delta) <= rt.steer_max
+    np.minimum(np.maximum(delta, -rt.steer_max, out=delta), rt.steer_max, out=delta)
+    # F_yf = 2 C_f (delta - (v_y + l_f r) V_x)
+    F_yf = delta - (vy_sat + rt.l_f * r) * V_x
+    F_yf *= rt.two_C_f
+    np.minimum(np.maximum(F_yf, -rt.front_force_max, out=F_yf), rt.front_force_max, out=F_yf)
+    # phi_c = F_yf sin(delta)
+    np.multiply(F_yf, np.sin(delta), out=out)
+    return in_bounds
 
 
 _MASKS = {False: np.zeros(0, dtype=bool), True: np.ones(0, dtype=bool)}

@@ -67,16 +67,16 @@ import numpy as np
 import scipy.linalg
 
 from synth.augmented import N_FAULTS, N_STATES, AugmentedModel
-from synth.certificate import Certificate, VerificationReport, verify
-from synth.design import _solver_version
-from synth.errors import BadParameters, SolverFailed, VerificationFailed
+from synth.certificate import build_certificate, merged, verify
+from synth.errors import BadParameters, SolverFailed, SynthesisError, VerificationFailed
 from synth.existence import check_detectability
 from synth.fuzzy import NTSModel
 from synth.gains import GainSet, ObserverGains, gains_hash
-from synth.lmi import _SOLVER_OPTIONS, _TIME_LIMIT_OPTION, DesignCoordinates, design_coordinates, petersen_block
+from synth.lmi import DesignCoordinates, design_coordinates, petersen_block
 from synth.model import FloatArray
 from synth.options import DesignOptions, NoiseModel
 from synth.params import OperatingBounds, VehicleParams
+from synth.solver import SolveInfo, solve
 from synth.symmetry import Parametrisation, columns_sign
 
 
@@ -197,9 +197,11 @@ class H2LMIs:
         C_1 = C_z - self.K_s @ Sigma_v_inv @ dc.C
         D_1 = cp.hstack([np.zeros((n_z, m_fixed)), -self.K_s])
         sym_R = self.R + self.R.T
-        rho_lo, rho_hi = dc.rho_vertices()
-        rho_mid, rho_rad = 0.5 * (rho_lo + rho_hi), 0.5 * (rho_hi - rho_lo)
-        b = np.vstack([dc.rho_row.T, np.zeros((n + n_z, 1))])
+        # Petersen columns of the rho terms, R G_k in the lower block; the cost LMIs have n_z more rows
+        a_decay, b_decay = dc.petersen_columns(self.R)
+        a_cost = [cp.vstack([a_k, np.zeros((n_z, 1))]) for a_k in a_decay]
+        b_cost = [np.vstack([b_k, np.zeros((n_z, 1))]) for b_k in b_decay]
+        n_terms = len(a_decay)
         zeros_nz = np.zeros((n, n_z))
         eye_z = np.eye(n_z)
         distinct_P = var.representatives(n_P) if n_P > 1 else [0]
@@ -207,24 +209,23 @@ class H2LMIs:
         for i, j in var.pairs(r, n_P):
             P_i = self.P[i if n_P > 1 else 0]
             P_j = self.P[j]
-            Q0 = self.R @ dc.A_rho(i, rho_mid) - self.X[i] @ dc.C
+            Q0 = self.R @ dc.A_centre(i) - self.X[i] @ dc.C
             # 'joint': the cost LMI at rate alpha also certifies the decay rate; 'h2': the cost LMI at
             # rate 1 and a decay LMI (the same without the output row) at alpha
             cost_rate = 1.0 if separate_decay else alpha
             L0 = cp.bmat([[cost_rate**2 * P_i, Q0.T, C_1.T], [Q0, sym_R - P_j, zeros_nz], [C_1, zeros_nz.T, eye_z]])
-            a = cp.vstack([np.zeros((n, 1)), rho_rad * (self.R @ dc.G), np.zeros((n_z, 1))])
-            block, _ = petersen_block(L0, a, b, f"lambda_{i + 1}{j + 1}")
-            constraints.append(block >> margin * np.eye(2 * n + n_z + 1))
+            block, _ = petersen_block(L0, a_cost, b_cost, f"lambda_{i + 1}{j + 1}")
+            constraints.append(block >> margin * np.eye(2 * n + n_z + n_terms))
             if separate_decay:
                 L0 = cp.bmat([[alpha**2 * P_i, Q0.T], [Q0, sym_R - P_j]])
-                block, _ = petersen_block(L0, a[: 2 * n], b[: 2 * n], f"mu_{i + 1}{j + 1}")
-                constraints.append(block >> margin * np.eye(2 * n + 1))
+                block, _ = petersen_block(L0, a_decay, b_decay, f"mu_{i + 1}{j + 1}")
+                constraints.append(block >> margin * np.eye(2 * n + n_terms))
             if fixed_gains is not None:
                 # the fixed (fast) set's decay LMI in the same P(h) and R: a switched observer's certificate
-                Q0 = self.R @ (dc.A_rho(i, rho_mid) - fixed_gains[i] @ dc.C)
+                Q0 = self.R @ (dc.A_centre(i) - fixed_gains[i] @ dc.C)
                 L0 = cp.bmat([[alpha**2 * P_i, Q0.T], [Q0, sym_R - P_j]])
-                block, _ = petersen_block(L0, a[: 2 * n], b[: 2 * n], f"nu_{i + 1}{j + 1}")
-                constraints.append(block >> margin * np.eye(2 * n + 1))
+                block, _ = petersen_block(L0, a_decay, b_decay, f"nu_{i + 1}{j + 1}")
+                constraints.append(block >> margin * np.eye(2 * n + n_terms))
             RB_i = cp.hstack([self.R @ B_fixed, -self.X[i] @ inputs.Sigma_v])
             cost = cp.bmat([[self.Z, RB_i.T, D_1.T], [RB_i, sym_R - P_j, zeros_nz], [D_1, zeros_nz.T, eye_z]])
             constraints.append(0.5 * (cost + cost.T) >> 0)
@@ -237,20 +238,12 @@ class H2LMIs:
         self.C_z = C_z
         self.Sigma_v = inputs.Sigma_v
 
-    def solve(self, solver: str, time_limit_s: float) -> str | None:
-        """Solve; None on success, else why not."""
-        options = {
-            **_SOLVER_OPTIONS.get(solver, {}),
-            **_H2_TOLERANCES.get(solver, {}),
-            _TIME_LIMIT_OPTION[solver]: time_limit_s,
-        }
-        try:
-            self.problem.solve(solver=solver, **options)
-        except cp.error.SolverError as exc:
-            return f"{solver} stopped without a solution ({str(exc).split('.')[0]})"
-        if self.problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or self.R.value is None:
-            return f"{solver} status {self.problem.status}"
-        return None
+    def solve(self, solver: str, time_limit_s: float) -> SolveInfo:
+        """Solve; raise :class:`SolverFailed` saying why there is no point."""
+        info = solve(self.problem, solver, time_limit_s, _H2_TOLERANCES.get(solver))
+        if self.R.value is None:
+            raise SolverFailed(f"{solver} returned no value for the slack matrix R (status {info.status})")
+        return info
 
     def fault_filter_gain(self) -> FloatArray:
         """K_s of the solution, (n_z, p): the weighted fault correction per unit-sigma innovation."""
@@ -284,7 +277,8 @@ def verify_h2_bound(
     n_P = P.shape[0]
     C_1, D_1 = output_matrices(lmis, K_s)
     C1TC1 = C_1.T @ C_1
-    MG = dc.G @ dc.rho_row
+    # E = 0: M = I, so the error terms are G_k c_k^T
+    error_terms = [term.matrix() for term in dc.terms]
     worst_eig = np.inf
     bound = 0.0
     for i in range(r):
@@ -292,8 +286,8 @@ def verify_h2_bound(
         B_i = np.hstack([lmis.B_fixed, -H[i] @ lmis.Sigma_v])
         for j in range(n_P):
             S_j = R + R.T - P[j]
-            for rho in dc.rho_vertices():
-                RN = R @ (N[i] + rho * MG)
+            for rho in dc.vertices():
+                RN = R @ (N[i] + sum(value * term for value, term in zip(rho, error_terms, strict=True)))
                 block = np.block([[lmis.cost_rate**2 * P_i - C1TC1, RN.T], [RN, S_j]])
                 worst_eig = min(worst_eig, float(np.linalg.eigvalsh(0.5 * (block + block.T))[0]))
             RB = R @ B_i
@@ -336,24 +330,28 @@ def synthesize_robust(
     )
     timings["build_s"] = time.perf_counter() - mark
 
-    failures: list[str] = []
+    failures: list[SynthesisError] = []
     for solver in options.solvers:
         mark = time.perf_counter()
-        why = lmis.solve(solver, options.solver_time_limit_s)
-        timings["solve_s"] = time.perf_counter() - mark
-        if why is not None:
-            failures.append(why)
-            continue
-        stats = lmis.problem.solver_stats
-        timings["compile_s"] = float(lmis.problem.compilation_time or 0.0)
-        timings["solver_s"] = float(stats.solve_time or 0.0) if stats is not None else float("nan")
         try:
-            return _verified_gains(params, bounds, options, aug, dc, lmis, solver, timings, started, fast)
-        except (VerificationFailed, np.linalg.LinAlgError) as exc:
-            failures.append(f"{solver} ({lmis.problem.status}): {exc}")
-    if failures and all("numpy" in f or "verification" in f or "fails" in f for f in failures):
-        raise VerificationFailed("every solver returned gains that fail the numpy verification: " + "; ".join(failures))
-    raise SolverFailed(f"no solver found a point of the {lmis.n_lmis} robust-design LMIs: " + "; ".join(failures))
+            info = lmis.solve(solver, options.solver_time_limit_s)
+        except SolverFailed as exc:
+            failures.append(exc)
+            continue
+        finally:
+            timings["solve_s"] = time.perf_counter() - mark
+        timings["compile_s"] = info.compile_s
+        timings["solver_s"] = info.solver_s
+        try:
+            return _verified_gains(params, bounds, options, aug, dc, lmis, info, timings, started, fast)
+        except VerificationFailed as exc:
+            failures.append(VerificationFailed(f"{solver} ({info.status}): {exc}", exc.details))
+        except np.linalg.LinAlgError as exc:
+            failures.append(VerificationFailed(f"{solver} ({info.status}): a singular matrix in the check ({exc})"))
+    reasons = "; ".join(str(f) for f in failures)
+    if failures and all(isinstance(f, VerificationFailed) for f in failures):
+        raise VerificationFailed("every solver returned gains that fail the numpy verification: " + reasons)
+    raise SolverFailed(f"no solver found a point of the {lmis.n_lmis} robust-design LMIs: " + reasons)
 
 
 def _verified_gains(
@@ -363,7 +361,7 @@ def _verified_gains(
     aug: AugmentedModel,
     dc: DesignCoordinates,
     lmis: H2LMIs,
-    solver: str,
+    info: SolveInfo,
     timings: dict[str, float],
     started: float,
     fast: ObserverGains | None = None,
@@ -376,37 +374,25 @@ def _verified_gains(
     # E = 0: M = I, N_i = A_bar_i - H_i C_bar (eq. 43), L_i = H_i (eq. 44)
     N = dc.A - H @ dc.C
     K_s = lmis.fault_filter_gain()
+    n = aug.n
+    M_phys = np.eye(n)
+    N_phys = np.einsum("ab,ibc,cd->iad", dc.T_inv, N, dc.T)
     mark = time.perf_counter()
-    report = verify(
-        aug.nts,
-        N,
-        dc.G @ dc.rho_row,
-        P,
-        R,
-        dc.rho_vertices(),
-        lmis.alpha,
-        np.einsum("ab,ibc,cd->iad", dc.T_inv, N, dc.T),
-        _MG_row_physical(aug),
-    )
+    report = verify(aug.nts, aug.dmvt_terms, P, R, lmis.alpha, N_phys, M_phys, dc.T)
     bound, cost_lmi_min = verify_h2_bound(dc, lmis, N, H, P, R, K_s)
     if cost_lmi_min <= 0:
         raise VerificationFailed(f"a cost-weighted Lyapunov LMI fails in numpy (min eigenvalue {cost_lmi_min:.3e})")
     fast_report = None
     if fast is not None:
-        N_fast = np.einsum("ab,ibc,cd->iad", dc.T, fast.N, dc.T_inv)
-        fast_report = verify(aug.nts, N_fast, dc.G @ dc.rho_row, P, R, dc.rho_vertices(), lmis.alpha, fast.N,
-                             _MG_row_physical(aug))  # fmt: skip
+        fast_report = verify(aug.nts, aug.dmvt_terms, P, R, lmis.alpha, fast.N, M_phys, dc.T)
     timings["verify_s"] = time.perf_counter() - mark
     timings["total_s"] = time.perf_counter() - started
-    n = aug.n
-    N_phys = np.einsum("ab,ibc,cd->iad", dc.T_inv, N, dc.T)
     L_phys = np.einsum("ab,ibc->iac", dc.T_inv, H)
-    M_phys = np.eye(n)
     E_phys = np.zeros((n, 2))
     # the filtered fault output: K_f = W_f^-1 K_s Sigma_v^-1 on the rows of f_k
     K_phys = np.zeros((n, 2))
     fault_scales = np.array([options.noise.torque_fault_scale_nm, options.noise.steer_fault_scale_rad])
-    K_phys[N_STATES : N_STATES + N_FAULTS] = np.diag(fault_scales) @ K_s @ np.diag(1.0 / np.diag(lmis.Sigma_v))
+    K_phys[aug.fault_slice] = np.diag(fault_scales) @ K_s @ np.diag(1.0 / np.diag(lmis.Sigma_v))
     quiet = None
     performance = {
         "h2_cost_bound": bound,
@@ -441,33 +427,17 @@ def _verified_gains(
             "LMIs at the requested rate with the same P(h) and R, so the decay rate holds for any switching "
             "sequence"
         )
-        report = _merged(fast_report, report)
-    stats = lmis.problem.solver_stats
-    certificate = Certificate(
-        design=options.design,
-        fault_order=options.fault_order,
-        lyapunov=options.lyapunov,
+        report = merged(fast_report, report)
+    certificate = build_certificate(
+        options,
+        report,
+        info,
         lmi_form="petersen",
-        decoupled=False,
-        verified=True,
-        decay_rate=report.certified_decay_rate,
-        requested_decay_rate=lmis.alpha,
-        spectral_radius_max=report.spectral_radius_max,
-        spectral_radius_at=report.spectral_radius_at,
-        grid_points=report.grid_points,
+        alpha=lmis.alpha,
         n_lmis_solved=lmis.n_lmis,
-        n_lmis_verified=len(report.lmi_min_eigenvalues),
-        lmi_min_eigenvalue=min(report.lmi_min_eigenvalues),
-        lmi_min_eigenvalues=report.lmi_min_eigenvalues,
-        P_min_eigenvalues=report.P_min_eigenvalues,
-        margin=options.margin,
-        solver=solver,
-        solver_version=_solver_version(solver),
-        solver_status=str(lmis.problem.status),
-        solver_iterations=stats.num_iters if stats is not None else None,
         solves=1,
-        timings_s={k: round(v, 6) for k, v in timings.items()},
-        content_hash=gains_hash(params, bounds, options, N_phys, L_phys, M_phys, E_phys, K_phys, quiet),
+        timings=timings,
+        gains_hash=gains_hash(params, bounds, options, N_phys, L_phys, M_phys, E_phys, K_phys, quiet),
         symmetry="mirror" if lmis.symmetry is not None else "none",
         performance=performance,
         notes=notes,
@@ -487,23 +457,3 @@ def _verified_gains(
         K=K_phys,
         quiet=quiet,
     )
-
-
-def _merged(first: VerificationReport, second: VerificationReport) -> VerificationReport:
-    """One report for two gain sets verified with the same P(h), R: the worse figure of each, both LMI lists."""
-    worse = first if first.spectral_radius_max >= second.spectral_radius_max else second
-    return VerificationReport(
-        lmi_min_eigenvalues=first.lmi_min_eigenvalues + second.lmi_min_eigenvalues,
-        P_min_eigenvalues=first.P_min_eigenvalues,
-        slack_min_eigenvalue=min(first.slack_min_eigenvalue, second.slack_min_eigenvalue),
-        certified_decay_rate=max(first.certified_decay_rate, second.certified_decay_rate),
-        spectral_radius_max=worse.spectral_radius_max,
-        spectral_radius_at=worse.spectral_radius_at,
-        grid_points=first.grid_points + second.grid_points,
-    )
-
-
-def _MG_row_physical(aug: AugmentedModel) -> FloatArray:
-    row = np.zeros((1, aug.n))
-    row[0, 1] = 1.0
-    return aug.G_bar @ row

@@ -5,11 +5,13 @@ flipped. In the augmented model of eq. (18) this is a signature matrix
 S = diag(s), s = +1 on [v_x, T_f chain] and -1 on [v_y, r, delta_f chain],
 with S_y = diag(+1, -1) on y = [v_x, r]:
 
-    S A_bar_i S = A_bar_sigma(i),   S_y C_bar S = C_bar,   S G_bar rho_row S = G_bar rho_row,
+    S A_bar_i S = A_bar_sigma(i),   S_y C_bar S = C_bar,   S G_bar e_vy^T S = G_bar e_vy^T,
 
-where sigma swaps the rules at r_min and r_max. (The DMVT term is invariant
-because G_bar and rho_row = e_vy^T flip sign together, whatever S_rho is.) It
-holds whenever the yaw-rate bounds are symmetric, r_min = -r_max, which is
+where sigma swaps the rules at r_min and r_max. (The paper's DMVT term is
+invariant because G_bar and e_vy^T flip sign together, whatever S_rho is. The
+cornering drag's terms G_c e_vy^T and G_c e_deltaf^T are odd, S G S = -G, and
+their rho intervals are centred on zero, so rho -> -rho maps each onto itself.)
+It holds whenever the yaw-rate bounds are symmetric, r_min = -r_max, which is
 the usual case and the paper's.
 
 If (P_i, R, X_i, W, lambda_ij, Z) is feasible for the LMIs of Theorem 2 (or
@@ -33,6 +35,7 @@ LMI of the full family on the reconstructed matrices.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cvxpy as cp
@@ -79,15 +82,21 @@ def _close(a: FloatArray, b: FloatArray) -> bool:
 
 
 def find_mirror_symmetry(
-    T: FloatArray, T_inv: FloatArray, A: FloatArray, C: FloatArray, G_rho: FloatArray
+    T: FloatArray,
+    T_inv: FloatArray,
+    A: FloatArray,
+    C: FloatArray,
+    dmvt_terms: Sequence[tuple[FloatArray, float]],
 ) -> MirrorSymmetry | None:
     """The mirror symmetry of the design data, or None when the data do not have it.
 
     T, T_inv : (n, n) design coordinates x' = T x_bar; A : (r, n, n) vertex
-    matrices, C : (p, n), G_rho : (n, n) the DMVT term G rho_row, all in design
-    coordinates. None when the signature is not diagonal in these coordinates,
-    when some S A_i S is not another vertex (asymmetric yaw-rate bounds), or
-    when C or the DMVT term is not invariant.
+    matrices, C : (p, n), dmvt_terms : each DMVT term G_k c_k^T (n, n) with the
+    centre of its rho interval, all in design coordinates. None when the
+    signature is not diagonal in these coordinates, when some S A_i S is not
+    another vertex (asymmetric yaw-rate bounds), when C is not invariant, or
+    when a DMVT term is neither invariant nor odd (S G c^T S = -G c^T) with its
+    interval centred on zero (then rho -> -rho maps the interval onto itself).
     """
     n = A.shape[1]
     p = C.shape[0]
@@ -100,8 +109,12 @@ def find_mirror_symmetry(
     sign = np.sign(sign)
     S = np.diag(sign)
     S_y = np.diag([1.0, -1.0])
-    if not _close(S_y @ C @ S, C) or not _close(S @ G_rho @ S, G_rho):
+    if not _close(S_y @ C @ S, C):
         return None
+    for term, centre in dmvt_terms:
+        image = S @ term @ S
+        if not (_close(image, term) or (centre == 0.0 and _close(image, -term))):
+            return None
     rule_map = []
     for i in range(A.shape[0]):
         image = S @ A[i] @ S

@@ -34,7 +34,9 @@ def test_augmented_matrices_of_eq_18(order):
     np.testing.assert_array_equal(aug.A_bar[:, :3, :3], NTS.A)
     np.testing.assert_array_equal(aug.A_bar[:, :3, 3:5], np.broadcast_to(NTS.F, (4, 3, 2)))
     np.testing.assert_array_equal(aug.C_bar @ aug.G_bar, np.zeros((2, 1)))  # phi is not measured
-    assert aug.rho_vertices() == (-3.0, 3.0)
+    (term,) = aug.dmvt_terms  # the paper's model: phi = v_y^2 only
+    assert (term.low, term.high) == (-3.0, 3.0) and term.name == "d(v_y^2)/dv_y"
+    np.testing.assert_array_equal(term.matrix(), aug.G_bar @ aug.unit_row(1))
 
 
 @pytest.mark.parametrize("order", [1, 2, 3])

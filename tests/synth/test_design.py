@@ -1,3 +1,4 @@
+import dataclasses
 import json
 
 import numpy as np
@@ -25,7 +26,7 @@ def test_certificate_summary(paper_gains):
 def test_lyapunov_decrease_holds_on_a_dense_grid(paper_gains):
     """N(h, rho)^T P(h+) N(h, rho) < alpha^2 P(h) for h, h+ on a dense premise grid and rho in S_rho."""
     g = paper_gains
-    N, MG = g.design_frame()
+    N, (MG,) = g.design_frame()
     nts = g.model.nts
     V = np.linspace(nts.premise_low[0], nts.premise_high[0], 15)
     r = np.linspace(nts.premise_low[1], nts.premise_high[1], 15)
@@ -44,7 +45,8 @@ def test_lyapunov_decrease_holds_on_a_dense_grid(paper_gains):
 
 
 def test_spectral_radius_on_a_finer_grid_than_the_certificate(paper_gains):
-    radius, _, points = spectral_radius_grid(paper_gains.model.nts, paper_gains.N, paper_gains.MG_row, (-3, 3), 81, 13)
+    g = paper_gains
+    radius, _, points = spectral_radius_grid(g.model.nts, g.N, g.error_terms(), g.model.dmvt_terms, 81, 13)
     assert points == 81 * 81 * 13
     assert radius < paper_gains.certificate.decay_rate + 1e-9
 
@@ -65,21 +67,10 @@ def test_tampered_gains_are_refused(paper_gains):
 
 def test_verification_rejects_unstable_gains(paper_gains):
     g = paper_gains
-    N, MG = g.design_frame()
-    unstable = N.copy()
+    unstable = g.N.copy()
     unstable[:, 1, 1] += 0.2  # pushes the v_y error pole outside the unit circle at high speed
     with pytest.raises(VerificationFailed):
-        verify(
-            g.model.nts,
-            unstable,
-            MG,
-            g.P,
-            g.R,
-            (-3.0, 3.0),
-            1.0,
-            np.einsum("ab,ibc,cd->iad", np.linalg.inv(g.T), unstable, g.T),
-            g.MG_row,
-        )
+        verify(g.model.nts, g.model.dmvt_terms, g.P, g.R, 1.0, unstable, g.M, g.T)
 
 
 def test_a_solver_point_that_fails_verification_is_an_error_never_gains(monkeypatch):
@@ -88,9 +79,7 @@ def test_a_solver_point_that_fails_verification_is_an_error_never_gains(monkeypa
 
     def corrupted(self, alpha, solver, time_limit_s=60.0):
         solution = original(self, alpha, solver, time_limit_s)
-        if isinstance(solution, str):
-            return solution
-        return type(solution)(**{**solution.__dict__, "H": solution.H * 0.0})
+        return dataclasses.replace(solution, H=solution.H * 0.0)
 
     monkeypatch.setattr(Theorem2LMIs, "solve", corrupted)
     with pytest.raises(VerificationFailed, match="numpy verification"):

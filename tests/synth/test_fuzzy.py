@@ -68,11 +68,11 @@ def test_vertices_follow_the_bounds(vx_max, r_max):
 
 
 def test_corrected_consequent_terms():
-    """g_1 divides by I_e, s multiplies both terms of g_2, g_3 carries r (NOTES.md)."""
+    """g_1 divides by I_e (the effective mass), s multiplies both terms of g_2, g_3 carries r (NOTES.md)."""
     vx, r = 12.0, 0.2
     g = NTS.g(vx, r)
     k = P.symbols()
-    assert g[0] == -0.01 * k["C_x"] * vx**2 / k["I_e"]
+    assert g[0] == -0.01 * k["C_x"] * vx**2 / k["m_eff"]
     assert abs(g[1] - 0.01 * (2 * (k["C_r"] * k["l_r"] - k["C_f"] * k["l_f"]) / (k["M_v"] * vx) - vx) * r) < 1e-16
     assert abs(g[2] + 0.01 * 2 * (k["C_f"] * k["l_f"] ** 2 + k["C_r"] * k["l_r"] ** 2) / (k["I_z"] * vx) * r) < 1e-16
     assert np.all(NTS.g(vx, 0.0)[1:] == 0.0)

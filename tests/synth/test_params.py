@@ -10,13 +10,15 @@ def test_defaults_are_table_1_and_eq_13():
     p = VehicleParams()
     assert p.symbols() == {
         "M_v": 1481.0,
-        "I_e": 443.0,
+        "m_eff": 443.0,
+        "R_w": 1.0,
         "I_z": 1807.0,
         "l_f": 1.12,
         "l_r": 1.5,
         "C_f": 57110.0,
         "C_r": 58100.0,
         "C_x": 0.37,
+        "F_r": 0.0,
         "C_y": 0.42,
         "b_T": 1.0,
         "b_delta": 1.0,

@@ -40,9 +40,8 @@ def test_robust_gains_keep_the_error_dynamics_stable_over_the_premise_grid(robus
     """Frozen error matrices N(h) + M G_bar rho e_vy^T on a 61 x 61 x 13 grid: all strictly inside the unit circle."""
     from synth.certificate import spectral_radius_grid
 
-    radius, _, points = spectral_radius_grid(
-        robust_gains.model.nts, robust_gains.N, robust_gains.MG_row, (-3, 3), 61, 13
-    )
+    g = robust_gains
+    radius, _, points = spectral_radius_grid(g.model.nts, g.N, g.error_terms(), g.model.dmvt_terms, 61, 13)
     assert points == 61 * 61 * 13
     assert radius < robust_gains.certificate.decay_rate
 

@@ -92,15 +92,15 @@ def test_random_switching_contracts_the_common_lyapunov_function(switched):
     rng = np.random.default_rng(3)
     alpha = switched.options.robust_decay_rate
     nts = switched.model.nts
-    rho_lo, rho_hi = switched.model.rho_vertices()
+    (term,) = switched.model.dmvt_terms
     sets = [switched, switched.quiet_gains()]
     frames = [g.design_frame() for g in sets]
     worst = 0.0
     for _ in range(300):
         xi, xi_next = (rng.uniform(nts.premise_low, nts.premise_high) for _ in range(2))
         h, h_next = nts.memberships(xi[None])[0], nts.memberships(xi_next[None])[0]
-        N_design, MG = frames[rng.integers(2)]
-        N = np.einsum("i,ijk->jk", h, N_design) + rng.uniform(rho_lo, rho_hi) * MG
+        N_design, (MG,) = frames[rng.integers(2)]
+        N = np.einsum("i,ijk->jk", h, N_design) + rng.uniform(term.low, term.high) * MG
         P_h, P_next = np.einsum("i,ijk->jk", h, switched.P), np.einsum("i,ijk->jk", h_next, switched.P)
         top = scipy.linalg.eigh(N.T @ P_next @ N, P_h, eigvals_only=True)[-1]
         worst = max(worst, float(top))

@@ -1,0 +1,88 @@
+"""The one module that talks to the conic solvers: their options, their versions, and a solve that raises.
+
+Every design (Theorem 2 in :mod:`synth.lmi`, the noise-aware design in
+:mod:`synth.robust`) poses a cvxpy problem and hands it to :func:`solve`,
+which either returns what the solver reported (:class:`SolveInfo`) or raises
+:class:`~synth.errors.SolverFailed` saying why. A returned point is never
+trusted as it is: the caller re-verifies it in numpy (:mod:`synth.certificate`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from importlib import metadata
+
+import cvxpy as cp
+
+from synth.errors import BadParameters, SolverFailed
+
+#: Solver settings: Clarabel on one thread with chordal decomposition (fastest
+#: here), SCS at a tight tolerance as the fallback (its default tolerance
+#: returned unstable "optimal" gains, NOTES.md finding 3).
+SOLVER_OPTIONS: dict[str, dict[str, object]] = {
+    "CLARABEL": {"max_threads": 1},
+    "SCS": {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iters": 200_000},
+}
+#: The name of each solver's wall-clock limit option [s].
+TIME_LIMIT_OPTION = {"CLARABEL": "time_limit", "SCS": "time_limit_secs"}
+#: Statuses whose point is worth verifying; anything else is a failure.
+USABLE_STATUSES = (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
+
+
+@dataclass(frozen=True)
+class SolveInfo:
+    """What one solver call reported: the solver, its status and iterations, and where the time went [s]."""
+
+    solver: str
+    status: str
+    iterations: int | None
+    wall_s: float
+    compile_s: float
+    solver_s: float
+
+
+def solver_version(solver: str) -> str:
+    """'clarabel 0.9.0, cvxpy 1.5.2': the solver package and cvxpy versions, for the certificate."""
+    package = {"CLARABEL": "clarabel", "SCS": "scs"}.get(solver, solver.lower())
+    try:
+        return f"{package} {metadata.version(package)}, cvxpy {metadata.version('cvxpy')}"
+    except metadata.PackageNotFoundError as exc:
+        raise BadParameters(f"solver {solver!r} is not installed") from exc
+
+
+def solve(
+    problem: cp.Problem,
+    solver: str,
+    time_limit_s: float,
+    tolerances: dict[str, float] | None = None,
+) -> SolveInfo:
+    """Solve ``problem`` with ``solver`` within ``time_limit_s``; raise :class:`SolverFailed` without a usable point.
+
+    ``tolerances`` override the solver's defaults (for example a looser duality gap for an H2 objective
+    that converges to 6-7 digits). A status other than optimal or optimal_inaccurate is a failure.
+    """
+    if solver not in TIME_LIMIT_OPTION:
+        raise BadParameters(f"unknown solver {solver!r}; choose from {', '.join(TIME_LIMIT_OPTION)}")
+    options = {**SOLVER_OPTIONS.get(solver, {}), **(tolerances or {}), TIME_LIMIT_OPTION[solver]: time_limit_s}
+    started = time.perf_counter()
+    try:
+        problem.solve(solver=solver, **options)
+    except cp.error.SolverError as exc:
+        raise SolverFailed(f"{solver} stopped without a solution ({str(exc).split('.')[0]})") from exc
+    wall_s = time.perf_counter() - started
+    status = str(problem.status)
+    if status not in USABLE_STATUSES:
+        raise SolverFailed(f"{solver} status {status}")
+    stats = problem.solver_stats
+    return SolveInfo(
+        solver=solver,
+        status=status,
+        iterations=stats.num_iters if stats is not None else None,
+        wall_s=wall_s,
+        compile_s=float(problem.compilation_time or 0.0),
+        solver_s=float(stats.solve_time or 0.0) if stats is not None and stats.solve_time is not None else float("nan"),
+    )
+
+
+__all__ = ["SOLVER_OPTIONS", "TIME_LIMIT_OPTION", "SolveInfo", "solve", "solver_version"]
