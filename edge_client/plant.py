@@ -97,11 +97,42 @@ class PlantSimulator:
         self.noise_bias = np.array([[n.vx_bias_mps, n.r_bias_radps] for n in noise])
         self.speed_kp = np.array([s.driver.speed_kp_per_s for s in self.scenarios])
         self.k = 0
+        #: the road-wheel angle of each vehicle's steering actuator, with a lag (None until the first sample)
+        self.steer_angle: FloatArray | None = None
         self.prefetch = prefetch
         self._chunk_start = -1
         self._chunk: dict[str, FloatArray] = {}
         self._next_start = -1
         self._next_parts: list[ScenarioSignals] = []
+
+    def _integrate_with_steering_lag(
+        self, state: FloatArray, u: FloatArray, wind: FloatArray, f: FloatArray, dt: float
+    ) -> FloatArray:
+        """RK4 over one sample with the road-wheel angle of a first-order actuator: it moves from its value
+        towards the target delta_d + b_delta delta_f as delta(t) = target + (delta_0 - target) exp(-t / tau),
+        evaluated at every RK4 stage."""
+        p = self.params
+        target = u[:, 1] + p.steer_fault_gain * f[:, 1]
+        if self.steer_angle is None:
+            self.steer_angle = target.copy()  # an actuator at rest on its first target
+        start = self.steer_angle
+        tau = p.steer_time_constant_s
+        no_steer_fault = f.copy()
+        no_steer_fault[:, 1] = 0.0
+
+        def inputs(t: float) -> FloatArray:
+            return np.column_stack([u[:, 0], target + (start - target) * math.exp(-t / tau)])
+
+        for i in range(self.substeps):
+            t0 = i * dt
+            u0, u_half, u1 = inputs(t0), inputs(t0 + 0.5 * dt), inputs(t0 + dt)
+            k1 = dynamics_with_pose(state, u0, wind, no_steer_fault, p)
+            k2 = dynamics_with_pose(state + 0.5 * dt * k1, u_half, wind, no_steer_fault, p)
+            k3 = dynamics_with_pose(state + 0.5 * dt * k2, u_half, wind, no_steer_fault, p)
+            k4 = dynamics_with_pose(state + dt * k3, u1, wind, no_steer_fault, p)
+            state = state + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        self.steer_angle = inputs(self.sample_period_s)[:, 1]
+        return state
 
     @property
     def n_vehicles(self) -> int:
@@ -181,12 +212,15 @@ class PlantSimulator:
         )
         dt = self.sample_period_s / self.substeps
         state = self.state
-        for _ in range(self.substeps):
-            k1 = dynamics_with_pose(state, u, wind, f, p)
-            k2 = dynamics_with_pose(state + 0.5 * dt * k1, u, wind, f, p)
-            k3 = dynamics_with_pose(state + 0.5 * dt * k2, u, wind, f, p)
-            k4 = dynamics_with_pose(state + dt * k3, u, wind, f, p)
-            state = state + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        if p.steer_time_constant_s == 0.0:
+            for _ in range(self.substeps):
+                k1 = dynamics_with_pose(state, u, wind, f, p)
+                k2 = dynamics_with_pose(state + 0.5 * dt * k1, u, wind, f, p)
+                k3 = dynamics_with_pose(state + 0.5 * dt * k2, u, wind, f, p)
+                k4 = dynamics_with_pose(state + dt * k3, u, wind, f, p)
+                state = state + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        else:
+            state = np.asarray(self._integrate_with_steering_lag(state, u, wind, f, dt), dtype=float)
         state[:, 0] = np.maximum(state[:, 0], MIN_SPEED_MPS)
         self.state = state
         self.k += 1

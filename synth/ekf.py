@@ -152,11 +152,21 @@ class AugmentedEKF:
         self._F = np.zeros((nv, n, n))
         self._F[:, :3, 3:5] = s * self.F_v
         self._F[:, 3:, 3:] = self.chain
+        #: the steering actuator model's angle (nv,), with a lag only
+        self._steer: FloatArray | None = None
 
     def step(self, y: ArrayLike, u: ArrayLike) -> EKFResult:
         """Update with y_k, report x_{k|k}, predict to k + 1 with u_k."""
         y = np.atleast_2d(np.asarray(y, dtype=float))
         u = np.atleast_2d(np.asarray(u, dtype=float))
+        demand = u
+        if self.params.steer_lag_factor != 0.0:
+            # the actuator's lagged road-wheel angle is the model's steering input (synth.model.lagged_steer);
+            # it starts at rest on the first demand
+            if self._steer is None:
+                self._steer = u[:, 1].copy()
+            c = self.params.steer_lag_mean_factor
+            u = np.column_stack([u[:, 0], self._steer + c * (u[:, 1] - self._steer)])
         x, P = self.x, self.P
         # measurement update; C selects [v_x, r] = x[[0, 2]], so C P C^T and P C^T are slices
         PCt = P[:, :, ::2][:, :, :2]  # (nv, n, 2): columns 0 and 2
@@ -197,5 +207,8 @@ class AugmentedEKF:
             F[:, 0, 4] = -s * p.steer_fault_gain * d_delta / p.effective_mass_kg
         P = (F @ P) @ np.ascontiguousarray(F.transpose(0, 2, 1)) + self.Q
         self.x = x_next
+        if self._steer is not None:
+            a = p.steer_lag_factor
+            self._steer = a * self._steer + (1.0 - a) * demand[:, 1]
         self.P = 0.5 * (P + P.transpose(0, 2, 1))
         return result

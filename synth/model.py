@@ -14,6 +14,19 @@ vehicle adds (both off in the paper's profile):
 F_r is the rolling resistance and -F_yf sin(delta) the front lateral force
 projected on the vehicle's x axis (cornering drag, ``cornering_drag``).
 
+The steering actuator: with a time constant tau_delta (``steer_time_constant_s``)
+the road-wheel angle follows its target delta_d + b_delta delta_f through a
+first-order lag. With the target held over each sample, exactly:
+
+    delta_{k+1} = a delta_k + (1 - a) target_k,      a = exp(-s / tau_delta),
+    mean over [t_k, t_k+1) = delta_k + c (target_k - delta_k),   c = 1 - (tau_delta / s)(1 - a).
+
+The discrete model holds its inputs over a sample, so it takes the mean. The
+lag is linear, so the model's steering input is the lagged demand and its
+steering fault the lagged fault (for a constant bias, the bias): the functions
+below take the steering angle the actuator delivers, and :func:`lagged_steer`
+computes it from the demand.
+
 All functions broadcast over leading axes, so one call serves one vehicle or a
 fleet: ``x`` of shape (..., 3), ``u`` of shape (..., 2), ``w`` of shape (...),
 ``f`` of shape (..., 2).
@@ -145,6 +158,26 @@ def state_matrix(x: ArrayLike, p: VehicleParams) -> FloatArray:
         ],
         axis=-2,
     )
+
+
+def lagged_steer(steer_demand_rad: ArrayLike, p: VehicleParams, initial_rad: ArrayLike | None = None) -> FloatArray:
+    """The road-wheel angle over each sample for a demand sequence held over the samples, (K, ...) like the demand.
+
+    The mean over [t_k, t_k+1) of a first-order actuator lag, delta_k + c (delta_d,k - delta_k), with
+    delta_{k+1} = a delta_k + (1 - a) delta_d,k (``VehicleParams.steer_lag_factor``, ``steer_lag_mean_factor``);
+    delta_0 = ``initial_rad`` (default: the first demand, an actuator at rest). The ideal actuator (tau = 0)
+    returns the demand itself.
+    """
+    demand = np.asarray(steer_demand_rad, dtype=float)
+    a, c = p.steer_lag_factor, p.steer_lag_mean_factor
+    if a == 0.0:
+        return demand.copy()
+    out = np.empty_like(demand)
+    state = demand[0].copy() if initial_rad is None else np.asarray(initial_rad, dtype=float).copy()
+    for k in range(demand.shape[0]):
+        out[k] = state + c * (demand[k] - state)
+        state = a * state + (1.0 - a) * demand[k]
+    return out
 
 
 def euler_step(

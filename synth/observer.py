@@ -146,6 +146,16 @@ class RuntimeGains:
     steer_max: float = np.inf
     #: the bound of |F_yf| the estimate is saturated to [N] (synth.augmented.front_force_bound_n)
     front_force_max: float = np.inf
+    #: a = exp(-s / tau_delta) of the steering actuator's lag (VehicleParams.steer_lag_factor); 0: ideal actuator.
+    #: With a lag, z carries one more column: the model's road-wheel angle, the lagged demand
+    steer_lag: float = 0.0
+    #: c of the actuator's mean angle over a sample, delta_k + c (delta_d,k - delta_k) (steer_lag_mean_factor)
+    steer_lag_mean: float = 1.0
+
+    @property
+    def state_size(self) -> int:
+        """Columns of an observer state z: the n of eq. (19), and the actuator model's angle with a lag."""
+        return self.n + (1 if self.steer_lag != 0.0 else 0)
 
     @property
     def n_features(self) -> int:
@@ -205,6 +215,8 @@ class RuntimeGains:
             b_delta=gains.params.steer_fault_gain,
             steer_max=aug.nts.bounds.steer_max_rad,
             front_force_max=front_force_bound_n(aug.nts) if cornering else np.inf,
+            steer_lag=gains.params.steer_lag_factor,
+            steer_lag_mean=gains.params.steer_lag_mean_factor,
         )
         if not rest or rule is None:
             return one_set
@@ -305,11 +317,15 @@ class StepResult:
         return self.x_hat[:, 3:5]
 
 
-def initial_observer_state(rt: RuntimeGains, y: ArrayLike, x_hat0: ArrayLike | None = None) -> FloatArray:
-    """z_0 such that x_hat_0 = z_0 - E y_0 equals ``x_hat0``, shape (nv, n).
+def initial_observer_state(
+    rt: RuntimeGains, y: ArrayLike, x_hat0: ArrayLike | None = None, u0: ArrayLike | None = None
+) -> FloatArray:
+    """z_0 such that x_hat_0 = z_0 - E y_0 equals ``x_hat0``, shape (nv, state_size).
 
     y : (nv, 2) first measurement; x_hat0 : (nv, n), (nv, 3) or None. A 3-vector
     sets the vehicle state with zero faults; None means [v_x, 0, r] from y.
+    u0 : (nv, 2) first demand: with a steering actuator lag, its model starts at
+    rest on the demanded angle (at 0 without u0).
     """
     y = np.atleast_2d(np.asarray(y, dtype=float))
     nv = y.shape[0]
@@ -320,7 +336,11 @@ def initial_observer_state(rt: RuntimeGains, y: ArrayLike, x_hat0: ArrayLike | N
     else:
         given = np.atleast_2d(np.asarray(x_hat0, dtype=float))
         x0[:, : given.shape[1]] = given
-    return x0 + y @ rt.E.T
+    z0 = x0 + y @ rt.E.T
+    if rt.steer_lag == 0.0:
+        return z0
+    steer0 = np.zeros(nv) if u0 is None else np.atleast_2d(np.asarray(u0, dtype=float))[:, 1]
+    return np.column_stack([z0, steer0])
 
 
 def observer_step(
@@ -347,16 +367,21 @@ def observer_step(
     y = np.asarray(y, dtype=float)
     u = np.asarray(u, dtype=float)
     nv = y.shape[0]
-    if y.shape != (nv, 2) or u.shape != (nv, 2) or z.shape != (nv, rt.n):
+    if y.shape != (nv, 2) or u.shape != (nv, 2) or z.shape != (nv, rt.state_size):
         _check_batch(rt, z, y, u)
     n, n2, m = rt.n, rt.n + 2, rt.m
     tail = n2 + 3 * m  # first row after the rule blend: [v_x^2, r/v_x, v_x r, u, phi, (1), (phi_c)]
     Phi = np.empty((rt.n_features, nv))
     x = Phi[:n2]  # the constant block [y; z]: filled first, every loop at unit stride
     x[:2] = y.T
-    x[2:] = z.T
+    lagged = rt.steer_lag != 0.0
+    x[2:] = z[:, :n].T if lagged else z.T
     yT = x[:2]
     Phi[tail + 3 : tail + 5] = u.T
+    if lagged:  # the model's steering input: the actuator's angle over the sample, from the last column of z
+        np.subtract(u[:, 1], z[:, n], out=Phi[tail + 4])
+        Phi[tail + 4] *= rt.steer_lag_mean
+        Phi[tail + 4] += z[:, n]
     # line 8: x_hat_k = z_k - E y_k
     vy_hat = x[2 + VY_INDEX] if rt.E_is_zero else z[:, VY_INDEX] - y @ rt.E[VY_INDEX]
     # premise xi = [1/v_x, r], clipped to the design box, flagged when the clip moved it. Ufuncs, not
@@ -398,10 +423,18 @@ def observer_step(
         x_both = XT_pair @ x  # [fast set's reported rows; quiet set's; innovation]
         x_rows = x_both[k:]
         np.copyto(x_rows[:k], x_both[:k], where=fast)
+    if lagged:
+        # the actuator model: delta_{k+1} = a delta_k + (1 - a) delta_d,k
+        full = np.empty((n + 1, nv))
+        full[:n] = z_rows
+        np.multiply(z[:, n], rt.steer_lag, out=full[n])
+        full[n] += (1.0 - rt.steer_lag) * u[:, 1]
+        z_rows = full
     z_next = z_rows.T
     # the reported estimate: x_hat_k + K (y_k - C_bar x_hat_k), every row out of the small GEMM, when
     # there is an output gain; else x_hat_k = z_k - E y_k (line 8)
-    x_hat = x_rows[:k].T if k else (z if rt.E_is_zero else z - y @ rt.E.T)
+    z_obs = z[:, :n] if lagged else z
+    x_hat = x_rows[:k].T if k else (z_obs if rt.E_is_zero else z_obs - y @ rt.E.T)
     innovation = x_rows[k:].T if rt.WT_quiet is not None else None
     mask = None if rt.WT_quiet is None else (_constant_mask(nv, True) if fast is None else fast)
     return z_next, StepResult(
@@ -414,7 +447,7 @@ def _check_batch(rt: RuntimeGains, z: FloatArray, y: FloatArray, u: FloatArray) 
     nv = y.shape[0] if y.ndim else 0
     check_shape(y, (nv, 2), "y")
     check_shape(u, (nv, 2), "u")
-    check_shape(z, (nv, rt.n), "z")
+    check_shape(z, (nv, rt.state_size), "z")
 
 
 def _cornering_drag(
@@ -504,9 +537,11 @@ def switched_step(
 class FuzzyObserver:
     """A fixed batch of observers sharing one design (one gain set, or a switched pair), with its state."""
 
-    def __init__(self, gains: ObserverGains, y0: ArrayLike, x_hat0: ArrayLike | None = None) -> None:
+    def __init__(
+        self, gains: ObserverGains, y0: ArrayLike, x_hat0: ArrayLike | None = None, u0: ArrayLike | None = None
+    ) -> None:
         self.runtime = RuntimeGains.from_gains(gains)
-        self.z = initial_observer_state(self.runtime, y0, x_hat0)
+        self.z = initial_observer_state(self.runtime, y0, x_hat0, u0)
         # the switching rule's per-vehicle state; empty for one gain set
         rows = self.n_vehicles if self.runtime.switched else 0
         self.stat: FloatArray = np.zeros(rows)

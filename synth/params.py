@@ -7,6 +7,7 @@ are frozen and validated: an error names the field and the value.
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -65,6 +66,11 @@ class VehicleParams(BaseModel):
         "vehicle's x axis (off in the paper's model; hundreds of N in hard cornering)",
     )
     lateral_drag_coeff: PositiveFloat = Field(0.42, description="C_y, lateral aerodynamic drag coefficient [N s^2/m^2]")
+    steer_time_constant_s: Annotated[float, Field(ge=0, le=1.0, allow_inf_nan=False)] = Field(
+        0.0,
+        description="tau_delta, time constant of the steering actuator: the road-wheel angle follows the demand "
+        "(and a steering fault) through a first-order lag; 0 = the paper's ideal actuator [s]",
+    )
     torque_fault_gain: PositiveFloat = Field(1.0, description="b_T, actuator gain of the torque fault (eq. 5) [-]")
     steer_fault_gain: PositiveFloat = Field(1.0, description="b_delta, actuator gain of the steering fault (eq. 5) [-]")
     sample_period_s: Annotated[float, Field(gt=0, le=1.0, allow_inf_nan=False)] = Field(
@@ -118,7 +124,26 @@ class VehicleParams(BaseModel):
             for name in ("wheel_radius_m", "rolling_resistance_n", "cornering_drag"):
                 del data[name]
             data[LEGACY_INERTIA_FIELD] = data.pop("effective_mass_kg")
+        if data["steer_time_constant_s"] == 0.0:
+            del data["steer_time_constant_s"]
         return data
+
+    @property
+    def steer_lag_mean_factor(self) -> float:
+        """c = 1 - (tau_delta / s)(1 - a): the road-wheel angle's mean over a sample is delta_k + c (target - delta_k)
+        when the target is held over it (1 for the ideal actuator)."""
+        a = self.steer_lag_factor
+        if a == 0.0:
+            return 1.0
+        return 1.0 - self.steer_time_constant_s / self.sample_period_s * (1.0 - a)
+
+    @property
+    def steer_lag_factor(self) -> float:
+        """a = exp(-s / tau_delta): the road-wheel angle's exact discrete lag, delta_{k+1} = a delta_k + (1 - a)
+        (delta_d,k + b_delta delta_f,k); 0 for the ideal actuator (the angle is the demand)."""
+        if self.steer_time_constant_s == 0.0:
+            return 0.0
+        return math.exp(-self.sample_period_s / self.steer_time_constant_s)
 
 
 class OperatingBounds(BaseModel):

@@ -212,7 +212,8 @@ def test_the_runtime_step_is_eq_19_with_the_cornering_drag(car_gains):
 def test_the_step_names_a_batch_of_the_wrong_shape(car_gains):
     rt = RuntimeGains.from_gains(car_gains)
     z = np.zeros((3, rt.n))
-    with pytest.raises(ShapeError, match="Incompatible dimensions of u matrix; expected \\(3, 2\\) but found \\(3, 3\\)"):
+    expected = "Incompatible dimensions of u matrix; expected \\(3, 2\\) but found \\(3, 3\\)"
+    with pytest.raises(ShapeError, match=expected):
         observer_step(rt, z, np.ones((3, 2)), np.ones((3, 3)))
     with pytest.raises(ShapeError, match="of z matrix"):
         observer_step(rt, z[:2], np.ones((3, 2)), np.ones((3, 2)))
