@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
+from service.profiles import PROFILE_NAME_PATTERN, AlarmThresholds, InputLimits
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
 
@@ -29,23 +31,56 @@ class CommandError(Exception):
         self.exit_code = exit_code
 
 
+#: The sections of a profile file: those of the body of ``PUT /profiles/{name}`` (service.profiles.ProfileSpec).
+PROFILE_SECTIONS = ("params", "bounds", "design", "alarms", "limits")
+#: Plain fields a profile file may carry beside its sections.
+PROFILE_FIELDS = ("name", "description")
+_DESCRIPTION_MAX_CHARS = 500
+
+
 @dataclass(frozen=True)
 class VehicleProfileFile:
-    """What a --params file holds: vehicle parameters, operating bounds and (optionally) design options."""
+    """What --params gives: one vehicle profile, the body of ``PUT /profiles/{name}`` (ProfileSpec) as a file.
+
+    params, bounds : the vehicle (Table 1) and its operating box (eq. 13); options : the design options as
+    written (flags override them, :func:`design_options`); alarms : the alarm thresholds the service (and
+    `agv-fe replay`) raise levels with; limits : the service's plausibility limits of a measurement;
+    source : where it came from, for messages.
+    """
 
     params: VehicleParams
     bounds: OperatingBounds
     options: dict[str, Any]
+    alarms: AlarmThresholds = field(default_factory=AlarmThresholds)
+    limits: InputLimits = field(default_factory=InputLimits)
+    name: str = ""
+    description: str = ""
+    source: str = "the defaults"
+
+
+#: Profiles known by name to --params: ``paper`` is the paper's vehicle (Table 1), its operating box (eq. 13),
+#: the default design options and the default alarm thresholds and input limits.
+BUILTIN_PROFILES: dict[str, VehicleProfileFile] = {
+    "paper": VehicleProfileFile(
+        VehicleParams(),
+        OperatingBounds(),
+        {},
+        name="paper",
+        description="the paper's vehicle (Table 1) and operating box (eq. 13), default design and alarms",
+        source="the built-in profile 'paper'",
+    ),
+}
 
 
 def validation_message(exc: ValidationError, prefix: str) -> str:
     """One line per problem, naming the field path and the value."""
     lines = []
     for err in exc.errors():
-        where = ".".join(str(p) for p in err["loc"]) or "(root)"
+        # a model-level rule (such as warn below fault) has no field of its own: name the model's prefix
+        where = ".".join(str(p) for p in err["loc"]) or prefix.rstrip(".") or "(root)"
         value = err.get("input")
         shown = "" if isinstance(value, dict | list) else f" (got {value!r})"
-        lines.append(f"  {prefix}{where}: {err['msg']}{shown}")
+        lines.append(f"  {prefix if err['loc'] else ''}{where}: {err['msg']}{shown}")
     return "\n".join(lines)
 
 
@@ -66,31 +101,50 @@ def load_json(path: str | Path) -> Any:
 
 
 def load_profile_file(path: str | Path | None) -> VehicleProfileFile:
-    """Read a --params file: {"params": {...}, "bounds": {...}, "design": {...}}, or the params alone."""
+    """The profile --params names: None for the defaults, a name of :data:`BUILTIN_PROFILES`, or a JSON file.
+
+    A file holds the body of ``PUT /profiles/{name}``: any of the sections params, bounds, design, alarms and
+    limits, and optionally name and description; or the vehicle parameters alone. A missing section takes
+    its defaults. Errors name the file and the field path.
+    """
     if path is None:
         return VehicleProfileFile(VehicleParams(), OperatingBounds(), {})
+    if str(path) in BUILTIN_PROFILES:
+        return BUILTIN_PROFILES[str(path)]
     data = load_json(path)
     if not isinstance(data, dict):
         raise CommandError(f"{path}: expected a JSON object")
-    sections = {"params", "bounds", "design"}
-    if sections & data.keys():
-        unknown = set(data) - sections - {"name", "description"}
-        if unknown:
-            raise CommandError(
-                f"{path}: unknown section(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(sections))}"
-            )
-        params = validate(VehicleParams, data.get("params", {}), "params.")
-        bounds = validate(OperatingBounds, data.get("bounds", {}), "bounds.")
-        options = data.get("design", {})
-        if not isinstance(options, dict):
-            raise CommandError(f"{path}: 'design' must be an object")
-        return VehicleProfileFile(params, bounds, options)
-    return VehicleProfileFile(validate(VehicleParams, data, "params."), OperatingBounds(), {})
+    if not set(PROFILE_SECTIONS) & data.keys():
+        params = validate(VehicleParams, data, "params.")
+        return VehicleProfileFile(params, OperatingBounds(), {}, source=str(path))
+    unknown = set(data) - set(PROFILE_SECTIONS) - set(PROFILE_FIELDS)
+    if unknown:
+        raise CommandError(
+            f"{path}: unknown section(s) {', '.join(sorted(unknown))}; allowed: {', '.join(PROFILE_SECTIONS)} "
+            f"(and {', '.join(PROFILE_FIELDS)})"
+        )
+    params = validate(VehicleParams, data.get("params", {}), "params.")
+    bounds = validate(OperatingBounds, data.get("bounds", {}), "bounds.")
+    options = data.get("design", {})
+    if not isinstance(options, dict):
+        raise CommandError(f"{path}: 'design' must be an object")
+    alarms = validate(AlarmThresholds, data.get("alarms", {}), "alarms.")
+    limits = validate(InputLimits, data.get("limits", {}), "limits.")
+    name, description = data.get("name", ""), data.get("description", "")
+    if not isinstance(name, str) or (name and not re.match(PROFILE_NAME_PATTERN, name)):
+        raise CommandError(f"{path}: name: expected 1-64 of A-Z a-z 0-9 _ . - (got {name!r})")
+    if not isinstance(description, str) or len(description) > _DESCRIPTION_MAX_CHARS:
+        raise CommandError(f"{path}: description: expected text of at most {_DESCRIPTION_MAX_CHARS} characters")
+    return VehicleProfileFile(params, bounds, options, alarms, limits, name, description, source=str(path))
 
 
 def add_design_arguments(parser: argparse.ArgumentParser, *, default_design: str) -> None:
     parser.add_argument(
-        "--params", metavar="FILE.json", help="vehicle parameters and bounds (default: the paper's Table 1 and eq. 13)"
+        "--params",
+        metavar="FILE.json",
+        help="vehicle profile: a JSON file with the sections params, bounds, design, alarms and limits (the body of "
+        "PUT /profiles/{name}; a missing section takes its defaults), or the name of a built-in profile: "
+        f"{', '.join(BUILTIN_PROFILES)} (default: the paper's Table 1 and eq. 13, the default alarms)",
     )
     parser.add_argument(
         "--design", choices=DESIGN_CHOICES, default=None, help=f"observer design (default: {default_design})"
@@ -173,12 +227,16 @@ def fail(exc: CommandError) -> int:
     return exc.exit_code
 
 
-def synthesize_or_fail(args: argparse.Namespace, *, quiet: bool = False) -> Any:
-    """Run the design selected by the flags; a design that cannot be certified becomes a CommandError."""
+def synthesize_or_fail(
+    args: argparse.Namespace, *, quiet: bool = False, profile: VehicleProfileFile | None = None
+) -> Any:
+    """Run the design selected by the flags (and ``profile``, read from --params if None); a design that cannot
+    be certified becomes a CommandError."""
     from synth.design import synthesize
     from synth.errors import BadParameters, Infeasible, SynthesisError
 
-    profile = load_profile_file(getattr(args, "params", None))
+    if profile is None:
+        profile = load_profile_file(getattr(args, "params", None))
     options = design_options(args, profile)
     if not quiet:
         print(f"synthesising the '{options.design}' observer (fault order {options.fault_order}) ...", file=sys.stderr)
@@ -192,8 +250,9 @@ def synthesize_or_fail(args: argparse.Namespace, *, quiet: bool = False) -> Any:
         raise CommandError(f"the '{options.design}' design failed: {exc}", EXIT_NO_DESIGN) from exc
 
 
-def gains_from_args(args: argparse.Namespace) -> Any:
-    """--gains FILE if given (hash and certificate re-checked), else a fresh synthesis."""
+def gains_from_args(args: argparse.Namespace, profile: VehicleProfileFile | None = None) -> Any:
+    """--gains FILE if given (hash and certificate re-checked), else a fresh synthesis for ``profile``
+    (read from --params if None)."""
     from synth.errors import SynthesisError
     from synth.gains import ObserverGains
 
@@ -205,4 +264,4 @@ def gains_from_args(args: argparse.Namespace) -> Any:
             return ObserverGains.from_dict(data)
         except (SynthesisError, KeyError, TypeError, ValueError) as exc:
             raise CommandError(f"{args.gains}: unusable gains: {exc}") from exc
-    return synthesize_or_fail(args)
+    return synthesize_or_fail(args, profile=profile)

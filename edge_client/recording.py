@@ -5,15 +5,19 @@ Input columns (header required, any order, extra columns ignored):
 ``steer`` [rad] (demanded delta_d). Rows must be finite and evenly spaced at
 the sample period (within 1 %). Errors name the file line.
 
-Output columns of `agv-fe replay`: ``t, vx_hat, vy_hat, r_hat,
-torque_fault_hat, steer_fault_hat, in_domain``.
+Output columns of `agv-fe replay` (:data:`OUTPUT_COLUMNS`): ``t, vx_hat,
+vy_hat, r_hat, torque_fault_hat, steer_fault_hat, in_domain, torque_level,
+steer_level``. The two levels (``OK``, ``WARN`` or ``FAULT``) are the alarm
+levels of the fault channels at each sample, as the service's alarm code
+(service.fleet.alarms.FaultLevels) gives them for the same stream, with the
+profile's thresholds, persistence, hysteresis and warm-up.
 """
 
 from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +26,17 @@ import numpy as np
 from synth.model import FloatArray
 
 REQUIRED_COLUMNS = ("t", "vx", "r", "torque", "steer")
-OUTPUT_COLUMNS = ("t", "vx_hat", "vy_hat", "r_hat", "torque_fault_hat", "steer_fault_hat", "in_domain")
+OUTPUT_COLUMNS = (
+    "t",
+    "vx_hat",
+    "vy_hat",
+    "r_hat",
+    "torque_fault_hat",
+    "steer_fault_hat",
+    "in_domain",
+    "torque_level",
+    "steer_level",
+)
 #: Relative tolerance on the spacing of consecutive time stamps.
 PERIOD_TOLERANCE = 0.01
 
@@ -101,15 +115,29 @@ def parse_recording(lines: Iterable[str], sample_period_s: float = 0.01, source:
 
 
 def write_estimates(
-    path: str | Path, t: FloatArray, x_hat: FloatArray, f_hat: FloatArray, in_domain: np.ndarray
+    path: str | Path,
+    t: FloatArray,
+    x_hat: FloatArray,
+    f_hat: FloatArray,
+    in_domain: np.ndarray,
+    torque_level: Sequence[str],
+    steer_level: Sequence[str],
 ) -> None:
-    """Write the replay output: t (K,), x_hat (K, 3), f_hat (K, 2), in_domain (K,)."""
+    """Write the replay output: t (K,) [s], x_hat (K, 3), f_hat (K, 2), in_domain (K,) and the level names
+    (OK, WARN, FAULT) of the torque and steering fault channels, (K,) each."""
     with Path(path).open("w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(OUTPUT_COLUMNS)
         for k in range(t.size):
             writer.writerow(
-                [f"{t[k]:.6f}", *(f"{v:.9g}" for v in x_hat[k]), *(f"{v:.9g}" for v in f_hat[k]), int(in_domain[k])]
+                [
+                    f"{t[k]:.6f}",
+                    *(f"{v:.9g}" for v in x_hat[k]),
+                    *(f"{v:.9g}" for v in f_hat[k]),
+                    int(in_domain[k]),
+                    torque_level[k],
+                    steer_level[k],
+                ]
             )
 
 

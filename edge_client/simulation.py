@@ -8,7 +8,7 @@ estimators see exactly the same noisy data; :func:`run` does both.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -41,25 +41,36 @@ class BatchEstimator(Protocol):
     def step(self, y: FloatArray, u: FloatArray) -> EstimatorOutput: ...
 
 
-EstimatorFactory = Callable[[FloatArray, FloatArray | None], BatchEstimator]
+class EstimatorFactory(Protocol):
+    """Makes a batch estimator for nv vehicles from their first measurement.
+
+    y0 : (nv, 2) first [v_x, r]; x_hat0 : (nv, 3) initial [v_x, v_y, r] or None (measured v_x, r, v_y = 0);
+    u0 : (nv, 2) first demand [T_d, delta_d], where a steering actuator model starts at rest (None: at 0).
+    """
+
+    def __call__(self, y0: FloatArray, x_hat0: FloatArray | None, u0: FloatArray | None = None) -> BatchEstimator: ...
 
 
 def observer_factory(gains: ObserverGains) -> EstimatorFactory:
-    """An :data:`EstimatorFactory` for the fuzzy observer with these gains."""
+    """An :class:`EstimatorFactory` for the fuzzy observer with these gains."""
 
-    def make(y0: FloatArray, x_hat0: FloatArray | None) -> BatchEstimator:
-        return FuzzyObserver(gains, y0, x_hat0)
+    def make(y0: FloatArray, x_hat0: FloatArray | None, u0: FloatArray | None = None) -> BatchEstimator:
+        return FuzzyObserver(gains, y0, x_hat0, u0)
 
     return make
 
 
 def ekf_factory(gains_or_options: ObserverGains) -> EstimatorFactory:
-    """An :data:`EstimatorFactory` for the EKF tuned like these gains (params, bounds, noise model, fault order)."""
+    """An :class:`EstimatorFactory` for the EKF tuned like these gains (params, bounds, noise model, fault order).
+
+    The EKF's steering actuator model (with a lag) starts at rest on the first demand it steps with, which is
+    ``u0`` when the caller steps from the sample it started on; so it needs no ``u0`` of its own.
+    """
     from synth.ekf import AugmentedEKF
 
     g = gains_or_options
 
-    def make(y0: FloatArray, x_hat0: FloatArray | None) -> BatchEstimator:
+    def make(y0: FloatArray, x_hat0: FloatArray | None, u0: FloatArray | None = None) -> BatchEstimator:
         return AugmentedEKF(g.params, g.bounds, g.options.noise, g.options.fault_order, y0, x_hat0)
 
     return make
@@ -142,7 +153,7 @@ def estimate(record: PlantRecord, estimator: EstimatorFactory) -> SimulationResu
     f_hat = np.zeros((n_samples, nv, 2))
     in_domain = np.zeros((n_samples, nv), dtype=bool)
     step_times = np.zeros(n_samples)
-    est = estimator(record.y[0], record.observer_initial_state())
+    est = estimator(record.y[0], record.observer_initial_state(), record.u[0])
     for k in range(n_samples):
         started = time.perf_counter()
         out = est.step(record.y[k], record.u[k])

@@ -1,21 +1,33 @@
-"""`agv-fe replay`: run the observer over a recorded 100 Hz stream."""
+"""`agv-fe replay`: run the observer over a recorded 100 Hz stream, with the service's alarm levels."""
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from agv_fe.common import (
     CommandError,
+    VehicleProfileFile,
     add_design_arguments,
     add_estimator_argument,
     estimator_factory,
     fail,
     gains_from_args,
+    load_profile_file,
 )
+
+if TYPE_CHECKING:
+    from edge_client.recording import Recording
+    from edge_client.simulation import EstimatorFactory
+    from service.profiles import AlarmThresholds, InputLimits
+    from synth.model import FloatArray
+
+#: The fault channels, in the order of the level columns (torque_level, steer_level).
+CHANNELS = ("torque", "steer")
 
 
 def register(sub: Any) -> None:
@@ -23,52 +35,152 @@ def register(sub: Any) -> None:
         "replay",
         help="estimate faults from a recorded CSV stream",
         description="Run the observer over a recorded 100 Hz stream with columns t, vx, r, torque, steer "
-        "(others ignored) and write t, vx_hat, vy_hat, r_hat, torque_fault_hat, steer_fault_hat, in_domain.",
+        "(others ignored) and write t, vx_hat, vy_hat, r_hat, torque_fault_hat, steer_fault_hat, in_domain, "
+        "torque_level, steer_level. The levels (OK, WARN, FAULT) come from the service's alarm code with the "
+        "alarm thresholds of the --params profile (default: the default thresholds), on the time stamps "
+        "t_ns = round(t * 1e9): the service gives the same levels for the same stream.",
     )
     parser.add_argument("input", metavar="INPUT.csv", help="recorded stream")
     parser.add_argument("--out", required=True, metavar="OUTPUT.csv", help="estimates")
-    parser.add_argument("--gains", metavar="gains.json", help="use stored gains instead of synthesising")
+    parser.add_argument(
+        "--gains",
+        metavar="gains.json",
+        help="use stored gains instead of synthesising (the alarm thresholds still come from --params)",
+    )
     parser.add_argument(
         "--initial-state",
         metavar="VX,VY,R",
-        help="observer initial [v_x, v_y, r] (default: measured v_x, r and v_y = 0)",
+        help="observer initial [v_x, v_y, r] (default: measured v_x, r and v_y = 0, as the service starts)",
     )
     add_design_arguments(parser, default_design="robust")
     add_estimator_argument(parser)
     parser.set_defaults(handler=run)
 
 
+@dataclass(frozen=True)
+class Replay:
+    """A recording of K samples replayed: x_hat (K, 3), f_hat (K, 2), in_domain (K,), levels (K, 2) level
+    ranks of [torque, steer] (service.fleet.alarms.LEVEL_NAMES), restarts: observer restarts after a
+    non-finite estimate."""
+
+    x_hat: FloatArray
+    f_hat: FloatArray
+    in_domain: np.ndarray
+    levels: np.ndarray
+    restarts: int
+
+
 def run(args: argparse.Namespace) -> int:
     from edge_client.recording import RecordingError, read_recording, write_estimates
+    from service.fleet.alarms import LEVEL_NAMES
 
     try:
         x0 = _initial_state(args.initial_state)
-        gains = gains_from_args(args)
+        profile = load_profile_file(args.params)
+        gains = gains_from_args(args, profile)
         try:
             recording = read_recording(args.input, gains.params.sample_period_s)
         except RecordingError as exc:
             raise CommandError(str(exc)) from exc
     except CommandError as exc:
         return fail(exc)
-    observer = estimator_factory(args, gains)(recording.y[:1], x0)
-    n = len(recording)
-    x_hat = np.zeros((n, 3))
-    f_hat = np.zeros((n, 2))
-    in_domain = np.zeros(n, dtype=bool)
-    for k in range(n):
-        step = observer.step(recording.y[k], recording.u[k])
-        x_hat[k], f_hat[k], in_domain[k] = step.state[0], step.faults[0], step.in_domain[0]
+    result = replay(recording, estimator_factory(args, gains), x0, profile.alarms)
+    names = np.array(LEVEL_NAMES)[result.levels]
     try:
-        write_estimates(args.out, recording.t, x_hat, f_hat, in_domain)
+        write_estimates(args.out, recording.t, result.x_hat, result.f_hat, result.in_domain, names[:, 0], names[:, 1])
     except OSError as exc:
         return fail(CommandError(f"{args.out}: cannot write: {exc.strerror}"))
+    n = len(recording)
     print(
         f"replayed {n} samples ({recording.t[-1] - recording.t[0]:.2f} s) with the "
         f"{'EKF' if args.estimator == 'ekf' else repr(gains.options.design) + ' observer'} "
-        f"(gains version {gains.version}); premise in domain {in_domain.mean():.1%} of the time"
+        f"(gains version {gains.version}); premise in domain {result.in_domain.mean():.1%} of the time"
     )
+    for line in level_summary(recording.t, result.levels, profile):
+        print(line)
+    if result.restarts:
+        print(f"the estimate was not finite {result.restarts} time(s): the observer restarted, as the service's does")
+    outside = int(outside_limits(recording, profile.limits).sum())
+    if outside:
+        print(
+            f"warning: {outside} samples lie outside the profile's input limits; the service rejects them "
+            "(they never reach its observer), so its estimates and levels differ from these"
+        )
     print(f"written {Path(args.out)}")
     return 0
+
+
+def replay(recording: Recording, make: EstimatorFactory, x0: FloatArray | None, alarms: AlarmThresholds) -> Replay:
+    """Step the estimator over the recording and the fault channels' levels, as the service does per vehicle.
+
+    The levels are :class:`service.fleet.alarms.FaultLevels` fed the fault estimates on the time stamps
+    t_ns = round(t * 1e9) [ns], warm-up from the observer's start. A non-finite estimate is not fed and
+    restarts the estimator from the next measurement (cold, like the service's bank).
+    """
+    from service.fleet.alarms import FaultLevels
+
+    n = len(recording)
+    t_ns = np.rint(recording.t * 1e9).astype(np.int64)
+    levels = FaultLevels(1, alarms)
+    row = np.zeros(1, dtype=np.intp)
+    x_hat = np.zeros((n, 3))
+    f_hat = np.zeros((n, 2))
+    in_domain = np.zeros(n, dtype=bool)
+    level = np.zeros((n, 2), dtype=np.intp)
+    estimator = None
+    restarts = 0
+    for k in range(n):
+        y, u, t = recording.y[k : k + 1], recording.u[k : k + 1], t_ns[k : k + 1]
+        if estimator is None:
+            estimator = make(y, x0 if k == 0 else None, u)
+            levels.restart(row, t)
+        step = estimator.step(y, u)
+        x_hat[k], f_hat[k], in_domain[k] = step.state[0], step.faults[0], step.in_domain[0]
+        if np.isfinite(x_hat[k]).all() and np.isfinite(f_hat[k]).all():
+            levels.update(row, f_hat[k : k + 1], t)
+        else:
+            estimator = None
+            restarts += 1
+        level[k] = levels.torque.level[0], levels.steer.level[0]
+    return Replay(x_hat, f_hat, in_domain, level, restarts)
+
+
+def level_summary(t: FloatArray, levels: np.ndarray, profile: VehicleProfileFile) -> list[str]:
+    """One line per fault channel: time at WARN and at FAULT, and when it first reached WARN (or higher) and
+    FAULT. t : (K,) [s]; levels : (K, 2) level ranks of [torque, steer]."""
+    from service.fleet.alarms import FAULT, WARN
+
+    a = profile.alarms
+    period_s = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    thresholds = {
+        "torque": f"|T_f| >= {a.torque_warn_nm:g} / {a.torque_fault_nm:g} N m",
+        "steer": f"|delta_f| >= {a.steer_warn_rad:g} / {a.steer_fault_rad:g} rad",
+    }
+    lines = [
+        f"alarm levels with the thresholds of {profile.source} (WARN / FAULT held {a.raise_after_s:g} s, "
+        f"after a {a.warmup_s:g} s warm-up):"
+    ]
+    for c, name in enumerate(CHANNELS):
+        parts = []
+        for level, label in ((WARN, "WARN"), (FAULT, "FAULT")):
+            reached = np.flatnonzero(levels[:, c] >= level)
+            first = f"first at t = {t[reached[0]]:.2f} s" if reached.size else "never"
+            parts.append(f"{label} {np.count_nonzero(levels[:, c] == level) * period_s:.2f} s ({first})")
+        lines.append(f"  {name:<6} ({thresholds[name]}): {', '.join(parts)}")
+    return lines
+
+
+def outside_limits(recording: Recording, limits: InputLimits) -> np.ndarray:
+    """(K,) bool: the samples the service would reject as out of range under these plausibility limits."""
+    vx, r = recording.y[:, 0], recording.y[:, 1]
+    torque, steer = recording.u[:, 0], recording.u[:, 1]
+    return np.asarray(
+        (vx < limits.vx_min_mps)
+        | (vx > limits.vx_max_mps)
+        | (np.abs(r) > limits.r_abs_max_radps)
+        | (np.abs(torque) > limits.torque_abs_max_nm)
+        | (np.abs(steer) > limits.steer_abs_max_rad)
+    )
 
 
 def _initial_state(text: str | None) -> Any:

@@ -1,9 +1,13 @@
-"""Alarms: a vectorised level detector with persistence and hysteresis, and the alarm book.
+"""Alarms: a vectorised level detector with persistence and hysteresis, the fault-channel rule, and the alarm book.
 
 :class:`LevelDetector` turns a stream of values per vehicle into a level
-(0 OK, 1 WARN, 2 FAULT) for a whole batch at once. :class:`AlarmBook` keeps
-the alarm records: raised when a condition starts, latched until it is both
-cleared and acknowledged, each change an :class:`service.protocol.Alarm` event.
+(0 OK, 1 WARN, 2 FAULT) for a whole batch at once. :class:`FaultLevels` is the
+rule of the two fault channels (T_f and delta_f): a profile's thresholds and
+the warm-up after an observer (re)start; the service's observer banks and
+`agv-fe replay` both run it, so a replayed recording gets the service's levels.
+:class:`AlarmBook` keeps the alarm records: raised when a condition starts,
+latched until it is both cleared and acknowledged, each change an
+:class:`service.protocol.Alarm` event.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from service.profiles import AlarmThresholds
 from service.protocol import Alarm, AlarmKind, AlarmState, Level
 
 OK, WARN, FAULT = 0, 1, 2
@@ -27,6 +32,11 @@ _LEVEL_RANK: dict[str, int] = {"OK": 0, "WARN": 1, "FAULT": 2, "STALE": 3}
 
 def level_rank(level: str) -> int:
     return _LEVEL_RANK[level]
+
+
+def seconds_to_ns(seconds: float) -> int:
+    """A duration [s] in the integer nanoseconds [ns] that alarm rules count sample time in."""
+    return round(seconds * 1e9)
 
 
 class LevelDetector:
@@ -119,6 +129,79 @@ class LevelDetector:
         new[drop_warn] = OK
         self.level[rows] = new
         return np.flatnonzero(new != old)
+
+
+class FaultLevels:
+    """The alarm levels of the fault channels T_f and delta_f, one row per vehicle slot.
+
+    Two :class:`LevelDetector` (``torque`` on |T_f| [N m], ``steer`` on
+    |delta_f| [rad]) configured from a profile's :class:`AlarmThresholds`, and
+    the warm-up rule: a row's fault estimates are evaluated only once
+    ``warmup_s`` of sample time has passed since its observer (re)started
+    (:meth:`restart`). Time is the samples' time stamps [ns].
+    """
+
+    def __init__(self, capacity: int, alarms: AlarmThresholds) -> None:
+        raise_ns, clear_ns = seconds_to_ns(alarms.raise_after_s), seconds_to_ns(alarms.clear_after_s)
+        self.torque = LevelDetector(
+            capacity, alarms.torque_warn_nm, alarms.torque_fault_nm, alarms.hysteresis, raise_ns, clear_ns
+        )
+        self.steer = LevelDetector(
+            capacity, alarms.steer_warn_rad, alarms.steer_fault_rad, alarms.hysteresis, raise_ns, clear_ns
+        )
+        self.warmup_ns = seconds_to_ns(alarms.warmup_s)
+        #: when each row's observer last (re)started [ns]
+        self.started_t_ns = np.zeros(capacity, dtype=np.int64)
+
+    def configure(self, alarms: AlarmThresholds) -> None:
+        """New thresholds; levels and timers are kept."""
+        raise_ns, clear_ns = seconds_to_ns(alarms.raise_after_s), seconds_to_ns(alarms.clear_after_s)
+        self.torque.configure(alarms.torque_warn_nm, alarms.torque_fault_nm, alarms.hysteresis, raise_ns, clear_ns)
+        self.steer.configure(alarms.steer_warn_rad, alarms.steer_fault_rad, alarms.hysteresis, raise_ns, clear_ns)
+        self.warmup_ns = seconds_to_ns(alarms.warmup_s)
+
+    def grow(self, capacity: int) -> None:
+        extra = capacity - self.started_t_ns.shape[0]
+        if extra <= 0:
+            return
+        self.torque.grow(capacity)
+        self.steer.grow(capacity)
+        self.started_t_ns = np.concatenate([self.started_t_ns, np.zeros(extra, dtype=np.int64)])
+
+    def reset(self, rows: np.ndarray) -> None:
+        """Forget everything of ``rows``: levels and timers (a slot given to another vehicle)."""
+        self.torque.reset(rows)
+        self.steer.reset(rows)
+
+    def restart(self, rows: np.ndarray, t_ns: np.ndarray) -> None:
+        """The observers of ``rows`` (re)start at sample times ``t_ns`` [ns]: the warm-up runs from there;
+        the persistence timers are forgotten and the levels held until the warm-up is over."""
+        self.started_t_ns[rows] = t_ns
+        self.torque.reset(rows, keep_level=True)
+        self.steer.reset(rows, keep_level=True)
+
+    def update(
+        self, rows: np.ndarray, f_hat: np.ndarray, t_ns: np.ndarray, usable: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Feed the fault estimates of one sample per row; return the indices (into rows) whose level changed.
+
+        rows : (k,) distinct slots; f_hat : (k, 2) [T_f [N m], delta_f [rad]]; t_ns : (k,) sample times [ns];
+        usable : (k,) bool, the rows whose estimate may be used (finite), None for all. A row still in its
+        warm-up, or not usable, leaves its detectors untouched. An index may appear twice (both channels).
+        """
+        warm = t_ns - self.started_t_ns[rows] >= self.warmup_ns
+        if usable is None and warm.all():  # the common case: every row, no picking out
+            torque = self.torque.update(rows, f_hat[:, 0], t_ns)
+            steer = self.steer.update(rows, f_hat[:, 1], t_ns)
+        else:
+            w = np.flatnonzero(warm if usable is None else usable & warm)
+            if not len(w):
+                return _NONE
+            torque = w[self.torque.update(rows[w], f_hat[w, 0], t_ns[w])]
+            steer = w[self.steer.update(rows[w], f_hat[w, 1], t_ns[w])]
+        if not len(steer):
+            return torque
+        return steer if not len(torque) else np.concatenate([torque, steer])
 
 
 @dataclass

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.fleet.alarms import LevelDetector
+from service.fleet.alarms import FaultLevels, LevelDetector, seconds_to_ns
 from service.profiles import ProfileSpec
 from synth.gains import ObserverGains
 from synth.model import FloatArray
@@ -44,10 +44,6 @@ class StepOutput:
     fast: np.ndarray | None = None
 
 
-def _s_to_ns(seconds: float) -> int:
-    return round(seconds * 1e9)
-
-
 class ProfileBank:
     """Observer states, last estimates, estimate history and alarm detectors of one profile's vehicles."""
 
@@ -68,7 +64,6 @@ class ProfileBank:
         self.last_fast = np.zeros(cap, dtype=bool)
         self.needs_init = np.ones(cap, dtype=bool)
         self.warm = np.full((cap, _N_EST), np.nan)
-        self.started_t_ns = np.zeros(cap, dtype=np.int64)
         self.last_x5 = np.full((cap, _N_EST), np.nan)
         self.last_in_domain = np.zeros(cap, dtype=bool)
         self.last_seq = np.full(cap, -1, dtype=np.int64)
@@ -84,26 +79,29 @@ class ProfileBank:
         self.published = np.zeros(cap, dtype=np.int64)
         self.phase = np.zeros(cap, dtype=np.int64)
         a = spec.alarms
-        self.torque = LevelDetector(
-            cap,
-            a.torque_warn_nm,
-            a.torque_fault_nm,
-            a.hysteresis,
-            _s_to_ns(a.raise_after_s),
-            _s_to_ns(a.clear_after_s),
-        )
-        self.steer = LevelDetector(
-            cap,
-            a.steer_warn_rad,
-            a.steer_fault_rad,
-            a.hysteresis,
-            _s_to_ns(a.raise_after_s),
-            _s_to_ns(a.clear_after_s),
-        )
+        # the fault channels' detectors and warm-up rule (shared with `agv-fe replay`)
+        self.faults = FaultLevels(cap, a)
         # out of domain as a one-level detector on a 0/1 signal
-        self.domain = LevelDetector(cap, 0.5, np.inf, 1.0, _s_to_ns(a.out_of_domain_after_s), _s_to_ns(a.clear_after_s))
+        self.domain = LevelDetector(
+            cap, 0.5, np.inf, 1.0, seconds_to_ns(a.out_of_domain_after_s), seconds_to_ns(a.clear_after_s)
+        )
 
     # ------------------------------------------------------------------ configuration
+
+    @property
+    def torque(self) -> LevelDetector:
+        """The |T_f| detector of :attr:`faults`."""
+        return self.faults.torque
+
+    @property
+    def steer(self) -> LevelDetector:
+        """The |delta_f| detector of :attr:`faults`."""
+        return self.faults.steer
+
+    @property
+    def started_t_ns(self) -> np.ndarray:
+        """When each row's observer last (re)started [ns] (the warm-up of :attr:`faults` runs from there)."""
+        return self.faults.started_t_ns
 
     @property
     def version(self) -> str | None:
@@ -117,10 +115,8 @@ class ProfileBank:
         """New thresholds and limits (the gains are set by :meth:`activate`)."""
         self.spec = spec
         a = spec.alarms
-        raise_ns, clear_ns = _s_to_ns(a.raise_after_s), _s_to_ns(a.clear_after_s)
-        self.torque.configure(a.torque_warn_nm, a.torque_fault_nm, a.hysteresis, raise_ns, clear_ns)
-        self.steer.configure(a.steer_warn_rad, a.steer_fault_rad, a.hysteresis, raise_ns, clear_ns)
-        self.domain.configure(0.5, np.inf, 1.0, _s_to_ns(a.out_of_domain_after_s), clear_ns)
+        self.faults.configure(a)
+        self.domain.configure(0.5, np.inf, 1.0, seconds_to_ns(a.out_of_domain_after_s), seconds_to_ns(a.clear_after_s))
 
     def activate(self, gains: ObserverGains, runtime: RuntimeGains | None = None) -> None:
         """Swap in new gains for every row at once.
@@ -131,7 +127,7 @@ class ProfileBank:
         """
         runtime = runtime or RuntimeGains.from_gains(gains)
         self.gains, self.runtime = gains, runtime
-        self.z = np.zeros((self.capacity, runtime.n))
+        self.z = np.zeros((self.capacity, runtime.state_size))
         self.warm = self.last_x5.copy()
         self.needs_init[:] = True
 
@@ -166,8 +162,8 @@ class ProfileBank:
         self.hist_count[slot] = 0
         self.accepted[slot] = self.estimates[slot] = self.published[slot] = self.phase[slot] = 0
         rows = np.array([slot])
-        for detector in (self.torque, self.steer, self.domain):
-            detector.reset(rows)
+        self.faults.reset(rows)
+        self.domain.reset(rows)
 
     def _grow(self, capacity: int) -> None:
         extra = capacity - self.capacity
@@ -183,7 +179,6 @@ class ProfileBank:
         self.last_fast = pad(self.last_fast, False)
         self.needs_init = pad(self.needs_init, True)
         self.warm = pad(self.warm, np.nan)
-        self.started_t_ns = pad(self.started_t_ns, 0)
         self.last_x5 = pad(self.last_x5, np.nan)
         self.last_in_domain = pad(self.last_in_domain, False)
         self.last_seq = pad(self.last_seq, -1)
@@ -197,8 +192,8 @@ class ProfileBank:
         self.estimates = pad(self.estimates, 0)
         self.published = pad(self.published, 0)
         self.phase = pad(self.phase, 0)
-        for detector in (self.torque, self.steer, self.domain):
-            detector.grow(capacity)
+        self.faults.grow(capacity)
+        self.domain.grow(capacity)
         self.free.extend(range(capacity - 1, self.capacity - 1, -1))
         self.capacity = capacity
 
@@ -236,14 +231,13 @@ class ProfileBank:
             x0[:, 0] = y[restarted, 0]
             x0[:, 2] = y[restarted, 1]
             x0[has_warm] = warm[has_warm]
-            self.z[rows] = initial_observer_state(rt, y[restarted], x0)
+            self.z[rows] = initial_observer_state(rt, y[restarted], x0, u[restarted])
             self.switch_stat[rows] = 0.0
             self.fast_left[rows] = rt.start_samples
             self.needs_init[rows] = False
             self.warm[rows] = np.nan
-            self.started_t_ns[rows] = t_ns[restarted]
-            for detector in (self.torque, self.steer, self.domain):
-                detector.reset(rows, keep_level=True)
+            self.faults.restart(rows, t_ns[restarted])
+            self.domain.reset(rows, keep_level=True)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             if rt.switched:
                 z_next, stat, left, res = switched_step(

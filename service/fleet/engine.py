@@ -587,18 +587,9 @@ class FleetEngine:
         all_finite = bool(finite.all())  # the common case: no row needs picking out
         if not all_finite:
             self.stats["numerical_restarts"] += int((~finite).sum())
-        # alarms: fault channels after the warm-up, domain always
-        alarms = bank.spec.alarms
-        warm = t - bank.started_t_ns[slots] >= round(alarms.warmup_s * 1e9)
-        changed: set[int] = set()
-        if self._shortcuts and all_finite and warm.all():
-            changed.update(bank.torque.update(slots, x5[:, 3], t).tolist())
-            changed.update(bank.steer.update(slots, x5[:, 4], t).tolist())
-        else:
-            w = np.flatnonzero(finite & warm)
-            if len(w):
-                changed.update(w[bank.torque.update(slots[w], x5[w, 3], t[w])].tolist())
-                changed.update(w[bank.steer.update(slots[w], x5[w, 4], t[w])].tolist())
+        # alarms: fault channels after the warm-up (FaultLevels, as `agv-fe replay` runs them), domain always
+        usable = None if self._shortcuts and all_finite else finite
+        changed: set[int] = set(bank.faults.update(slots, x5[:, 3:5], t, usable).tolist())
         if self._shortcuts and all_finite:
             changed.update(bank.domain.update(slots, (~in_domain | ~vy_in_bounds).astype(float), t).tolist())
         else:

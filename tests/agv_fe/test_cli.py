@@ -84,7 +84,10 @@ def test_simulate_then_replay_reproduces_the_estimates(tmp_path, gains_file):
     assert rep.returncode == 0, rep.stderr
     a = np.genfromtxt(tmp_path / "sim" / "simulation.csv", delimiter=",", names=True)
     b = np.genfromtxt(tmp_path / "rep.csv", delimiter=",", names=True)
-    assert b.dtype.names == ("t", "vx_hat", "vy_hat", "r_hat", "torque_fault_hat", "steer_fault_hat", "in_domain")
+    assert b.dtype.names == (
+        "t", "vx_hat", "vy_hat", "r_hat", "torque_fault_hat", "steer_fault_hat", "in_domain",
+        "torque_level", "steer_level",
+    )  # fmt: skip
     np.testing.assert_allclose(b["torque_fault_hat"], a["torque_fault_hat"], atol=1e-6)
     np.testing.assert_allclose(b["steer_fault_hat"], a["steer_fault_hat"], atol=1e-9)
 

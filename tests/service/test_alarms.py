@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.fleet.alarms import FAULT, OK, WARN, AlarmBook, LevelDetector, UnknownAlarm
+from service.fleet.alarms import FAULT, OK, WARN, AlarmBook, FaultLevels, LevelDetector, UnknownAlarm
+from service.profiles import AlarmThresholds
 
 MS = 1_000_000
 
@@ -51,6 +52,38 @@ def test_rows_are_independent():
     d = LevelDetector(3, 10.0, 20.0, 0.8, 0, 0)
     changed = d.update(np.array([0, 2]), np.array([25.0, 12.0]), np.array([0, 0]))
     assert changed.tolist() == [0, 1] and d.level.tolist() == [FAULT, OK, WARN]
+
+
+def test_fault_levels_wait_for_the_warm_up_and_keep_levels_across_a_restart():
+    """The fault-channel rule: nothing is evaluated during the warm-up after a (re)start, the persistence runs
+    from the first warm sample, a restart holds the level, and an unusable row is left alone."""
+    alarms = AlarmThresholds(
+        torque_warn_nm=10.0, torque_fault_nm=20.0, steer_warn_rad=0.01, steer_fault_rad=0.02,
+        raise_after_s=0.05, clear_after_s=0.1, warmup_s=0.1,
+    )  # fmt: skip
+    levels = FaultLevels(2, alarms)
+    rows = np.array([0, 1])
+    levels.restart(rows, np.array([0, 0]))
+    torque_row0: list[int] = []
+    for k in range(30):  # row 0: |T_f| = 30 N m from the start; row 1: |delta_f| = 0.015 rad
+        t = np.full(2, k * 10 * MS)
+        levels.update(rows, np.array([[30.0, 0.0], [0.0, -0.015]]), t)
+        torque_row0.append(int(levels.torque.level[0]))
+    # warm from 100 ms (sample 10); held 50 ms from there: FAULT at sample 15, never WARN first (both held)
+    assert torque_row0[:15] == [OK] * 15 and torque_row0[15:] == [FAULT] * 15
+    assert levels.steer.level.tolist() == [OK, WARN] and levels.torque.level[1] == OK
+    # a restart at 300 ms keeps FAULT; in the new warm-up even values of 0 do not clear it
+    levels.restart(np.array([0]), np.array([300 * MS]))
+    after_restart = []
+    for k in range(30, 60):
+        changed = levels.update(np.array([0]), np.array([[0.0, 0.0]]), np.array([k * 10 * MS]))
+        after_restart.append((len(changed), int(levels.torque.level[0])))
+    # warm again from 400 ms; below both hysteresis bands for 100 ms from there: OK at 500 ms (sample 50)
+    assert after_restart[:20] == [(0, FAULT)] * 20 and after_restart[20] == (1, OK)
+    # an unusable (non-finite) estimate moves nothing
+    before = levels.steer.level.copy()
+    levels.update(rows, np.array([[np.nan, np.nan], [np.nan, np.nan]]), np.full(2, 600 * MS), np.array([False, False]))
+    assert levels.steer.level.tolist() == before.tolist()
 
 
 class InFull(LevelDetector):
