@@ -12,6 +12,7 @@ COMMANDS = {
     "synth": "agv_fe.commands.synth",
     "simulate": "agv_fe.commands.simulate",
     "replay": "agv_fe.commands.replay",
+    "calibrate": "agv_fe.commands.calibrate",
     "compare": "agv_fe.commands.compare",
     "serve": "agv_fe.commands.serve",
     "fleet": "agv_fe.commands.fleet",

@@ -151,6 +151,16 @@ class SynthesisJobs:
             )
         return self._executor
 
+    async def run_in_worker(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """Run ``fn(*args)`` in a worker process (plain data in and out) and wait for it: CPU-heavy work
+        (a calibration) that must not stall the ingest loop. A worker that dies is replaced at the next call."""
+        loop = asyncio.get_running_loop()
+        try:
+            return await loop.run_in_executor(self._pool(), fn, *args)
+        except BrokenProcessPool:
+            self._executor = None
+            raise
+
     def get(self, job_id: str) -> Job | None:
         return self._jobs.get(job_id)
 

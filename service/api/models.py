@@ -327,3 +327,61 @@ class Acknowledgement(BaseModel):
 
     by: str | None = Field(None, max_length=100, description="who acknowledges (free text)")
     note: str | None = Field(None, max_length=500)
+
+
+class RecordingUpload(BaseModel):
+    """One recording in the replay CSV format (header t, vx, r, torque, steer; a row every 10 ms)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field("recording.csv", max_length=200, description="shown in messages")
+    csv: str = Field(min_length=1, max_length=16_000_000, description="the CSV text, header first")
+
+
+class CalibrationRequest(BaseModel):
+    """The body of ``POST /profiles/{name}/calibration``: healthy recordings and what the data sheet gives."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {
+                    "base": {
+                        "params": {
+                            "mass_kg": 1226.0,
+                            "front_axle_distance_m": 0.88,
+                            "rear_axle_distance_m": 1.51,
+                            "wheel_radius_m": 0.344,
+                            "yaw_inertia_kgm2": 1539.0,
+                        }
+                    },
+                    "recordings": [
+                        {"name": "drive-1.csv", "csv": "t,vx,r,torque,steer\n0.00,15.02,0.001,120.0,0.002\n"}
+                    ],
+                    "false_alarms_per_1000_h": 1.0,
+                }
+            ]
+        },
+    )
+
+    base: dict[str, JsonValue] | None = Field(
+        None,
+        description="{'params': {...}, 'design': {...}, 'alarms': {...}}: what is known (params.mass_kg, "
+        "front_axle_distance_m, rear_axle_distance_m, wheel_radius_m at least); omitted: the profile's own "
+        "parameters, design options and alarm settings",
+    )
+    recordings: list[RecordingUpload] = Field(min_length=1, max_length=16)
+    false_alarms_per_1000_h: float = Field(1.0, gt=0, le=1e6, description="the thresholds' false-alarm rate")
+    nominal_torque_nm: float | None = Field(
+        None, gt=0, description="the drive torque a 10 % torque fault is measured against [N m]"
+    )
+
+
+class CalibrationProposal(BaseModel):
+    """A calibrated profile, not applied: ``PUT /profiles/{name}`` with ``profile`` applies it."""
+
+    profile_name: str
+    profile: ProfileSpec
+    report: dict[str, JsonValue] = Field(
+        description="parameters with 95 % intervals, sensor noise, fit residuals, thresholds, warnings"
+    )

@@ -6,60 +6,15 @@ import dataclasses
 import numpy as np
 import pytest
 
-from edge_client.scenario import Manoeuvre, Scenario, SensorNoise, SpeedPoint
-from edge_client.simulation import simulate_plant
+from edge_client.scenario import Manoeuvre
 from synth.calibration import CalibrationRefused, Drive, calibrate
 from synth.params import VehicleParams
-
-#: A physical car with everything calibration identifies switched on.
-CAR = VehicleParams(
-    mass_kg=1230.0,
-    effective_mass_kg=1290.0,
-    wheel_radius_m=0.33,
-    yaw_inertia_kgm2=1540.0,
-    front_axle_distance_m=0.9,
-    rear_axle_distance_m=1.5,
-    front_cornering_stiffness_npr=80000.0,
-    rear_cornering_stiffness_npr=50000.0,
-    longitudinal_drag_coeff=0.4,
-    rolling_resistance_n=150.0,
-    cornering_drag=True,
-    steer_time_constant_s=0.04,
-)
-BASE = {
-    name: getattr(CAR, name)
-    for name in ("mass_kg", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m", "yaw_inertia_kgm2")
-}
-NOISE = SensorNoise(vx_sigma_mps=0.05, r_sigma_radps=0.005)
-
-
-def _drive(name: str, duration_s: float, speeds, manoeuvres, seed: int = 3) -> Drive:
-    scenario = Scenario(
-        name=name,
-        duration_s=duration_s,
-        initial_speed_mps=speeds[0][1],
-        vehicle=CAR,
-        speed_profile=[SpeedPoint(t_s=t, speed_mps=v) for t, v in speeds],
-        manoeuvres=manoeuvres,
-        noise=NOISE,
-        seed=seed,
-    )
-    rec = simulate_plant([scenario])
-    return Drive(t=rec.t, y=rec.y[:, 0, :], u=rec.u[:, 0, :], name=name)
+from tests.calibration_data import BASE, CAR, healthy_drive, simulated_drive
 
 
 @pytest.fixture(scope="module")
 def healthy() -> Drive:
-    """A minute of ordinary driving: speed changes between 9 and 22 m/s, turns, lane changes, slaloms."""
-    speeds = [(0, 10), (7, 18), (12, 18), (18, 9), (24, 9), (30, 20), (38, 20), (44, 12), (50, 12), (56, 17), (60, 17)]
-    manoeuvres = [
-        Manoeuvre(kind="slalom", start_s=1, duration_s=5, amplitude_rad=0.03),
-        Manoeuvre(kind="turn", start_s=13, duration_s=4, amplitude_rad=0.04, ramp_s=0.5),
-        Manoeuvre(kind="lane_change", start_s=25, duration_s=4, amplitude_rad=-0.04),
-        Manoeuvre(kind="turn", start_s=39, duration_s=4, amplitude_rad=-0.03, ramp_s=0.4),
-        Manoeuvre(kind="slalom", start_s=50, duration_s=6, amplitude_rad=0.035),
-    ]
-    return _drive("healthy", 60.0, speeds, manoeuvres)
+    return healthy_drive()
 
 
 @pytest.fixture(scope="module")
@@ -120,12 +75,12 @@ def test_refuses_too_little_driving(healthy):
 
 
 def test_refuses_data_without_cornering():
-    straight = _drive("straight", 40.0, [(0, 10), (10, 20), (20, 10), (30, 20), (40, 20)], [])
+    straight = simulated_drive("straight", 40.0, [(0, 10), (10, 20), (20, 10), (30, 20), (40, 20)], [])
     assert _refusal([straight]).startswith("no cornering")
 
 
 def test_refuses_data_without_acceleration():
-    steady = _drive(
+    steady = simulated_drive(
         "steady",
         40.0,
         [(0, 15), (40, 15)],

@@ -5,6 +5,7 @@ the observer's saturated evaluation, designs with it must be certified, and the 
 implement eq. (19) with phi_c as written. Profiles of the paper keep their hashes.
 """
 
+import dataclasses
 import json
 
 import numpy as np
@@ -13,6 +14,8 @@ import scipy.optimize
 from hypothesis import given, settings
 from hypothesis import strategies as hst
 
+from edge_client.plant import PlantSimulator
+from edge_client.scenario import Manoeuvre, Scenario
 from synth.augmented import AugmentedModel, front_force_bound_n
 from synth.design import synthesize
 from synth.errors import ShapeError
@@ -22,10 +25,11 @@ from synth.model import (
     continuous_dynamics,
     continuous_matrices,
     euler_step,
+    lagged_steer,
     longitudinal_resistance_n,
     state_matrix,
 )
-from synth.observer import RuntimeGains, initial_observer_state, observer_step
+from synth.observer import FuzzyObserver, RuntimeGains, initial_observer_state, observer_step
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
 from tests.synth import strategies as st
@@ -217,3 +221,73 @@ def test_the_step_names_a_batch_of_the_wrong_shape(car_gains):
         observer_step(rt, z, np.ones((3, 2)), np.ones((3, 3)))
     with pytest.raises(ShapeError, match="of z matrix"):
         observer_step(rt, z[:2], np.ones((3, 2)), np.ones((3, 2)))
+
+
+def test_the_lagged_steering_is_the_exact_mean_of_a_first_order_actuator():
+    """A step of the demand at k = 0 from rest: delta_k = 1 - a^k at the samples, and the model's input is the
+    mean over each sample, 1 - a^k (tau / s)(1 - a)."""
+    p = VehicleParams(steer_time_constant_s=0.04)
+    a = np.exp(-0.01 / 0.04)
+    got = lagged_steer(np.ones(50), p, initial_rad=0.0)
+    k = np.arange(50)
+    np.testing.assert_allclose(got, 1.0 - a**k * (0.04 / 0.01) * (1.0 - a), rtol=0, atol=1e-15)
+    # the mean, by quadrature of the continuous lag 1 - exp(-t / tau) over [t_k, t_k+1)
+    t = np.linspace(0.0, 0.01, 20001)
+    np.testing.assert_allclose(got[3], np.trapezoid(1.0 - np.exp(-(0.03 + t) / 0.04), t) / 0.01, rtol=1e-9)
+    np.testing.assert_array_equal(lagged_steer(np.arange(5.0), VehicleParams()), np.arange(5.0))  # ideal actuator
+
+
+def test_the_plants_actuator_follows_the_same_lag():
+    """The plant integrates the continuous lag inside its RK4 substeps; at the samples it is the exact lag."""
+    params = CAR.model_copy(update={"steer_time_constant_s": 0.05})
+    scenario = Scenario(
+        name="step-steer",
+        duration_s=1.0,
+        initial_speed_mps=15.0,
+        vehicle=params,
+        manoeuvres=[Manoeuvre(kind="turn", start_s=0.2, duration_s=0.8, amplitude_rad=0.02, ramp_s=0.0)],
+    )
+    plant = PlantSimulator([scenario], prefetch=False)
+    angles, demands = [], []
+    for _ in range(100):
+        sample = plant.step()
+        demands.append(sample.u[0, 1])
+        angles.append(float(plant.steer_angle[0]))
+    a = params.steer_lag_factor
+    expected, state = [], demands[0]
+    for d in demands:
+        state = a * state + (1 - a) * d
+        expected.append(state)
+    np.testing.assert_allclose(angles, expected, rtol=0, atol=1e-12)
+
+
+def test_an_observer_with_a_lag_is_the_lag_free_observer_fed_the_lagged_demand(car_gains):
+    """The actuator model is a known prefilter: the certified observer's state and gains are unchanged."""
+    lagged_params = car_gains.params.model_copy(update={"steer_time_constant_s": 0.04})
+    with_lag = dataclasses.replace(car_gains, params=lagged_params)
+    rng = np.random.default_rng(1)
+    K = 300
+    y = np.column_stack([15.0 + 0.01 * rng.standard_normal(K), 0.1 * np.sin(np.arange(K) / 40.0)])
+    u = np.column_stack([200.0 + 20 * rng.standard_normal(K), 0.03 * np.sin(np.arange(K) / 40.0)])
+    lagged = u.copy()
+    lagged[:, 1] = lagged_steer(u[:, 1], lagged_params)
+    a = FuzzyObserver(with_lag, y[:1], None, u[:1])
+    b = FuzzyObserver(car_gains, y[:1])
+    assert a.z.shape[1] == b.z.shape[1] + 1
+    for k in range(K):
+        ra, rb = a.step(y[k : k + 1], u[k : k + 1]), b.step(y[k : k + 1], lagged[k : k + 1])
+        np.testing.assert_allclose(ra.x_hat, rb.x_hat, rtol=1e-12, atol=1e-12)
+
+
+def test_the_paper_profile_keeps_the_designs_made_before_the_physical_fields():
+    """The paper's profile hashes as it did when the effective mass was named longitudinal_inertia_kgm2 and the
+    new fields did not exist: its stored gains keep their versions."""
+    p = VehicleParams()
+    legacy_params = {k: v for k, v in p.model_dump().items() if k not in ("wheel_radius_m", "rolling_resistance_n",
+                     "cornering_drag", "steer_time_constant_s", "effective_mass_kg")}  # fmt: skip
+    legacy_params["longitudinal_inertia_kgm2"] = 443.0
+    bounds = {k: v for k, v in OperatingBounds().model_dump().items() if k not in ("steer_max_rad",
+              "front_lateral_force_max_n")}  # fmt: skip
+    assert p.hashed() == legacy_params and OperatingBounds().hashed() == bounds
+    physical = p.model_copy(update={"wheel_radius_m": 0.3})
+    assert physical.hashed() != legacy_params

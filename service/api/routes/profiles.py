@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from concurrent.futures.process import BrokenProcessPool
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Query, Response, status
 
 from service.api.deps import Operator, ServiceDep, profile_bank
-from service.api.models import GainsInfo, ProfileChange, ProfileInfo
+from service.api.models import CalibrationProposal, CalibrationRequest, GainsInfo, ProfileChange, ProfileInfo
 from service.app import Service
+from service.calibration import run_calibration
 from service.fleet import ProfileBank
 from service.profiles import PROFILE_NAME_PATTERN, ProfileSpec
 
@@ -72,6 +74,55 @@ async def resynthesise(
     job = service.resynthesise(name)
     response.headers["Location"] = f"/jobs/{job.id}"
     return ProfileChange(profile=name, job=job.id, applied=False)
+
+
+@router.post(
+    "/{name}/calibration",
+    response_model=CalibrationProposal,
+    responses={
+        **AUTH,
+        404: {"description": "no such profile, and no base parameters given"},
+        422: {"description": "a bad recording, or recordings that cannot identify the vehicle (the reason)"},
+        503: {"description": "the calibration worker died"},
+    },
+    summary="a profile calibrated from healthy recordings: proposed, applied only by a PUT",
+)
+async def calibrate(
+    service: ServiceDep, name: ProfileName, body: CalibrationRequest, _operator: Operator
+) -> CalibrationProposal:
+    base: dict[str, Any] | None = body.base
+    if base is None:
+        bank = service.engine.banks.get(name)
+        if bank is None:
+            raise HTTPException(
+                status.HTTP_404_NOT_FOUND,
+                detail=f"no profile {name!r} to take the base parameters from: give 'base' with params.mass_kg, "
+                "front_axle_distance_m, rear_axle_distance_m and wheel_radius_m",
+            )
+        spec = bank.spec
+        known = ("mass_kg", "yaw_inertia_kgm2", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m")
+        base = {
+            "params": {k: getattr(spec.params, k) for k in known},
+            "design": spec.design.model_dump(mode="json", exclude_unset=True),
+            "alarms": spec.alarms.model_dump(mode="json"),
+        }
+    elif not isinstance(base.get("params"), dict):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, detail="base.params must be an object")
+    request = {
+        "base": base,
+        "recordings": [r.model_dump() for r in body.recordings],
+        "false_alarms_per_1000_h": body.false_alarms_per_1000_h,
+        "nominal_torque_nm": body.nominal_torque_nm,
+    }
+    try:
+        outcome = await service.jobs.run_in_worker(run_calibration, request)
+    except BrokenProcessPool as exc:
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, detail=f"the calibration worker died: {exc}") from exc
+    if not outcome["ok"]:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, detail=f"{outcome['error']}: {outcome['reason']}")
+    return CalibrationProposal(
+        profile_name=name, profile=ProfileSpec.model_validate(outcome["profile"]), report=outcome["report"]
+    )
 
 
 @router.get(

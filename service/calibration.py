@@ -1,0 +1,366 @@
+"""A complete vehicle profile from healthy recordings: identification, design, thresholds.
+
+``agv-fe calibrate`` and ``POST /profiles/{name}/calibration`` both run
+:func:`calibrate_profile`:
+
+1. identify the vehicle parameters, the operating box and the sensor noise
+   (synth.calibration: grey-box least squares with confidence intervals);
+2. design the default observer for them, with the measured sensor noise in
+   its noise model (synth.design);
+3. replay the healthy recordings through that observer and set each fault
+   channel's WARN and FAULT thresholds from the healthy estimates for a stated
+   false-alarm rate (:func:`fault_thresholds`), next to the certified error
+   bound of the design;
+4. say what the thresholds cost: the smallest bias each channel then
+   detects, with a warning when it would hide a fault of 10 % of the nominal
+   drive torque or of 0.02 rad of steering.
+
+The result is a :class:`~service.profiles.ProfileSpec` (params, bounds,
+design, alarms), the body ``PUT /profiles/{name}`` takes and the file
+``synth --params`` and ``replay --params`` read.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.stats
+
+from service.profiles import AlarmThresholds, ProfileSpec
+from synth.calibration import CalibrationOptions, CalibrationResult, Drive, calibrate
+from synth.design import synthesize
+from synth.gains import ObserverGains
+from synth.model import FloatArray
+from synth.observer import FuzzyObserver
+from synth.options import DesignOptions, NoiseModel
+
+#: The paper's profile's m_eff R_w [kg m]: the default noise model's torque rates and scales are tuned for it.
+PAPER_TORQUE_SCALE_KGM = 443.0
+#: The nominal drive torque, when not given, is that of this acceleration [m/s^2].
+NOMINAL_ACCEL_MPS2 = 2.0
+#: Faults every profile must be able to see: a torque bias of this share of the nominal drive torque, and a
+#: steering bias of this angle [rad].
+REQUIRED_TORQUE_SHARE = 0.10
+REQUIRED_STEER_RAD = 0.02
+#: The certified decay rates per sample calibration chooses from (without one in the design options): the
+#: fastest certified rate that the wide DMVT bounds of the cornering drag allow costs noise, so calibration
+#: keeps the one whose healthy residuals let the smallest faults through the thresholds.
+DECAY_RATE_CANDIDATES = (0.994, 0.997, 0.999)
+#: FAULT thresholds are this multiple of the WARN thresholds.
+FAULT_OVER_WARN = 1.6
+#: The thresholds stay at least this far above the largest healthy excursion that lasted the persistence time.
+PEAK_MARGIN = 1.25
+CHANNELS = ("torque", "steer")
+UNITS = {"torque": "N m", "steer": "rad"}
+
+
+@dataclass(frozen=True)
+class ChannelThresholds:
+    """One fault channel: the healthy statistics, the thresholds, and what they let through.
+
+    sigma : RMS of the healthy fault estimate after the warm-up [N m or rad]
+    healthy_peak : the largest |estimate| the healthy recordings held for the alarm's persistence time
+    certified_rms : the design's certified bound on the RMS estimation error under its noise model
+    warn, fault : the thresholds
+    smallest_warn_bias, smallest_fault_bias : the smallest bias that holds the estimate above WARN / FAULT
+        through its noise (threshold + 2 sigma)
+    required_bias : the fault the channel must be able to see (10 % of the nominal torque, 0.02 rad)
+    """
+
+    sigma: float
+    healthy_peak: float
+    certified_rms: float
+    warn: float
+    fault: float
+    smallest_warn_bias: float
+    smallest_fault_bias: float
+    required_bias: float
+
+    @property
+    def hides_required_fault(self) -> bool:
+        return self.smallest_fault_bias > self.required_bias
+
+
+@dataclass(frozen=True)
+class CalibrationReport:
+    """Everything ``agv-fe calibrate`` prints, and the profile it writes."""
+
+    profile: ProfileSpec
+    calibration: CalibrationResult
+    gains: ObserverGains
+    thresholds: dict[str, ChannelThresholds]
+    nominal_torque_nm: float
+    false_alarms_per_1000_h: float
+    warnings: list[str] = field(default_factory=list)
+
+    def profile_document(self) -> dict[str, Any]:
+        """The profile as JSON: complete params, bounds, design options and alarms."""
+        return self.profile.model_dump(mode="json")
+
+    def summary(self) -> dict[str, Any]:
+        """A JSON-ready account of the calibration (parameters with intervals, residuals, thresholds)."""
+        cal = self.calibration
+        return {
+            "duration_s": cal.duration_s,
+            "peak_lateral_accel_mps2": cal.peak_lateral_accel_mps2,
+            "estimates": {
+                name: {"value": e.value, "ci95": [e.low, e.high], "identified": e.identified}
+                for name, e in cal.estimates.items()
+            },
+            "sensor_noise": cal.noise,
+            "residuals": cal.residuals,
+            "steer_offset_rad": cal.steer_offset_rad,
+            "gain_version": self.gains.version,
+            "certified_decay_rate": self.gains.certificate.decay_rate,
+            "nominal_torque_nm": self.nominal_torque_nm,
+            "false_alarms_per_1000_h": self.false_alarms_per_1000_h,
+            "thresholds": {name: vars(t) | {"unit": UNITS[name]} for name, t in self.thresholds.items()},
+            "warnings": list(self.warnings),
+            "notes": list(cal.notes),
+        }
+
+
+def noise_model(result: CalibrationResult) -> NoiseModel:
+    """The design's noise model for a calibrated vehicle: the measured sensor sigmas, and the default torque
+    rates and scales carried over in acceleration terms (they were tuned for m_eff R_w = 443 kg m)."""
+    params = result.params
+    ratio = params.effective_mass_kg * params.wheel_radius_m / PAPER_TORQUE_SCALE_KGM
+    default = NoiseModel()
+    return default.model_copy(
+        update={
+            "vx_sigma_mps": result.noise["vx_sigma_mps"],
+            "r_sigma_radps": result.noise["r_sigma_radps"],
+            "torque_fault_rate_nm_per_s": default.torque_fault_rate_nm_per_s * ratio,
+            "torque_fault_scale_nm": default.torque_fault_scale_nm * ratio,
+        }
+    )
+
+
+def calibrate_profile(
+    drives: Sequence[Drive],
+    base: dict[str, Any],
+    *,
+    design: dict[str, Any] | None = None,
+    alarms: dict[str, Any] | None = None,
+    nominal_torque_nm: float | None = None,
+    false_alarms_per_1000_h: float = 1.0,
+    description: str = "",
+    options: CalibrationOptions | None = None,
+) -> CalibrationReport:
+    """Identify, design and set thresholds; raise synth.calibration.CalibrationRefused or a SynthesisError.
+
+    base : vehicle parameters a data sheet gives (synth.calibration.REQUIRED_BASE_FIELDS at least);
+    design : design options to keep (the noise model's sensor sigmas are replaced by the measured ones);
+    alarms : alarm settings to keep (persistence, warm-up...; the four fault thresholds are set here);
+    nominal_torque_nm : the drive torque a 10 % fault is measured against (default: m_eff R_w 2 m/s^2).
+    """
+    if not (false_alarms_per_1000_h > 0 and math.isfinite(false_alarms_per_1000_h)):
+        raise ValueError(f"false_alarms_per_1000_h must be positive, got {false_alarms_per_1000_h}")
+    result = calibrate(drives, base, options)
+    params = result.params
+    chosen = dict(design or {})
+    noise = noise_model(result)
+    if isinstance(chosen.get("noise"), dict):
+        noise = noise.model_copy(update={k: v for k, v in chosen["noise"].items() if "sigma" not in k})
+    chosen["noise"] = noise.model_dump()
+    alarm_base = AlarmThresholds.model_validate(alarms or {})
+    nominal = nominal_torque_nm or params.effective_mass_kg * params.wheel_radius_m * NOMINAL_ACCEL_MPS2
+    rates = [chosen["robust_decay_rate"]] if "robust_decay_rate" in chosen else list(DECAY_RATE_CANDIDATES)
+    candidates: list[tuple[float, ObserverGains, dict[str, ChannelThresholds]]] = []
+    for rate in rates:
+        design_options = DesignOptions.model_validate({**chosen, "robust_decay_rate": rate})
+        gains = synthesize(params, result.bounds, design_options)
+        estimates = healthy_fault_estimates(gains, drives, alarm_base.warmup_s)
+        thresholds = {
+            channel: fault_thresholds(
+                estimates[:, i],
+                certified_rms(gains, i),
+                sample_period_s=params.sample_period_s,
+                persistence_s=alarm_base.raise_after_s,
+                false_alarms_per_1000_h=false_alarms_per_1000_h,
+                required_bias=nominal * REQUIRED_TORQUE_SHARE if channel == "torque" else REQUIRED_STEER_RAD,
+            )
+            for i, channel in enumerate(CHANNELS)
+        }
+        # the smallest faults the channels then detect, each relative to the fault it must see
+        score = sum(t.smallest_fault_bias / t.required_bias for t in thresholds.values())
+        candidates.append((score, gains, thresholds))
+    _, gains, thresholds = min(candidates, key=lambda candidate: candidate[0])
+    design_options = gains.options
+    warnings = [_hiding(channel, t, nominal) for channel, t in thresholds.items() if t.hides_required_fault]
+    alarm_settings = alarm_base.model_copy(
+        update={
+            "torque_warn_nm": thresholds["torque"].warn,
+            "torque_fault_nm": thresholds["torque"].fault,
+            "steer_warn_rad": thresholds["steer"].warn,
+            "steer_fault_rad": thresholds["steer"].fault,
+        }
+    )
+    profile = ProfileSpec(
+        description=description
+        or f"calibrated from {len(drives)} recording(s), {result.duration_s:.0f} s of healthy driving",
+        params=params,
+        bounds=result.bounds,
+        design=design_options,
+        alarms=AlarmThresholds.model_validate(alarm_settings.model_dump()),
+    )
+    return CalibrationReport(
+        profile=profile,
+        calibration=result,
+        gains=gains,
+        thresholds=thresholds,
+        nominal_torque_nm=nominal,
+        false_alarms_per_1000_h=false_alarms_per_1000_h,
+        warnings=warnings,
+    )
+
+
+def healthy_fault_estimates(gains: ObserverGains, drives: Sequence[Drive], warmup_s: float) -> FloatArray:
+    """The observer's fault estimates [T_f, delta_f] over the healthy drives, each after its warm-up, (K, 2)."""
+    parts = []
+    for drive in drives:
+        observer = FuzzyObserver(gains, drive.y[:1], None, drive.u[:1])
+        faults = np.empty((len(drive), 2))
+        for k in range(len(drive)):
+            faults[k] = observer.step(drive.y[k : k + 1], drive.u[k : k + 1]).faults[0]
+        start = round(warmup_s / gains.params.sample_period_s)
+        parts.append(faults[start:])
+    return np.concatenate(parts) if parts else np.zeros((0, 2))
+
+
+def certified_rms(gains: ObserverGains, channel: int) -> float:
+    """The RMS error of one reported fault the design certifies under its noise model: scale * sqrt(H2 bound).
+
+    The bound covers the weighted sum over both channels, every operating point and every rho, so it is an
+    upper bound per channel too. NaN for designs without a cost bound (the paper's)."""
+    bound = gains.certificate.performance.get("h2_cost_bound")
+    if bound is None:
+        return float("nan")
+    noise = gains.options.noise
+    scale = noise.torque_fault_scale_nm if channel == 0 else noise.steer_fault_scale_rad
+    return float(scale * math.sqrt(bound))
+
+
+def fault_thresholds(
+    estimate: FloatArray,
+    certified: float,
+    *,
+    sample_period_s: float,
+    persistence_s: float,
+    false_alarms_per_1000_h: float,
+    required_bias: float,
+) -> ChannelThresholds:
+    """WARN and FAULT for one channel from its healthy estimates, for a stated false-alarm rate.
+
+    An alarm needs |estimate| >= WARN without a break for ``persistence_s``. Model the healthy estimate as
+    Gaussian with its RMS sigma and count one chance per persistence window: n = 3600 / persistence_s an hour.
+    For a rate lambda per hour, P(|e| >= WARN) = 2 Q(WARN / sigma) <= lambda / n. WARN is that, and never
+    below PEAK_MARGIN times the largest excursion the recordings held for the persistence time (a
+    recording longer than its Gaussian tail). FAULT = FAULT_OVER_WARN x WARN.
+    """
+    magnitude = np.abs(np.asarray(estimate, dtype=float))
+    sigma = float(np.sqrt(np.mean(magnitude**2))) if magnitude.size else 0.0
+    window = max(1, round(persistence_s / sample_period_s))
+    held = _running_min(magnitude, window)
+    peak = float(held.max()) if held.size else 0.0
+    per_hour = false_alarms_per_1000_h / 1000.0
+    chances = 3600.0 / max(persistence_s, sample_period_s)
+    z = float(scipy.stats.norm.isf(per_hour / chances / 2.0))
+    warn = max(z * sigma, PEAK_MARGIN * peak, np.finfo(float).tiny)
+    fault = FAULT_OVER_WARN * warn
+    return ChannelThresholds(
+        sigma=sigma,
+        healthy_peak=peak,
+        certified_rms=certified,
+        warn=_round_up(warn),
+        fault=_round_up(fault),
+        smallest_warn_bias=warn + 2.0 * sigma,
+        smallest_fault_bias=fault + 2.0 * sigma,
+        required_bias=required_bias,
+    )
+
+
+def _running_min(x: FloatArray, window: int) -> FloatArray:
+    """min over each run of ``window`` consecutive samples, (K - window + 1,)."""
+    if x.size < window:
+        return np.zeros(0)
+    return np.asarray(np.lib.stride_tricks.sliding_window_view(x, window).min(axis=1))
+
+
+def _round_up(value: float) -> float:
+    """To three significant digits, upwards (thresholds read well and never fall below what was computed)."""
+    if value <= 0:
+        return value
+    digits = 3 - math.floor(math.log10(value)) - 1
+    factor = 10.0**digits
+    return math.ceil(value * factor) / factor
+
+
+def _hiding(channel: str, t: ChannelThresholds, nominal_torque_nm: float) -> str:
+    unit = UNITS[channel]
+    what = (
+        f"a torque fault of 10 % of the nominal drive torque ({t.required_bias:.4g} {unit} of {nominal_torque_nm:.4g})"
+        if channel == "torque"
+        else f"a steering fault of {t.required_bias:g} {unit}"
+    )
+    return (
+        f"the {channel} thresholds would hide {what}: FAULT {t.fault:.4g} {unit} needs a bias of about "
+        f"{t.smallest_fault_bias:.4g} {unit}. The healthy estimate varies by {t.sigma:.3g} {unit} RMS (largest "
+        f"held excursion {t.healthy_peak:.3g}); calibrate from recordings of the vehicle's usual driving, check "
+        "the sensors' noise, or accept a higher false-alarm rate (--false-alarms)"
+    )
+
+
+def run_calibration(request: dict[str, Any]) -> dict[str, Any]:
+    """Worker-process entry point of ``POST /profiles/{name}/calibration``: plain data in and out.
+
+    request : {"base": {"params", "design"?, "alarms"?, "description"?}, "recordings": [{"name", "csv"}],
+    "false_alarms_per_1000_h", "nominal_torque_nm"}. Returns {"ok": True, "profile", "report"} or
+    {"ok": False, "error": "bad_recording" | "refused" | "design_failed" | "bad_request", "reason"}.
+    """
+    from edge_client.recording import RecordingError, parse_recording
+    from synth.calibration import CalibrationRefused
+    from synth.errors import SynthesisError
+
+    base = request["base"]
+    period = float(base["params"].get("sample_period_s", 0.01))
+    drives = []
+    for item in request["recordings"]:
+        try:
+            rec = parse_recording(item["csv"].splitlines(), period, source=item["name"])
+        except RecordingError as exc:
+            return {"ok": False, "error": "bad_recording", "reason": str(exc)}
+        drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=item["name"]))
+    try:
+        report = calibrate_profile(
+            drives,
+            base["params"],
+            design=base.get("design"),
+            alarms=base.get("alarms"),
+            nominal_torque_nm=request.get("nominal_torque_nm"),
+            false_alarms_per_1000_h=float(request.get("false_alarms_per_1000_h", 1.0)),
+            description=str(base.get("description", "")),
+        )
+    except CalibrationRefused as exc:
+        return {"ok": False, "error": "refused", "reason": exc.reason}
+    except SynthesisError as exc:
+        return {"ok": False, "error": "design_failed", "reason": str(exc)}
+    except ValueError as exc:
+        return {"ok": False, "error": "bad_request", "reason": str(exc)}
+    return {"ok": True, "profile": report.profile_document(), "report": _jsonable(report.summary())}
+
+
+def _jsonable(value: Any) -> Any:
+    """numpy scalars and NaN out of a summary: plain JSON (NaN becomes None)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, bool | str) or value is None:
+        return value
+    number = float(value)
+    return number if math.isfinite(number) else None

@@ -1,0 +1,77 @@
+"""A healthy drive of a physical car simulated by the project's own model, shared by the calibration tests.
+
+Simulated once per test process (about 15 s): the calibration tests of synth, of the command line and of
+the REST API all start from the same minute of driving.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from functools import lru_cache
+from pathlib import Path
+
+from edge_client.recording import write_recording
+from edge_client.scenario import Manoeuvre, Scenario, SensorNoise, SpeedPoint
+from edge_client.simulation import simulate_plant
+from synth.calibration import Drive
+from synth.params import VehicleParams
+
+#: A physical car with everything calibration identifies switched on.
+CAR = VehicleParams(
+    mass_kg=1230.0,
+    effective_mass_kg=1290.0,
+    wheel_radius_m=0.33,
+    yaw_inertia_kgm2=1540.0,
+    front_axle_distance_m=0.9,
+    rear_axle_distance_m=1.5,
+    front_cornering_stiffness_npr=80000.0,
+    rear_cornering_stiffness_npr=50000.0,
+    longitudinal_drag_coeff=0.4,
+    rolling_resistance_n=150.0,
+    cornering_drag=True,
+    steer_time_constant_s=0.04,
+)
+#: What the car's data sheet gives.
+BASE = {
+    name: getattr(CAR, name)
+    for name in ("mass_kg", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m", "yaw_inertia_kgm2")
+}
+NOISE = SensorNoise(vx_sigma_mps=0.05, r_sigma_radps=0.005)
+
+
+def simulated_drive(name: str, duration_s: float, speeds, manoeuvres, seed: int = 3) -> Drive:
+    """The car driven by the project's plant (RK4, 1 ms) through a speed profile and open-loop manoeuvres."""
+    scenario = Scenario(
+        name=name,
+        duration_s=duration_s,
+        initial_speed_mps=speeds[0][1],
+        vehicle=CAR,
+        speed_profile=[SpeedPoint(t_s=t, speed_mps=v) for t, v in speeds],
+        manoeuvres=manoeuvres,
+        noise=NOISE,
+        seed=seed,
+    )
+    rec = simulate_plant([scenario])
+    return Drive(t=rec.t, y=rec.y[:, 0, :], u=rec.u[:, 0, :], name=name)
+
+
+@lru_cache(maxsize=1)
+def healthy_drive() -> Drive:
+    """A minute of ordinary driving: speed changes between 9 and 20 m/s, turns, lane changes, slaloms."""
+    speeds = [(0, 10), (7, 18), (12, 18), (18, 9), (24, 9), (30, 20), (38, 20), (44, 12), (50, 12), (56, 17), (60, 17)]
+    manoeuvres = [
+        Manoeuvre(kind="slalom", start_s=1, duration_s=5, amplitude_rad=0.03),
+        Manoeuvre(kind="turn", start_s=13, duration_s=4, amplitude_rad=0.04, ramp_s=0.5),
+        Manoeuvre(kind="lane_change", start_s=25, duration_s=4, amplitude_rad=-0.04),
+        Manoeuvre(kind="turn", start_s=39, duration_s=4, amplitude_rad=-0.03, ramp_s=0.4),
+        Manoeuvre(kind="slalom", start_s=50, duration_s=6, amplitude_rad=0.035),
+    ]
+    return simulated_drive("healthy", 60.0, speeds, manoeuvres)
+
+
+def csv_text(drive: Drive) -> str:
+    """The drive in the replay CSV format."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "drive.csv"
+        write_recording(out, drive.t, drive.y, drive.u)
+        return out.read_text()
