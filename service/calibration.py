@@ -54,6 +54,10 @@ DECAY_RATE_CANDIDATES = (0.994, 0.997, 0.999)
 FAULT_OVER_WARN = 1.6
 #: The thresholds stay at least this far above the largest healthy excursion that lasted the persistence time.
 PEAK_MARGIN = 1.25
+#: ... and WARN is at least this share of the fault the channel must see: a couple of minutes of recordings
+#: cannot show every condition the vehicle will meet (a harder corner, another load), and a WARN at a quarter
+#: of the required fault still detects it with room to spare (FAULT then sits at 40 % of it).
+REQUIRED_SHARE_FLOOR = 0.25
 CHANNELS = ("torque", "steer")
 UNITS = {"torque": "N m", "steer": "rad"}
 
@@ -219,6 +223,25 @@ def calibrate_profile(
     )
 
 
+def calibrate_from_base(
+    drives: Sequence[Drive],
+    base: dict[str, Any],
+    *,
+    nominal_torque_nm: float | None = None,
+    false_alarms_per_1000_h: float = 1.0,
+) -> CalibrationReport:
+    """:func:`calibrate_profile` with a base document: {"params": {...}, "design"?, "alarms"?, "description"?}."""
+    return calibrate_profile(
+        drives,
+        base["params"],
+        design=base.get("design"),
+        alarms=base.get("alarms"),
+        nominal_torque_nm=nominal_torque_nm,
+        false_alarms_per_1000_h=false_alarms_per_1000_h,
+        description=str(base.get("description", "")),
+    )
+
+
 def healthy_fault_estimates(gains: ObserverGains, drives: Sequence[Drive], warmup_s: float) -> FloatArray:
     """The observer's fault estimates [T_f, delta_f] over the healthy drives, each after its warm-up, (K, 2)."""
     parts = []
@@ -260,7 +283,8 @@ def fault_thresholds(
     Gaussian with its RMS sigma and count one chance per persistence window: n = 3600 / persistence_s an hour.
     For a rate lambda per hour, P(|e| >= WARN) = 2 Q(WARN / sigma) <= lambda / n. WARN is that, and never
     below PEAK_MARGIN times the largest excursion the recordings held for the persistence time (a
-    recording longer than its Gaussian tail). FAULT = FAULT_OVER_WARN x WARN.
+    recording longer than its Gaussian tail), nor below REQUIRED_SHARE_FLOOR of the fault the channel must
+    detect (what the recordings did not show). FAULT = FAULT_OVER_WARN x WARN.
     """
     magnitude = np.abs(np.asarray(estimate, dtype=float))
     sigma = float(np.sqrt(np.mean(magnitude**2))) if magnitude.size else 0.0
@@ -270,7 +294,7 @@ def fault_thresholds(
     per_hour = false_alarms_per_1000_h / 1000.0
     chances = 3600.0 / max(persistence_s, sample_period_s)
     z = float(scipy.stats.norm.isf(per_hour / chances / 2.0))
-    warn = max(z * sigma, PEAK_MARGIN * peak, np.finfo(float).tiny)
+    warn = max(z * sigma, PEAK_MARGIN * peak, REQUIRED_SHARE_FLOOR * required_bias, np.finfo(float).tiny)
     fault = FAULT_OVER_WARN * warn
     return ChannelThresholds(
         sigma=sigma,
@@ -336,14 +360,11 @@ def run_calibration(request: dict[str, Any]) -> dict[str, Any]:
             return {"ok": False, "error": "bad_recording", "reason": str(exc)}
         drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=item["name"]))
     try:
-        report = calibrate_profile(
+        report = calibrate_from_base(
             drives,
-            base["params"],
-            design=base.get("design"),
-            alarms=base.get("alarms"),
+            base,
             nominal_torque_nm=request.get("nominal_torque_nm"),
             false_alarms_per_1000_h=float(request.get("false_alarms_per_1000_h", 1.0)),
-            description=str(base.get("description", "")),
         )
     except CalibrationRefused as exc:
         return {"ok": False, "error": "refused", "reason": exc.reason}

@@ -53,7 +53,7 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from edge_client.recording import RecordingError, read_recording
-    from service.calibration import calibrate_profile
+    from service.calibration import calibrate_from_base
     from synth.calibration import CalibrationRefused, Drive
     from synth.errors import SynthesisError
 
@@ -72,14 +72,8 @@ def run(args: argparse.Namespace) -> int:
             drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=Path(path).name))
         print(f"calibrating from {len(drives)} recording(s) ...", flush=True)
         try:
-            report = calibrate_profile(
-                drives,
-                base["params"],
-                design=base.get("design"),
-                alarms=base.get("alarms"),
-                nominal_torque_nm=args.nominal_torque,
-                false_alarms_per_1000_h=args.false_alarms,
-                description=str(base.get("description", "")),
+            report = calibrate_from_base(
+                drives, base, nominal_torque_nm=args.nominal_torque, false_alarms_per_1000_h=args.false_alarms
             )
         except CalibrationRefused as exc:
             raise CommandError(f"calibration refused: {exc.reason}", EXIT_NO_DESIGN) from exc
