@@ -205,8 +205,8 @@ def test_a_design_from_the_form_activates_a_new_gain_version_and_a_failed_one_sa
     assert server.get("/profiles/default").json()["active_version"] == before["active_version"]
     # a heavier vehicle: a new certified design becomes active
     card.get_by_label("steer_fault_gain").fill("1")
-    card.get_by_label("mass_kg").fill("1600")
-    expect(card.get_by_label("mass_kg")).to_have_class(re.compile("changed"))
+    card.get_by_label("mass_kg", exact=True).fill("1600")
+    expect(card.get_by_label("mass_kg", exact=True)).to_have_class(re.compile("changed"))
     card.get_by_role("button", name="Save and design new gains").click()
     expect(profile_card(page).locator(".job")).to_have_attribute("data-status", "succeeded", timeout=60_000)
     after = server.get("/profiles/default").json()

@@ -140,6 +140,11 @@ def test_the_profile_form_has_the_stored_and_the_resolved_spec(server):
     fields = {f["name"]: f for f in form["fields"]["params"]}
     assert fields["mass_kg"]["description"].startswith("M_v") and fields["mass_kg"]["exclusive_minimum"] == 0
     assert {f["name"] for f in form["fields"]["bounds"]} >= {"vx_min_mps", "r_max_radps"}
+    # a switch and a number that may stay empty are edited as such, with the limits of their number branch
+    assert fields["cornering_drag"]["kind"] == "boolean" and fields["mass_kg"]["kind"] == "number"
+    bounds = {f["name"]: f for f in form["fields"]["bounds"]}
+    assert bounds["front_lateral_force_max_n"]["kind"] == "optional_number"
+    assert bounds["front_lateral_force_max_n"]["exclusive_minimum"] == 0
     assert server.get("/ui/profiles/nope/form").status_code == 404
 
 

@@ -10,7 +10,7 @@ goes through the REST API, with the operator's bearer token for changes.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, status
 from fastapi.responses import FileResponse, StreamingResponse
@@ -84,6 +84,9 @@ async def stream(
 class FieldInfo(BaseModel):
     name: str
     description: str
+    kind: Literal["number", "optional_number", "boolean"] = Field(
+        "number", description="how the form edits it: a number, a number that may be left empty (null), a switch"
+    )
     minimum: float | None = Field(None, description="inclusive lower limit")
     exclusive_minimum: float | None = None
     maximum: float | None = Field(None, description="inclusive upper limit")
@@ -100,16 +103,26 @@ class ProfileForm(BaseModel):
 
 def _fields(model: type[BaseModel]) -> list[FieldInfo]:
     properties: dict[str, dict[str, Any]] = model.model_json_schema()["properties"]
-    return [
-        FieldInfo(
-            name=name,
-            description=str(p.get("description", "")),
-            minimum=p.get("minimum"),
-            exclusive_minimum=p.get("exclusiveMinimum"),
-            maximum=p.get("maximum"),
-        )
-        for name, p in properties.items()
-    ]
+    return [_field(name, p) for name, p in properties.items()]
+
+
+def _field(name: str, p: dict[str, Any]) -> FieldInfo:
+    """One property of the JSON schema as a form field; an optional number's limits sit in its anyOf branch."""
+    kind: Literal["number", "optional_number", "boolean"] = "number"
+    limits = p
+    if p.get("type") == "boolean":
+        kind = "boolean"
+    elif "anyOf" in p:
+        kind = "optional_number"
+        limits = next((branch for branch in p["anyOf"] if branch.get("type") == "number"), {})
+    return FieldInfo(
+        name=name,
+        description=str(p.get("description", "")),
+        kind=kind,
+        minimum=limits.get("minimum"),
+        exclusive_minimum=limits.get("exclusiveMinimum"),
+        maximum=limits.get("maximum"),
+    )
 
 
 @router.get(

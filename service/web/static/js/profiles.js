@@ -144,20 +144,24 @@ export class ProfilesView {
           ...form.fields[section].map((field) => {
             const id = `f-${name}-${section}-${field.name}`;
             const value = form.resolved[section][field.name];
+            const boolean = field.kind === 'boolean';
             const input = el('input', {
               id,
-              type: 'number',
-              step: 'any',
-              required: true,
-              value,
+              type: boolean ? 'checkbox' : 'number',
+              step: boolean ? undefined : 'any',
+              required: field.kind === 'number',
+              value: boolean || value === null ? undefined : value,
+              checked: boolean && value ? true : undefined,
+              placeholder: field.kind === 'optional_number' ? 'none' : undefined,
               'data-section': section,
               'data-field': field.name,
               min: field.minimum ?? undefined,
               max: field.maximum ?? undefined,
               'aria-describedby': `${id}-help`,
             });
-            input.addEventListener('input', () => input.classList.toggle('changed', Number(input.value) !== value));
-            inputs.push({ section, field: field.name, input, value });
+            const read = () => readField(field.kind, input);
+            input.addEventListener(boolean ? 'change' : 'input', () => input.classList.toggle('changed', read() !== value));
+            inputs.push({ section, field: field.name, input, value, read });
             return el(
               'div',
               { class: 'field' },
@@ -198,11 +202,11 @@ export class ProfilesView {
       // Send the spec as stored, with only the fields the operator changed: unset fields keep following the defaults.
       const spec = structuredClone(form.stored);
       let changed = 0;
-      for (const { section, field, input, value } of inputs) {
-        const next = input.value === '' ? NaN : Number(input.value);
+      for (const { section, field, input, value, read } of inputs) {
+        const next = read();
         if (next === value) continue;
         spec[section] = spec[section] || {};
-        spec[section][field] = Number.isFinite(next) ? next : input.value;
+        spec[section][field] = typeof next === 'number' && !Number.isFinite(next) ? input.value : next;
         changed += 1;
       }
       if (!changed) {
@@ -268,4 +272,11 @@ export class ProfilesView {
     }
     box.replaceChildren(el('p', {}, ...lines));
   }
+}
+
+/** The value an input stands for: a checkbox's state, null for an empty optional number, else the number. */
+function readField(kind, input) {
+  if (kind === 'boolean') return input.checked;
+  if (kind === 'optional_number' && input.value === '') return null;
+  return input.value === '' ? NaN : Number(input.value);
 }
