@@ -43,8 +43,8 @@ def steady_turn(speed_mps: float, yaw_rate_radps: float, p: VehicleParams) -> tu
     F_yf = k["l_r"] / k["l_f"] * 2.0 * k["C_r"] * (k["l_r"] * r - v_y) / v_x
     # eq. (2): F_yf = 2 C_f (delta - (v_y + l_f r) / v_x)
     steer = F_yf / (2.0 * k["C_f"]) + (v_y + k["l_f"] * r) / v_x
-    # eq. (1): dv_x/dt = (T - C_x v_x^2) / I_e + v_y r = 0
-    torque = k["C_x"] * v_x**2 - k["I_e"] * v_y * r
+    # eq. (1): dv_x/dt = (T / R_w - C_x v_x^2) / m_eff + v_y r = 0 (the paper's profile: R_w = 1 m, m_eff = I_e)
+    torque = k["R_w"] * (k["C_x"] * v_x**2 - k["m_eff"] * v_y * r)
     residual = continuous_dynamics([v_x, v_y, r], [torque, steer], 0.0, [0.0, 0.0], p)
     np.testing.assert_allclose(residual, 0.0, atol=EQUILIBRIUM_ATOL)
     return float(v_y), float(torque), float(steer)

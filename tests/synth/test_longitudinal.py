@@ -32,23 +32,13 @@ from synth.model import (
 from synth.observer import FuzzyObserver, RuntimeGains, initial_observer_state, observer_step
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
+from tests.calibration_data import CAR as CALIBRATION_CAR
 from tests.synth import strategies as st
 from tests.tolerances import MODEL_EQUALITY_ATOL
 
-#: A front-heavy hatchback in physical units: a torque at a 0.33 m wheel, rolling resistance, cornering drag.
-CAR = VehicleParams(
-    mass_kg=1230.0,
-    effective_mass_kg=1290.0,
-    wheel_radius_m=0.33,
-    yaw_inertia_kgm2=1540.0,
-    front_axle_distance_m=0.9,
-    rear_axle_distance_m=1.5,
-    front_cornering_stiffness_npr=80000.0,
-    rear_cornering_stiffness_npr=50000.0,
-    longitudinal_drag_coeff=0.4,
-    rolling_resistance_n=150.0,
-    cornering_drag=True,
-)
+#: The calibration tests' car (a torque at a 0.33 m wheel, rolling resistance, cornering drag), with an ideal
+#: steering actuator: the runtime test below feeds the demand to the model directly.
+CAR = CALIBRATION_CAR.model_copy(update={"steer_time_constant_s": 0.0})
 CAR_BOUNDS = OperatingBounds(vx_min_mps=6.0, vy_min_mps=-1.0, vy_max_mps=1.0, steer_max_rad=0.15)
 NTS = NTSModel.build(CAR, CAR_BOUNDS)
 

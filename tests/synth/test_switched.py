@@ -205,7 +205,9 @@ def test_the_rule_switches_to_the_fast_set_on_a_fault_step_and_back(switched):
             modes.append(bool(res.fast[0]))
             return res
 
-    result = estimate(simulate_plant([_torque_step_scenario(1)]), lambda y0, x0: Recording(switched, y0, x0))
+    result = estimate(
+        simulate_plant([_torque_step_scenario(1)]), lambda y0, x0, u0=None: Recording(switched, y0, x0, u0)
+    )
     fast = np.array(modes)
     t = result.t
     assert fast[t < RULE.start_s].all()  # the start
