@@ -14,6 +14,7 @@ BENCHMARKS = {
     "service_load": "agv_fe.benchmarks.service_load",
     "publisher": "agv_fe.benchmarks.publisher",
     "soak": "agv_fe.benchmarks.soak",
+    "real_vehicle": "agv_fe.benchmarks.real_vehicle",
 }
 
 

@@ -1,0 +1,245 @@
+"""The real-vehicle benchmark (agv_fe/benchmarks/real_vehicle.py) in quick mode on parameter set 1.
+
+One run (about 25 s on 2 cores) shared by the tests of this module: the report and its JSON exist, carry
+the expected sections, and their figures agree with each other and with the rules they state.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+
+import pytest
+
+from agv_fe.benchmarks import real_vehicle as bench
+from agv_fe.commands.bench import BENCHMARKS
+from edge_client import multibody as mb
+
+SET = 1
+LEVELS = ("OK", "WARN", "FAULT")
+ESTIMATORS = ("calibrated", "EKF", "paper")
+SECTIONS = (
+    "## Must show",
+    f"## Parameter set {SET}",
+    "### Calibration",
+    "### Healthy driving",
+    "### Faults",
+    "## How it was measured",
+)
+
+
+@pytest.fixture(scope="module")
+def outcome(tmp_path_factory):
+    out = tmp_path_factory.mktemp("real_vehicle")
+    path = bench.run(out, parameter_sets=(SET,), quick=True)
+    return path, path.read_text(), json.loads((out / "real_vehicle.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def figures(outcome):
+    _, _, document = outcome
+    (result,) = document["sets"]
+    return result
+
+
+def _is_count(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def test_registered_and_writes_report_and_json_beside_it(outcome):
+    path, text, document = outcome
+    assert BENCHMARKS["real_vehicle"] == "agv_fe.benchmarks.real_vehicle"
+    assert path.name == "real_vehicle.md" and (path.parent / "real_vehicle.json").is_file()
+    positions = [text.find(section) for section in SECTIONS]
+    assert all(p >= 0 for p in positions), dict(zip(SECTIONS, positions, strict=True))
+    assert positions == sorted(positions), "sections out of order: must-show first, how-measured last"
+    assert text.startswith("# Real vehicle") and "Measured " in text.split("## Must show")[0]
+    assert "agv-fe bench --only real_vehicle" in text
+    assert "Parameter set 2 is never used here" in text
+    assert document["plan"]["parameter_sets"] == [SET] and document["plan"]["quick"] is True
+    assert document["runtime_s"] > 0
+
+
+def test_every_table_row_has_the_header_s_columns(outcome):
+    """A stray '|' in a cell (|a_y|, |estimate|) would shift a markdown table's columns."""
+    _, text, _ = outcome
+    tables: list[list[str]] = []
+    previous = ""
+    for line in text.splitlines():
+        if line.startswith("|"):
+            if not previous.startswith("|"):
+                tables.append([])
+            tables[-1].append(line)
+        previous = line
+    assert len(tables) >= 5
+    for table in tables:
+        header, rule, *rows = table
+        assert set(rule.replace("|", "")) == {"-"}, table[:2]
+        for row in rows:
+            assert row.count("|") == header.count("|"), (header, row)
+
+
+def test_must_show_has_a_line_per_target_matching_the_json(outcome, figures):
+    _, text, _ = outcome
+    must_show = text.split("## Must show")[1].split("## Parameter set")[0]
+    rows = [line for line in must_show.splitlines() if line.startswith(f"| {SET} |")]
+    assert len(rows) == len(figures["must_show"])
+    targets = [
+        "effective_mass_kg within 1 %",
+        "front_cornering_stiffness_npr within 5 %",
+        "rear_cornering_stiffness_npr within 5 %",
+        "healthy driving: no WARN and no FAULT",
+        *(case.label for case in bench.FAULT_CASES if case.target is not None),
+        "the other channel stays OK",
+    ]
+    for target in targets:
+        matching = [row for row in rows if target in row]
+        assert len(matching) == 1, (target, rows)
+    for row, line in zip(rows, figures["must_show"], strict=True):
+        verdict = row.rstrip(" |").rsplit("|", 1)[1].strip()
+        assert verdict == ("pass" if line["passed"] else "**FAIL**"), row
+        assert line["target"] in row and line["figure"] in row
+
+
+def test_calibration_figures_against_the_plant(figures):
+    cal = figures["calibration"]
+    reference = mb.reference_values(SET)
+    rows = {row["name"]: row for row in cal["parameters"]}
+    for name, tolerance in (
+        ("effective_mass_kg", bench.EFFECTIVE_MASS_TOLERANCE),
+        ("front_cornering_stiffness_npr", bench.CORNERING_STIFFNESS_TOLERANCE),
+        ("rear_cornering_stiffness_npr", bench.CORNERING_STIFFNESS_TOLERANCE),
+    ):
+        row = rows[name]
+        low, high = row["ci95"]
+        assert low <= row["value"] <= high
+        assert row["reference"] == pytest.approx(reference[name])
+        assert row["error"] == pytest.approx(row["value"] / reference[name] - 1.0)
+        assert row["passed"] is (abs(row["error"]) <= tolerance)
+    noise = cal["summary"]["sensor_noise"]
+    assert noise["vx_sigma_mps"] == pytest.approx(mb.DEFAULT_SPEED_SIGMA_MPS, rel=0.2)
+    assert noise["r_sigma_radps"] == pytest.approx(mb.DEFAULT_YAW_RATE_SIGMA_RADPS, rel=0.2)
+    assert 0.9 < cal["design"]["certified_decay_rate"] < 1.0 and cal["design"]["gain_version"]
+    for table in (cal["summary"]["thresholds"], cal["ekf_thresholds"]):
+        for channel in ("torque", "steer"):
+            assert 0 < table[channel]["warn"] < table[channel]["fault"]
+    alarms = cal["alarms"]
+    assert alarms["torque_warn_nm"] == cal["summary"]["thresholds"]["torque"]["warn"]
+    assert alarms["steer_fault_rad"] == cal["summary"]["thresholds"]["steer"]["fault"]
+
+
+def test_healthy_counts_are_consistent(figures):
+    healthy = figures["healthy"]
+    driving = healthy["driving"]
+    assert driving["drives"] == len(bench.QUICK_HEALTHY_SEEDS)
+    assert driving["minutes"] == pytest.approx(len(bench.QUICK_HEALTHY_SEEDS) * bench.QUICK_HEALTHY_DURATION_S / 60)
+    assert 0 < driving["peak_lateral_accel_mps2"] < 12
+    for name in ESTIMATORS:
+        result = healthy[name]
+        assert _is_count(result["non_finite_samples"])
+        assert 0.0 <= result["in_domain_share"] <= 1.0
+        for channel, c in result["channels"].items():
+            assert _is_count(c["warn_raised"]) and _is_count(c["fault_raised"]), (name, channel, c)
+            assert 0 <= c["held_peak_abs_estimate"] <= c["peak_abs_estimate"]
+            assert 0 <= c["rms_estimate"] <= c["peak_abs_estimate"]
+            events = [e for e in result["events"] if e["channel"] == channel]
+            # every raise to WARN is its own event; a raise to FAULT may share the sample of one
+            assert c["warn_raised"] <= len(events) <= c["warn_raised"] + c["fault_raised"]
+            assert all(e["level"] in ("WARN", "FAULT") for e in events)
+            if c["held_peak_abs_estimate"] < c["warn_threshold"]:
+                assert c["warn_raised"] == 0  # nothing held above WARN for the persistence time, nothing raised
+            for e in events:  # a level is raised on a sample whose estimate is at or above its threshold
+                threshold = c["fault_threshold"] if e["level"] == "FAULT" else c["warn_threshold"]
+                assert abs(e["estimate"]) >= threshold, (name, e)
+        assert sorted({e["seed"] for e in result["events"]}) == result["drives_with_alarm"]
+    paper = healthy["paper"]["channels"]
+    assert (paper["torque"]["warn_threshold"], paper["torque"]["fault_threshold"]) == (40.0, 80.0)
+    line = next(m for m in figures["must_show"] if m["target"].startswith("healthy driving"))
+    cal = healthy["calibrated"]["channels"].values()
+    assert line["passed"] is all(c["warn_raised"] == 0 and c["fault_raised"] == 0 for c in cal)
+
+
+def test_fault_delays_are_positive_or_never_and_verdicts_follow_them(outcome, figures):
+    _, text, _ = outcome
+    persistence_s = figures["calibration"]["alarms"]["raise_after_s"]
+    alarms = {"calibrated": figures["calibration"]["alarms"], "EKF": figures["calibration"]["ekf_alarms"]}
+    for case in bench.FAULT_CASES:
+        entry = figures["faults"][case.key]
+        assert entry["channel"] == case.channel
+        for name in ("calibrated", "EKF"):
+            seeds = entry[name]["seeds"]
+            assert [s["seed"] for s in seeds] == list(bench.QUICK_FAULT_SEEDS)
+            for s in seeds:
+                warn, fault = s["warn_delay_s"], s["fault_delay_s"]
+                assert warn is None or warn > 0, (case.key, name, s)
+                assert fault is None or fault > 0, (case.key, name, s)
+                warn_threshold = alarms[name][f"{case.channel}_warn_{'nm' if case.channel == 'torque' else 'rad'}"]
+                at_onset = next(p for p in s["time_course"] if p["offset_s"] == 0.0)
+                if s["level_before_onset"] == "OK" and abs(at_onset["estimate"]) < warn_threshold and warn is not None:
+                    # below WARN at the onset: the level needs the condition held for the persistence time from then
+                    assert warn >= persistence_s - 1e-9, (case.key, name, s)
+                if warn is not None and fault is not None:
+                    assert fault >= warn
+                if fault is not None:
+                    assert warn is not None
+                assert s["level_before_onset"] in LEVELS and s["other_channel_level"] in LEVELS
+                assert s["rmse_after_onset"] >= 0 and math.isfinite(s["rmse_after_onset"])
+                assert s["demand_rms_after_onset"] > 0 and s["true_fault_peak_abs"] > 0
+                assert [p["offset_s"] for p in s["time_course"]] == list(bench.TIME_COURSE_OFFSETS_S)
+                # the delays agree with the level trace: OK after the onset until the first WARN, raised there
+                for p in s["time_course"]:
+                    if p["offset_s"] < 0 or s["level_before_onset"] != "OK":
+                        continue
+                    if warn is None or p["offset_s"] < warn - 1e-9:
+                        assert p["level"] == "OK", (case.key, name, p, warn)
+                    elif fault is not None and p["offset_s"] >= fault:
+                        assert p["level"] in ("WARN", "FAULT")
+            target = case.target
+            if target is None:
+                assert entry[name]["meets_target"] is None
+                continue
+
+            def within(delay, limit):
+                return limit is None or (delay is not None and delay <= limit)
+
+            expected = all(
+                s["level_before_onset"] == "OK"
+                and within(s["warn_delay_s"], target.warn_s)
+                and within(s["fault_delay_s"], target.fault_s)
+                and (not target.other_channel_ok or s["other_channel_level"] == "OK")
+                for s in seeds
+            )
+            assert entry[name]["meets_target"] is expected, (case.key, name)
+    bias = figures["faults"]["torque_bias_plus"]
+    assert bias["magnitude"]["magnitude"] == pytest.approx(
+        bench.TORQUE_SHARE * figures["calibration"]["summary"]["nominal_torque_nm"]
+    )
+    # the report prints the delays as numbers or 'never', nothing else
+    faults = text.split("### Faults")[1].split("## How it was measured")[0]
+    for row in faults.splitlines():
+        if row.startswith("| torque bias +10 %"):
+            warn_cell = row.split("|")[4].strip()
+            assert re.fullmatch(r"(\d+\.\d\d|never)( / (\d+\.\d\d|never))*", warn_cell), row
+
+
+def test_refuses_unknown_sets_before_simulating(tmp_path):
+    with pytest.raises(mb.MultibodyError, match="parameter_set"):
+        bench.run(tmp_path, parameter_sets=(7,), quick=True)
+    with pytest.raises(ValueError, match="distinct"):
+        bench.run(tmp_path, parameter_sets=(1, 1), quick=True)
+    assert not (tmp_path / "real_vehicle.md").exists()
+
+
+def test_a_refused_calibration_is_reported_as_a_failed_target(outcome):
+    """A set whose calibration raised keeps its place in the report, with the reason and a FAIL line."""
+    _, _, document = outcome
+    reason = "CalibrationRefused: no acceleration: only 2 windows"
+    refused = document | {"sets": [*document["sets"], bench.refused_set(9, reason)]}
+    text = bench.render(refused)
+    assert (
+        "## Parameter set 9" in text
+        and f"Calibration failed, so nothing else was evaluated on this set: {reason}" in text
+    )
+    (row,) = [line for line in text.splitlines() if line.startswith("| 9 |")]
+    assert reason in row and row.rstrip(" |").endswith("**FAIL**")
