@@ -110,12 +110,15 @@ class CalibrationOptions:
     #: the lateral fit needs this long with |a_y| above cornering_threshold
     min_cornering_s: float = 5.0
     cornering_threshold_mps2: float = 1.5
-    #: largest relative 95 % half-width accepted for each identified parameter
+    #: largest relative 95 % half-width accepted for each identified parameter. The torque channel needs the
+    #: effective mass to a few per cent (2.5 % of mass error reads as 2.5 % of the drive force); the steering
+    #: channel is forgiving, and the thresholds are set from the observer's residuals with the identified
+    #: stiffnesses, so a looser stiffness costs sensitivity, not false alarms
     max_relative_ci: dict[str, float] = field(
         default_factory=lambda: {
             "effective_mass_kg": 0.02,
-            "front_cornering_stiffness_npr": 0.15,
-            "rear_cornering_stiffness_npr": 0.15,
+            "front_cornering_stiffness_npr": 0.25,
+            "rear_cornering_stiffness_npr": 0.25,
             "yaw_inertia_kgm2": 0.25,
         }
     )
