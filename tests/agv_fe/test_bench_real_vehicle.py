@@ -1,20 +1,23 @@
 """The real-vehicle benchmark (agv_fe/benchmarks/real_vehicle.py) in quick mode on parameter set 1.
 
-One run (about 25 s on 2 cores) shared by the tests of this module: the report and its JSON exist, carry
+One run (about 35 s on 2 cores) shared by the tests of this module: the report and its JSON exist, carry
 the expected sections, and their figures agree with each other and with the rules they state.
 """
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import re
 
+import numpy as np
 import pytest
 
 from agv_fe.benchmarks import real_vehicle as bench
 from agv_fe.commands.bench import BENCHMARKS
 from edge_client import multibody as mb
+from service.calibration import DECAY_RATE_CANDIDATES
 
 SET = 1
 LEVELS = ("OK", "WARN", "FAULT")
@@ -24,6 +27,7 @@ SECTIONS = (
     f"## Parameter set {SET}",
     "### Calibration",
     "### Healthy driving",
+    "### Sensitivity to the calibration drive",
     "### Faults",
     "## How it was measured",
 )
@@ -92,6 +96,7 @@ def test_must_show_has_a_line_per_target_matching_the_json(outcome, figures):
         "healthy driving: no WARN and no FAULT",
         *(case.label for case in bench.FAULT_CASES if case.target is not None),
         "the other channel stays OK",
+        "sensitivity: no alarm on healthy driving with any of the random-drive calibrations",
     ]
     for target in targets:
         matching = [row for row in rows if target in row]
@@ -243,3 +248,143 @@ def test_a_refused_calibration_is_reported_as_a_failed_target(outcome):
     )
     (row,) = [line for line in text.splitlines() if line.startswith("| 9 |")]
     assert reason in row and row.rstrip(" |").endswith("**FAIL**")
+
+
+def _same_drive(a: mb.Drive, b: mb.Drive) -> bool:
+    return a.name == b.name and all(
+        np.array_equal(getattr(a, field), getattr(b, field)) for field in ("speed_mps", "accel_mps2", "curvature_1pm")
+    )
+
+
+def test_calibrates_from_the_scripted_drive(outcome, figures):
+    _, text, document = outcome
+    job = bench.calibration_job(SET)
+    assert _same_drive(job.drive, mb.calibration_drive())
+    assert (job.parameter_set, job.seed) == (SET, bench.CALIBRATION_SEED_OFFSET + SET)
+    drive = figures["calibration"]["drive"]
+    assert drive["name"] == "calibration" and drive["noise_seed"] == bench.CALIBRATION_SEED_OFFSET + SET
+    assert drive["duration_s"] == pytest.approx(mb.calibration_drive().n_samples * mb.SAMPLE_PERIOD_S)
+    assert document["plan"]["calibration"]["noise_seeds"] == [bench.CALIBRATION_SEED_OFFSET + SET]
+    assert document["plan"]["sensitivity"] == {"seeds": list(bench.QUICK_SENSITIVITY_SEEDS), "duration_s": 120.0}
+    calibration = text.split("### Calibration")[1].split("| parameter |")[0]
+    assert "`calibration_drive()`" in calibration and f"sensor noise seed {drive['noise_seed']}" in calibration
+    assert "excites the lateral dynamics the cornering stiffnesses are identified from" in calibration
+
+
+def test_sensitivity_runs_the_random_drives_of_the_plan():
+    plan = bench.Plan.make((SET,), quick=True, workers=1)
+    assert plan.sensitivity_seeds == bench.QUICK_SENSITIVITY_SEEDS == (200,)
+    assert bench.Plan.make((SET,), quick=False, workers=1).sensitivity_seeds == (200, 201, 202)
+    jobs = bench.sensitivity_jobs(SET, plan)
+    assert [(job.seed, job.parameter_set) for job in jobs] == [(200, SET)]
+    expected = mb.random_drive(200, 120.0, max_lateral_accel_mps2=bench.MAX_LATERAL_ACCEL_MPS2)
+    assert _same_drive(jobs[0].drive, expected)
+    with pytest.raises(ValueError, match="sensitivity_seeds"):
+        bench.Plan.make((SET,), quick=True, workers=1, sensitivity_seeds=())
+
+
+def _check_row(row):
+    assert row["duration_s"] == pytest.approx(120.0)
+    assert 0 < row["peak_lateral_accel_mps2"] < 12 and row["seconds_above_5_mps2"] >= 0
+    assert row["refused"] is None
+    for name in bench.SENSITIVITY_PARAMETERS:
+        low, high = row["error_ci95"][name]
+        assert low <= row["errors"][name] <= high, (name, row)
+    assert row["robust_decay_rate"] in DECAY_RATE_CANDIDATES
+    alarms = row["alarms"]
+    assert 0 < alarms["torque_warn_nm"] < alarms["torque_fault_nm"]
+    assert 0 < alarms["steer_warn_rad"] < alarms["steer_fault_rad"]
+    for channel in ("torque", "steer"):
+        c = row["healthy"][channel]
+        assert _is_count(c["warn_raised"]) and _is_count(c["fault_raised"]) and c["held_peak_over_warn"] >= 0
+        if c["held_peak_over_warn"] < 1:
+            assert c["warn_raised"] == 0, (channel, row)
+    raised = sum(row["healthy"][c]["warn_raised"] + row["healthy"][c]["fault_raised"] for c in ("torque", "steer"))
+    assert (raised == 0) is (row["drives_with_alarm"] == [])
+
+
+def test_sensitivity_rows_are_consistent_with_the_primary_figures(figures):
+    sensitivity = figures["sensitivity"]
+    random = sensitivity["random"]
+    assert [row["seed"] for row in random] == list(bench.QUICK_SENSITIVITY_SEEDS)
+    assert [row["drive"] for row in random] == [f"random_{seed}" for seed in bench.QUICK_SENSITIVITY_SEEDS]
+    for row in (sensitivity["primary"], *random):
+        _check_row(row)
+    # the first row is the scripted calibration everything else is measured with
+    primary, cal = sensitivity["primary"], figures["calibration"]
+    assert (primary["drive"], primary["seed"]) == ("calibration", cal["drive"]["noise_seed"])
+    parameters = {row["name"]: row for row in cal["parameters"]}
+    for name in bench.SENSITIVITY_PARAMETERS:
+        assert primary["errors"][name] == pytest.approx(parameters[name]["error"])
+    assert primary["robust_decay_rate"] == cal["design"]["robust_decay_rate"]
+    assert primary["alarms"]["torque_warn_nm"] == cal["alarms"]["torque_warn_nm"]
+    assert primary["alarms"]["steer_warn_rad"] == cal["alarms"]["steer_warn_rad"]
+    healthy = figures["healthy"]["calibrated"]["channels"]
+    for channel in ("torque", "steer"):
+        assert primary["healthy"][channel]["warn_raised"] == healthy[channel]["warn_raised"]
+        assert primary["healthy"][channel]["fault_raised"] == healthy[channel]["fault_raised"]
+    line = next(m for m in figures["must_show"] if m["target"].startswith("sensitivity:"))
+    quiet = all(
+        row["healthy"][c]["warn_raised"] == 0 and row["healthy"][c]["fault_raised"] == 0
+        for row in random
+        for c in ("torque", "steer")
+    )
+    assert line["passed"] is quiet
+    assert all(row["drive"] in line["figure"] for row in random)
+
+
+def test_sensitivity_table_shows_every_calibration(outcome, figures):
+    _, text, _ = outcome
+    section = text.split("### Sensitivity to the calibration drive")[1].split("### Faults")[0]
+    rows = [
+        line for line in section.splitlines() if line.startswith("| ") and not line.startswith("| calibration drive")
+    ]
+    sensitivity = figures["sensitivity"]
+    expected = [sensitivity["primary"], *sensitivity["random"]]
+    assert len(rows) == len(expected)
+    assert rows[0].startswith("| calibration (scripted, seed 101) |")
+    for line, row in zip(rows, expected, strict=True):
+        cells = [cell.strip() for cell in line.strip("|").split("|")]
+        assert cells[0].startswith(row["drive"])
+        for cell, name in zip(cells[2:5], bench.SENSITIVITY_PARAMETERS, strict=True):
+            assert cell.startswith(f"{100 * row['errors'][name]:+.2f} %"), (cell, name)
+        assert cells[5] == f"{row['robust_decay_rate']:g}"
+        torque, steer = row["healthy"]["torque"], row["healthy"]["steer"]
+        assert cells[8:10] == [
+            f"{torque['warn_raised']} / {torque['fault_raised']}",
+            f"{steer['warn_raised']} / {steer['fault_raised']}",
+        ]
+        assert cells[-1] == "-"
+    primary_stiffness = [100 * sensitivity["primary"]["errors"][n] for n in bench.SENSITIVITY_PARAMETERS[1:]]
+    assert f"came out {min(primary_stiffness):+.1f} % to {max(primary_stiffness):+.1f} % of the slope" in text
+
+
+def test_sensitivity_line_fails_on_an_alarm_or_a_refused_calibration(outcome, figures):
+    _, _, document = outcome
+    rows = figures["sensitivity"]["random"]
+    quiet = copy.deepcopy(rows[0])
+    for c in ("torque", "steer"):
+        quiet["healthy"][c] |= {"warn_raised": 0, "fault_raised": 0}
+    assert bench.sensitivity_line([quiet], 2.0)["passed"] is True
+    noisy = copy.deepcopy(quiet)
+    noisy["healthy"]["steer"]["warn_raised"] = 1
+    line = bench.sensitivity_line([quiet, noisy], 2.0)
+    assert line["passed"] is False and "delta_f 1 WARN / 0 FAULT" in line["figure"]
+    reason = "CalibrationRefused: no cornering: 3.1 s above 1.5 m/s^2"
+    refused = {key: quiet[key] for key in ("drive", "seed", "duration_s", "peak_lateral_accel_mps2")} | {
+        "seconds_above_5_mps2": 0.0,
+        "refused": reason,
+    }
+    line = bench.sensitivity_line([quiet, refused], 2.0)
+    assert line["passed"] is False and "refused" in line["figure"]
+    assert bench.sensitivity_line([], 2.0)["passed"] is False
+    # the report shows the refusal's reason in its row and the must-show line as failed
+    (result,) = document["sets"]
+    changed = copy.deepcopy(result)
+    changed["sensitivity"]["random"] = [refused]
+    changed["must_show"] = bench.must_show(changed)
+    text = bench.render(document | {"sets": [changed]})
+    (row,) = [line for line in text.splitlines() if line.startswith(f"| {quiet['drive']} |")]
+    assert row.rstrip(" |").endswith(reason)
+    (must,) = [line for line in text.splitlines() if line.startswith(f"| {SET} | sensitivity:")]
+    assert must.rstrip(" |").endswith("**FAIL**")
