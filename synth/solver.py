@@ -12,10 +12,12 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from importlib import metadata
-
-import cvxpy as cp
+from typing import TYPE_CHECKING
 
 from synth.errors import BadParameters, SolverFailed
+
+if TYPE_CHECKING:  # cvxpy is imported where a problem is solved: the runtime (gains, observer) never needs it
+    import cvxpy as cp
 
 #: Solver settings: Clarabel on one thread with chordal decomposition (fastest
 #: here), SCS at a tight tolerance as the fallback (its default tolerance
@@ -26,8 +28,8 @@ SOLVER_OPTIONS: dict[str, dict[str, object]] = {
 }
 #: The name of each solver's wall-clock limit option [s].
 TIME_LIMIT_OPTION = {"CLARABEL": "time_limit", "SCS": "time_limit_secs"}
-#: Statuses whose point is worth verifying; anything else is a failure.
-USABLE_STATUSES = (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
+#: Statuses whose point is worth verifying (cvxpy's OPTIMAL and OPTIMAL_INACCURATE); anything else is a failure.
+USABLE_STATUSES = ("optimal", "optimal_inaccurate")
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,8 @@ def solve(
     ``tolerances`` override the solver's defaults (for example a looser duality gap for an H2 objective
     that converges to 6-7 digits). A status other than optimal or optimal_inaccurate is a failure.
     """
+    import cvxpy as cp
+
     if solver not in TIME_LIMIT_OPTION:
         raise BadParameters(f"unknown solver {solver!r}; choose from {', '.join(TIME_LIMIT_OPTION)}")
     options = {**SOLVER_OPTIONS.get(solver, {}), **(tolerances or {}), TIME_LIMIT_OPTION[solver]: time_limit_s}
