@@ -39,8 +39,8 @@ def _measured_start(name: str, seed: int) -> Scenario:
 class _CountingSwitched(FuzzyObserver):
     """A switched observer that counts the samples each vehicle spent on the fast set."""
 
-    def __init__(self, gains: ObserverGains, y0: Any, x_hat0: Any = None) -> None:
-        super().__init__(gains, y0, x_hat0)
+    def __init__(self, gains: ObserverGains, y0: Any, x_hat0: Any = None, u0: Any = None) -> None:
+        super().__init__(gains, y0, x_hat0, u0)
         self.fast_samples = self.samples = 0
 
     def step(self, y: Any, u: Any) -> StepResult:
@@ -55,8 +55,8 @@ class _Pinned(FuzzyObserver):
     """A switched observer held on one set (``every``-th vehicle fast, 0: none) for the cost table: a settled
     fleet, whose statistic stays below the threshold (the cost probe's inputs are random, not a trajectory)."""
 
-    def __init__(self, gains: ObserverGains, y0: Any, x_hat0: Any = None, every: int = 0) -> None:
-        super().__init__(gains, y0, x_hat0)
+    def __init__(self, gains: ObserverGains, y0: Any, x_hat0: Any = None, every: int = 0, u0: Any = None) -> None:
+        super().__init__(gains, y0, x_hat0, u0)
         # never raised by the statistic; the pinned vehicles' countdown outlasts any cost probe
         self.runtime = dataclasses.replace(self.runtime, switch_threshold=float("inf"))
         self.left.fill(0)
@@ -65,8 +65,8 @@ class _Pinned(FuzzyObserver):
 
 
 def _counting(gains: ObserverGains, runs: list[_CountingSwitched]) -> Any:
-    def make(y0: Any, x_hat0: Any) -> FuzzyObserver:
-        obs = _CountingSwitched(gains, y0, x_hat0)
+    def make(y0: Any, x_hat0: Any, u0: Any = None) -> FuzzyObserver:
+        obs = _CountingSwitched(gains, y0, x_hat0, u0)
         runs.append(obs)
         return obs
 
@@ -74,8 +74,8 @@ def _counting(gains: ObserverGains, runs: list[_CountingSwitched]) -> Any:
 
 
 def _pinned(gains: ObserverGains, every: int) -> Any:
-    def make(y0: Any, x_hat0: Any) -> FuzzyObserver:
-        return _Pinned(gains, y0, x_hat0, every)
+    def make(y0: Any, x_hat0: Any, u0: Any = None) -> FuzzyObserver:
+        return _Pinned(gains, y0, x_hat0, every, u0)
 
     return make
 
