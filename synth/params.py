@@ -204,8 +204,3 @@ class OperatingBounds(BaseModel):
     def lateral_speed_bounds(self) -> tuple[float, float]:
         """Bounds of v_y [m/s], lower first."""
         return self.vy_min_mps, self.vy_max_mps
-
-    @property
-    def speed_bounds(self) -> tuple[float, float]:
-        """Bounds of v_x [m/s], lower first."""
-        return self.vx_min_mps, self.vx_max_mps
