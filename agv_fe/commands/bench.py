@@ -15,6 +15,7 @@ BENCHMARKS = {
     "publisher": "agv_fe.benchmarks.publisher",
     "soak": "agv_fe.benchmarks.soak",
     "real_vehicle": "agv_fe.benchmarks.real_vehicle",
+    "detection": "agv_fe.benchmarks.detection",
 }
 
 
