@@ -51,6 +51,8 @@ from service.calibration import (
     ChannelThresholds,
     calibrate_profile,
     fault_thresholds,
+    gust_drives,
+    held_peaks,
 )
 from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, FaultLevels
 from service.profiles import AlarmThresholds
@@ -438,10 +440,14 @@ def ekf_thresholds(
 ) -> tuple[dict[str, ChannelThresholds], AlarmThresholds]:
     """The EKF's thresholds set as calibration sets the observer's: :func:`fault_thresholds` on its own
     estimates of the calibration drive after the warm-up, with the same false-alarm rate, persistence and
-    required bias (no certified bound: NaN); the other alarm settings are the calibrated profile's."""
+    required bias (no certified bound: NaN), above what the calibration's wind gust makes the EKF report on the
+    identified model (:func:`service.calibration.gust_drives`); the other alarm settings are the profile's."""
     alarms = report.profile.alarms
     (estimated,) = estimate_runs(ekf_factory(report.gains), [calibration_run], alarms)
     after = calibration_run.t >= alarms.warmup_s
+    ekf = ekf_factory(report.gains)
+    gusts = gust_drives(report.profile.params, report.profile.bounds, report.gust_n)
+    gust = held_peaks(lambda y0, u0: ekf(y0, None, u0), gusts, alarms.raise_after_s)
     thresholds = {
         channel: fault_thresholds(
             estimated.f_hat[after, i],
@@ -450,6 +456,7 @@ def ekf_thresholds(
             persistence_s=alarms.raise_after_s,
             false_alarms_per_1000_h=report.false_alarms_per_1000_h,
             required_bias=report.thresholds[channel].required_bias,
+            gust_peak=float(gust[i]),
         )
         for i, channel in enumerate(CHANNELS)
     }
@@ -1260,9 +1267,9 @@ def _calibration_section(result: dict[str, Any]) -> list[str]:
         f"certified decay rate {design['certified_decay_rate']:.5f}, gains version {design['gain_version']}. "
         f"Nominal drive torque {summary['nominal_torque_nm']:.1f} N m; false-alarm rate "
         f"{summary['false_alarms_per_1000_h']:g} per 1,000 h.\n",
-        "| thresholds | channel | healthy sigma | held peak | certified RMS | WARN | FAULT "
-        "| smallest bias to WARN / FAULT | required bias |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| thresholds | channel | healthy sigma | held peak | held in the gust | certified RMS | WARN | FAULT "
+        "| WARN set by | smallest bias to WARN / FAULT | required bias |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for who, table in (("calibrated observer", summary["thresholds"]), ("EKF", cal["ekf_thresholds"])):
         for channel in CHANNELS:
@@ -1270,7 +1277,8 @@ def _calibration_section(result: dict[str, Any]) -> list[str]:
             unit = UNITS[channel]
             lines.append(
                 f"| {who} | {SYMBOLS[channel]} [{unit}] | {_fmt(t['sigma'])} | {_fmt(t['healthy_peak'])} "
-                f"| {_fmt(t['certified_rms'])} | {_fmt(t['warn'])} | {_fmt(t['fault'])} "
+                f"| {_fmt(t['gust_peak'])} | {_fmt(t['certified_rms'])} | {_fmt(t['warn'])} | {_fmt(t['fault'])} "
+                f"| {t['set_by']} "
                 f"| {_fmt(t['smallest_warn_bias'])} / {_fmt(t['smallest_fault_bias'])} | {_fmt(t['required_bias'])} |"
             )
     warnings = summary["warnings"]

@@ -47,13 +47,21 @@ def register(sub: Any) -> None:
         help="the drive torque a 10 %% torque fault is measured against [N m] (default: the torque of a 2 m/s^2 "
         "acceleration, m_eff R_w 2)",
     )
+    parser.add_argument(
+        "--gust",
+        type=float,
+        default=None,
+        metavar="N",
+        help="the lateral wind gust [N], held 2 s, the vehicle must ride through without a steering alarm "
+        "(default 800; 0: no gust floor)",
+    )
     parser.add_argument("--report", metavar="REPORT.json", help="also write the calibration report as JSON")
     parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from edge_client.recording import RecordingError, read_recording
-    from service.calibration import calibrate_from_base
+    from service.calibration import GUST_N, calibrate_from_base
     from synth.calibration import CalibrationRefused, Drive
     from synth.errors import SynthesisError
 
@@ -63,6 +71,9 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(f"--false-alarms must be positive, got {args.false_alarms}")
         if args.nominal_torque is not None and not (args.nominal_torque > 0):
             raise CommandError(f"--nominal-torque must be positive, got {args.nominal_torque}")
+        gust = GUST_N if args.gust is None else args.gust
+        if not (0.0 <= gust < float("inf")):
+            raise CommandError(f"--gust must be a force of 0 N or more, got {args.gust}")
         drives = []
         for path in args.recordings:
             try:
@@ -73,7 +84,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"calibrating from {len(drives)} recording(s) ...", flush=True)
         try:
             report = calibrate_from_base(
-                drives, base, nominal_torque_nm=args.nominal_torque, false_alarms_per_1000_h=args.false_alarms
+                drives,
+                base,
+                nominal_torque_nm=args.nominal_torque,
+                false_alarms_per_1000_h=args.false_alarms,
+                gust_n=gust,
             )
         except CalibrationRefused as exc:
             raise CommandError(f"calibration refused: {exc.reason}", EXIT_NO_DESIGN) from exc
@@ -132,13 +147,15 @@ def format_report(summary: dict[str, Any]) -> str:
     lines.append(f"steering offset {summary['steer_offset_rad']:+.5f} rad (reported, not used)")
     lines.append(
         f"observer: gains {summary['gain_version']}, certified decay rate {summary['certified_decay_rate']:.4f}; "
-        f"thresholds for {summary['false_alarms_per_1000_h']:g} false alarm(s) per 1,000 vehicle-hours:"
+        f"thresholds for {summary['false_alarms_per_1000_h']:g} false alarm(s) per 1,000 vehicle-hours and no "
+        f"alarm in a {summary['gust']['force_n']:g} N wind gust of {summary['gust']['duration_s']:g} s:"
     )
     for channel, t in summary["thresholds"].items():
         unit = t["unit"]
         lines.append(
             f"  {channel:6s} WARN {t['warn']:.4g} FAULT {t['fault']:.4g} {unit}  (healthy estimate {t['sigma']:.3g} "
-            f"RMS, largest held {t['healthy_peak']:.3g}; certified RMS bound {t['certified_rms']:.3g}); smallest "
+            f"RMS, largest held {t['healthy_peak']:.3g}, in the gust {t['gust_peak']:.3g}; certified RMS bound "
+            f"{t['certified_rms']:.3g}; set by {t['set_by']}); smallest "
             f"bias detected: WARN {t['smallest_warn_bias']:.3g}, FAULT {t['smallest_fault_bias']:.3g} {unit}"
         )
     lines.append(f"nominal drive torque {summary['nominal_torque_nm']:.4g} N m")

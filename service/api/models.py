@@ -6,6 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue
 
+from service.calibration import GUST_N
 from service.profiles import ProfileSpec
 from service.protocol import AlarmKind, Estimate, Level
 
@@ -374,6 +375,13 @@ class CalibrationRequest(BaseModel):
     false_alarms_per_1000_h: float = Field(1.0, gt=0, le=1e6, description="the thresholds' false-alarm rate")
     nominal_torque_nm: float | None = Field(
         None, gt=0, description="the drive torque a 10 % torque fault is measured against [N m]"
+    )
+    gust_n: float = Field(
+        GUST_N,
+        ge=0,
+        le=1e5,
+        description="the lateral wind gust [N], held 2 s, the vehicle rides through without a steering alarm "
+        "(0: no gust floor on the thresholds)",
     )
 
 

@@ -33,6 +33,10 @@ def test_calibrate_writes_a_profile_that_synth_and_replay_accept(files, capsys):
     assert doc["params"]["effective_mass_kg"] == pytest.approx(1290.0, rel=0.01)
     summary = json.loads(report.read_text())
     assert summary["thresholds"]["torque"]["warn"] == doc["alarms"]["torque_warn_nm"]
+    # the default 800 N gust holds the steering WARN above what it makes the observer report
+    assert summary["gust"] == {"force_n": 800.0, "duration_s": 2.0} and "in the gust" in printed
+    steer = summary["thresholds"]["steer"]
+    assert steer["gust_peak"] > 0.004 and steer["warn"] >= 1.25 * steer["gust_peak"]
     # the same file is a --params profile: it designs the same gains and replays with its own thresholds
     gains = root / "gains.json"
     assert main(["synth", "--params", str(profile), "--out", str(gains)]) == 0
@@ -56,4 +60,6 @@ def test_calibrate_refuses_with_the_reason_and_exit_codes(files, capsys):
     thin.write_text(json.dumps({"params": {"mass_kg": 1200.0}}))
     assert main(["calibrate", str(rec), "--base", str(thin), "--out", str(root / "x.json")]) == 2
     assert "params must give front_axle_distance_m, rear_axle_distance_m, wheel_radius_m" in capsys.readouterr().err
+    assert main(["calibrate", str(rec), "--base", str(base), "--out", str(root / "x.json"), "--gust", "-5"]) == 2
+    assert "--gust must be a force of 0 N or more, got -5" in capsys.readouterr().err
     assert not (root / "x.json").exists()

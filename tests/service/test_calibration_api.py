@@ -30,6 +30,7 @@ def test_calibration_proposes_a_profile_that_a_put_applies(tmp_path, recording_c
         report = proposal["report"]
         low, high = report["estimates"]["front_cornering_stiffness_npr"]["ci95"]
         assert low < 80000.0 < high
+        assert report["gust"]["force_n"] == 800.0 and report["thresholds"]["steer"]["set_by"] == "gust"
         alarms = proposal["profile"]["alarms"]
         assert alarms["torque_warn_nm"] == report["thresholds"]["torque"]["warn"] < alarms["torque_fault_nm"]
         # proposed, not applied: the service knows no profile 'car' yet
@@ -69,6 +70,13 @@ def test_calibration_says_what_is_wrong(tmp_path, recording_csv):
             timeout=120.0,
         )
         assert bad.status_code == 422 and "broken.csv, line 51" in bad.json()["detail"]
+        # a negative gust is a bad body
+        gusty = post(
+            "/profiles/car/calibration",
+            json={"base": {"params": BASE}, "recordings": [{"csv": recording_csv}], "gust_n": -1.0},
+            headers=srv.auth,
+        )
+        assert gusty.status_code == 422 and "gust_n" in gusty.text
         # twenty seconds cannot identify a vehicle: refused with the reason
         short = "\n".join(lines[:2001])
         refused = post(

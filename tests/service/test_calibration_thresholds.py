@@ -1,4 +1,4 @@
-"""The thresholds calibration sets: a Gaussian tail for the false-alarm rate, the held peak, the floor."""
+"""The thresholds calibration sets: a Gaussian tail for the false-alarm rate, the held peak, a wind gust, the floor."""
 
 from __future__ import annotations
 
@@ -6,7 +6,20 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from service.calibration import FAULT_OVER_WARN, PEAK_MARGIN, REQUIRED_SHARE_FLOOR, fault_thresholds
+from service.calibration import (
+    FAULT_OVER_WARN,
+    PEAK_MARGIN,
+    REQUIRED_SHARE_FLOOR,
+    fault_thresholds,
+    gust_drives,
+    held_peaks,
+    observer_stepper,
+)
+from service.fleet.alarms import OK, WARN, FaultLevels
+from service.profiles import AlarmThresholds
+from synth.gains import ObserverGains
+from synth.model import continuous_matrices, state_matrix
+from synth.params import OperatingBounds, VehicleParams
 
 KW = {"sample_period_s": 0.01, "persistence_s": 0.5}
 
@@ -40,3 +53,62 @@ def test_a_threshold_that_hides_the_required_fault_is_said():
     estimate = np.random.default_rng(3).normal(0.0, 30.0, 60_000)
     t = fault_thresholds(estimate, 10.0, false_alarms_per_1000_h=1.0, required_bias=88.0, **KW)
     assert t.smallest_fault_bias > 88.0 and t.hides_required_fault
+
+
+def test_a_stated_wind_gust_sets_the_warn_floor_it_needs():
+    quiet = np.random.default_rng(4).normal(0.0, 0.0004, 60_000)
+    t = fault_thresholds(quiet, float("nan"), false_alarms_per_1000_h=1.0, required_bias=0.02, gust_peak=0.0053, **KW)
+    assert t.set_by == "gust" and t.warn >= PEAK_MARGIN * 0.0053 and t.gust_peak == 0.0053
+    without = fault_thresholds(quiet, float("nan"), false_alarms_per_1000_h=1.0, required_bias=0.02, **KW)
+    assert without.set_by == "floor" and without.warn < t.warn
+    assert gust_drives(VehicleParams(), OperatingBounds(), 0.0) == []
+    with pytest.raises(ValueError, match="gust"):
+        gust_drives(VehicleParams(), OperatingBounds(), float("nan"))
+
+
+def test_a_gust_shows_as_its_steady_state_steering_equivalent_and_the_floor_rides_it_through(
+    robust_gains_default: ObserverGains,
+) -> None:
+    gains = robust_gains_default
+    p = gains.params
+    drives = gust_drives(p, gains.bounds, 800.0)
+    assert len(drives) == 6
+    for drive, sign in zip(drives, [1.0, -1.0] * 3, strict=True):
+        before = drive.t < 0.5
+        # straight and steady before the gust: the drive torque holds the speed
+        assert np.ptp(drive.y[before], axis=0).max() < 1e-9
+        assert np.sign(drive.y[np.argmax(np.abs(drive.y[:, 1])), 1]) == sign
+    # the linear model's steady state: the steering fault whose yaw rate equals the gust's (speed-independent)
+    cm = continuous_matrices(p)
+    equivalents = []
+    for v in (gains.bounds.vx_min_mps, gains.bounds.vx_max_mps):
+        a = state_matrix(np.array([v, 0.0, 0.0]), p)[1:, 1:]
+        r_gust = -np.linalg.solve(a, 800.0 * cm.D_v[1:, 0])[1]
+        r_steer = -np.linalg.solve(a, cm.F_v[1:, 1])[1]
+        equivalents.append(r_gust / r_steer)
+    peaks = held_peaks(observer_stepper(gains), drives, 0.5)
+    assert peaks[1] == pytest.approx(max(equivalents), rel=0.03)
+    # the alarm levels: a WARN from the required-fault floor alone is raised by the gust; the gust floor is not
+    thresholds = {
+        name: fault_thresholds(
+            np.zeros(100), float("nan"), false_alarms_per_1000_h=1.0, required_bias=0.02, gust_peak=gust, **KW
+        )
+        for name, gust in (("floor", 0.0), ("gust", float(peaks[1])))
+    }
+    assert thresholds["floor"].warn < peaks[1] < thresholds["gust"].warn
+    y = np.stack([d.y for d in drives], axis=1)
+    u = np.stack([d.u for d in drives], axis=1)
+    for name, t in thresholds.items():
+        alarms = AlarmThresholds(warmup_s=0.0, steer_warn_rad=t.warn, steer_fault_rad=t.fault)
+        levels = FaultLevels(len(drives), alarms)
+        rows = np.arange(len(drives))
+        observer = observer_stepper(gains)(y[0], u[0])
+        highest = np.full(len(drives), OK)
+        for k in range(y.shape[0]):
+            f_hat = np.asarray(observer.step(y[k], u[k]).faults)
+            levels.update(rows, f_hat, np.full(len(drives), k * 10_000_000, dtype=np.int64))
+            highest = np.maximum(highest, levels.steer.level[rows])
+        if name == "floor":
+            assert (highest >= WARN).all()
+        else:
+            assert (highest == OK).all()

@@ -113,6 +113,7 @@ async def calibrate(
         "recordings": [r.model_dump() for r in body.recordings],
         "false_alarms_per_1000_h": body.false_alarms_per_1000_h,
         "nominal_torque_nm": body.nominal_torque_nm,
+        "gust_n": body.gust_n,
     }
     try:
         outcome = await service.jobs.run_in_worker(run_calibration, request)
