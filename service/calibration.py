@@ -11,7 +11,9 @@
    channel's WARN and FAULT thresholds from the healthy estimates for a stated
    false-alarm rate (:func:`fault_thresholds`), next to the certified error
    bound of the design, and above what a stated wind gust makes the observer
-   report on the identified model (:func:`gust_drives`);
+   report on the identified model (:func:`gust_drives`); and measure the
+   healthy spread of the estimates' block means, which the CUSUM rule
+   (``alarms.rule`` 'cusum', service.fleet.cusum) normalises by;
 4. say what the thresholds cost: the smallest bias each channel then
    detects, with a warning when it would hide a fault of 10 % of the nominal
    drive torque or of 0.02 rad of steering.
@@ -194,7 +196,7 @@ def calibrate_profile(
     nominal = nominal_torque_nm or params.effective_mass_kg * params.wheel_radius_m * NOMINAL_ACCEL_MPS2
     gusts = gust_drives(params, result.bounds, gust_n)
     rates = [chosen["robust_decay_rate"]] if "robust_decay_rate" in chosen else list(DECAY_RATE_CANDIDATES)
-    candidates: list[tuple[float, ObserverGains, dict[str, ChannelThresholds]]] = []
+    candidates: list[tuple[float, ObserverGains, dict[str, ChannelThresholds], FloatArray]] = []
     for rate in rates:
         design_options = DesignOptions.model_validate({**chosen, "robust_decay_rate": rate})
         gains = synthesize(params, result.bounds, design_options)
@@ -214,12 +216,15 @@ def calibrate_profile(
         }
         # the smallest faults the channels then detect, each relative to the fault it must see
         score = sum(t.smallest_fault_bias / t.required_bias for t in thresholds.values())
-        candidates.append((score, gains, thresholds))
-    _, gains, thresholds = min(candidates, key=lambda candidate: candidate[0])
+        candidates.append((score, gains, thresholds, estimates))
+    _, gains, thresholds, estimates = min(candidates, key=lambda candidate: candidate[0])
     design_options = gains.options
     warnings = [_hiding(channel, t, nominal) for channel, t in thresholds.items() if t.hides_required_fault]
+    block_n = max(1, round(alarm_base.cusum_block_s / params.sample_period_s))
     alarm_settings = alarm_base.model_copy(
         update={
+            "torque_block_sigma_nm": block_sigma(estimates[:, 0], block_n),
+            "steer_block_sigma_rad": block_sigma(estimates[:, 1], block_n),
             "torque_warn_nm": thresholds["torque"].warn,
             "torque_fault_nm": thresholds["torque"].fault,
             "steer_warn_rad": thresholds["steer"].warn,
@@ -356,6 +361,16 @@ def held_peaks(make: StepperFactory, drives: Sequence[Drive], persistence_s: flo
         return np.zeros(2)
     held = np.lib.stride_tricks.sliding_window_view(magnitude, window, axis=0).min(axis=-1)
     return np.asarray(held.max(axis=(0, 1)), dtype=float)
+
+
+def block_sigma(estimate: FloatArray, block_n: int) -> float:
+    """The RMS of the means of ``estimate`` over blocks of ``block_n`` samples: the healthy spread the CUSUM rule
+    normalises by (service.fleet.cusum); never below a millionth of the estimate's RMS (a positive number)."""
+    x = np.asarray(estimate, dtype=float)
+    blocks = x[: x.size - x.size % block_n].reshape(-1, block_n).mean(axis=1) if x.size >= block_n else x
+    rms = float(np.sqrt(np.mean(x**2))) if x.size else 1.0
+    spread = float(np.sqrt(np.mean(blocks**2))) if blocks.size else rms
+    return max(spread, 1e-6 * rms, np.finfo(float).tiny)
 
 
 def certified_rms(gains: ObserverGains, channel: int) -> float:

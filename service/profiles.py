@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -33,7 +33,8 @@ class AlarmThresholds(BaseModel):
     A fault level is raised when |estimate| >= its threshold for ``raise_after_s``
     of vehicle time, and drops when |estimate| < ``hysteresis`` x threshold for
     ``clear_after_s``. Fault alarms are not evaluated during ``warmup_s`` after
-    an observer (re)starts, while its estimate converges.
+    an observer (re)starts, while its estimate converges. With ``rule`` 'cusum'
+    the fault levels come from a two-sided CUSUM instead (service.fleet.cusum).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -58,6 +59,24 @@ class AlarmThresholds(BaseModel):
         10, description="this many rejected measurements within the window raise WARN"
     )
     reject_burst_window_s: Positive = Field(1.0, description="window of the rejected-input count [s]")
+    rule: Literal["threshold", "cusum"] = Field(
+        "threshold",
+        description="how the fault channels raise levels: 'threshold' (|estimate| above a threshold for "
+        "raise_after_s) or 'cusum' (a two-sided CUSUM on block means of the estimate, tuned for shifts of the "
+        "WARN and FAULT thresholds; needs the healthy sigmas)",
+    )
+    cusum_block_s: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
+        0.1, description="the CUSUM's block length: it runs on the estimate's means over blocks this long [s]"
+    )
+    cusum_false_alarms_per_1000_h: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] = Field(
+        1.0, description="the CUSUM's design false-alarm rate per level on Gaussian block means [per 1,000 h]"
+    )
+    torque_block_sigma_nm: Positive | None = Field(
+        None, description="standard deviation of the healthy T_f estimate's block means [N m] (calibration)"
+    )
+    steer_block_sigma_rad: Positive | None = Field(
+        None, description="standard deviation of the healthy delta_f estimate's block means [rad] (calibration)"
+    )
 
     @model_validator(mode="after")
     def _warn_below_fault(self) -> AlarmThresholds:
@@ -65,6 +84,10 @@ class AlarmThresholds(BaseModel):
             warn, fault = getattr(self, f"{channel}_warn_{unit}"), getattr(self, f"{channel}_fault_{unit}")
             if not warn < fault:
                 raise ValueError(f"{channel}_warn_{unit} must be below {channel}_fault_{unit}, got {warn} >= {fault}")
+        if self.rule == "cusum" and (self.torque_block_sigma_nm is None or self.steer_block_sigma_rad is None):
+            raise ValueError(
+                "rule 'cusum' needs torque_block_sigma_nm and steer_block_sigma_rad (agv-fe calibrate sets them)"
+            )
         return self
 
 

@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(str(exc)) from exc
     except CommandError as exc:
         return fail(exc)
-    result = replay(recording, estimator_factory(args, gains), x0, profile.alarms)
+    result = replay(recording, estimator_factory(args, gains), x0, profile.alarms, profile.params.sample_period_s)
     names = np.array(LEVEL_NAMES)[result.levels]
     try:
         write_estimates(args.out, recording.t, result.x_hat, result.f_hat, result.in_domain, names[:, 0], names[:, 1])
@@ -110,7 +110,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def replay(recording: Recording, make: EstimatorFactory, x0: FloatArray | None, alarms: AlarmThresholds) -> Replay:
+def replay(
+    recording: Recording,
+    make: EstimatorFactory,
+    x0: FloatArray | None,
+    alarms: AlarmThresholds,
+    sample_period_s: float = 0.01,
+) -> Replay:
     """Step the estimator over the recording and the fault channels' levels, as the service does per vehicle.
 
     The levels are :class:`service.fleet.alarms.FaultLevels` fed the fault estimates on the time stamps
@@ -121,7 +127,7 @@ def replay(recording: Recording, make: EstimatorFactory, x0: FloatArray | None, 
 
     n = len(recording)
     t_ns = np.rint(recording.t * 1e9).astype(np.int64)
-    levels = FaultLevels(1, alarms)
+    levels = FaultLevels(1, alarms, sample_period_s)
     row = np.zeros(1, dtype=np.intp)
     x_hat = np.zeros((n, 3))
     f_hat = np.zeros((n, 2))
@@ -156,10 +162,13 @@ def level_summary(t: FloatArray, levels: np.ndarray, profile: VehicleProfileFile
         "torque": f"|T_f| >= {a.torque_warn_nm:g} / {a.torque_fault_nm:g} N m",
         "steer": f"|delta_f| >= {a.steer_warn_rad:g} / {a.steer_fault_rad:g} rad",
     }
-    lines = [
-        f"alarm levels with the thresholds of {profile.source} (WARN / FAULT held {a.raise_after_s:g} s, "
-        f"after a {a.warmup_s:g} s warm-up):"
-    ]
+    rule = (
+        f"a CUSUM on {a.cusum_block_s:g} s block means tuned for shifts of WARN / FAULT, "
+        f"{a.cusum_false_alarms_per_1000_h:g} false alarm(s) per 1,000 h"
+        if a.rule == "cusum"
+        else f"WARN / FAULT held {a.raise_after_s:g} s"
+    )
+    lines = [f"alarm levels with the thresholds of {profile.source} ({rule}, after a {a.warmup_s:g} s warm-up):"]
     for c, name in enumerate(CHANNELS):
         parts = []
         for level, label in ((WARN, "WARN"), (FAULT, "FAULT")):

@@ -18,6 +18,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from service.fleet.cusum import CusumDetector
 from service.profiles import AlarmThresholds
 from service.protocol import Alarm, AlarmKind, AlarmState, Level
 
@@ -131,33 +132,68 @@ class LevelDetector:
         return np.flatnonzero(new != old)
 
 
+Detector = LevelDetector | CusumDetector
+
+
+def _detectors(capacity: int, alarms: AlarmThresholds, sample_period_s: float) -> tuple[Detector, Detector]:
+    """The torque and steering detectors of a rule: threshold (LevelDetector) or CUSUM (CusumDetector)."""
+    raise_ns, clear_ns = seconds_to_ns(alarms.raise_after_s), seconds_to_ns(alarms.clear_after_s)
+    channels = (
+        (alarms.torque_warn_nm, alarms.torque_fault_nm, alarms.torque_block_sigma_nm),
+        (alarms.steer_warn_rad, alarms.steer_fault_rad, alarms.steer_block_sigma_rad),
+    )
+    if alarms.rule == "cusum":
+        block_n = max(1, round(alarms.cusum_block_s / sample_period_s))
+        cusum = [
+            CusumDetector(
+                capacity,
+                (warn, fault),
+                float(sigma or 0.0),
+                block_n,
+                alarms.cusum_false_alarms_per_1000_h,
+                block_n * sample_period_s,
+                clear_ns,
+            )
+            for warn, fault, sigma in channels
+        ]
+        return cusum[0], cusum[1]
+    torque, steer = (
+        LevelDetector(capacity, warn, fault, alarms.hysteresis, raise_ns, clear_ns) for warn, fault, _ in channels
+    )
+    return torque, steer
+
+
 class FaultLevels:
     """The alarm levels of the fault channels T_f and delta_f, one row per vehicle slot.
 
-    Two :class:`LevelDetector` (``torque`` on |T_f| [N m], ``steer`` on
-    |delta_f| [rad]) configured from a profile's :class:`AlarmThresholds`, and
-    the warm-up rule: a row's fault estimates are evaluated only once
+    Two detectors (``torque`` on T_f [N m], ``steer`` on delta_f [rad]) of the
+    profile's rule (:class:`AlarmThresholds`: ``rule`` 'threshold' gives
+    :class:`LevelDetector`, 'cusum' :class:`service.fleet.cusum.CusumDetector`),
+    and the warm-up rule: a row's fault estimates are evaluated only once
     ``warmup_s`` of sample time has passed since its observer (re)started
-    (:meth:`restart`). Time is the samples' time stamps [ns].
+    (:meth:`restart`). Time is the samples' time stamps [ns]; ``sample_period_s``
+    sets the CUSUM's samples per block.
     """
 
-    def __init__(self, capacity: int, alarms: AlarmThresholds) -> None:
-        raise_ns, clear_ns = seconds_to_ns(alarms.raise_after_s), seconds_to_ns(alarms.clear_after_s)
-        self.torque = LevelDetector(
-            capacity, alarms.torque_warn_nm, alarms.torque_fault_nm, alarms.hysteresis, raise_ns, clear_ns
-        )
-        self.steer = LevelDetector(
-            capacity, alarms.steer_warn_rad, alarms.steer_fault_rad, alarms.hysteresis, raise_ns, clear_ns
-        )
+    def __init__(self, capacity: int, alarms: AlarmThresholds, sample_period_s: float = 0.01) -> None:
+        self.sample_period_s = sample_period_s
+        self.rule = alarms.rule
+        self.torque, self.steer = _detectors(capacity, alarms, sample_period_s)
         self.warmup_ns = seconds_to_ns(alarms.warmup_s)
         #: when each row's observer last (re)started [ns]
         self.started_t_ns = np.zeros(capacity, dtype=np.int64)
 
     def configure(self, alarms: AlarmThresholds) -> None:
-        """New thresholds; levels and timers are kept."""
+        """New alarm settings; levels are kept, and timers too unless the rule changed (its statistics restart)."""
         raise_ns, clear_ns = seconds_to_ns(alarms.raise_after_s), seconds_to_ns(alarms.clear_after_s)
-        self.torque.configure(alarms.torque_warn_nm, alarms.torque_fault_nm, alarms.hysteresis, raise_ns, clear_ns)
-        self.steer.configure(alarms.steer_warn_rad, alarms.steer_fault_rad, alarms.hysteresis, raise_ns, clear_ns)
+        torque, steer = self.torque, self.steer
+        if alarms.rule == "threshold" and isinstance(torque, LevelDetector) and isinstance(steer, LevelDetector):
+            torque.configure(alarms.torque_warn_nm, alarms.torque_fault_nm, alarms.hysteresis, raise_ns, clear_ns)
+            steer.configure(alarms.steer_warn_rad, alarms.steer_fault_rad, alarms.hysteresis, raise_ns, clear_ns)
+        else:
+            self.torque, self.steer = _detectors(torque.level.shape[0], alarms, self.sample_period_s)
+            self.torque.level[:], self.steer.level[:] = torque.level, steer.level
+        self.rule = alarms.rule
         self.warmup_ns = seconds_to_ns(alarms.warmup_s)
 
     def grow(self, capacity: int) -> None:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.fleet.alarms import FaultLevels, LevelDetector, seconds_to_ns
+from service.fleet.alarms import Detector, FaultLevels, LevelDetector, seconds_to_ns
 from service.profiles import ProfileSpec
 from synth.gains import ObserverGains
 from synth.model import FloatArray
@@ -80,7 +80,7 @@ class ProfileBank:
         self.phase = np.zeros(cap, dtype=np.int64)
         a = spec.alarms
         # the fault channels' detectors and warm-up rule (shared with `agv-fe replay`)
-        self.faults = FaultLevels(cap, a)
+        self.faults = FaultLevels(cap, a, spec.params.sample_period_s)
         # out of domain as a one-level detector on a 0/1 signal
         self.domain = LevelDetector(
             cap, 0.5, np.inf, 1.0, seconds_to_ns(a.out_of_domain_after_s), seconds_to_ns(a.clear_after_s)
@@ -89,12 +89,12 @@ class ProfileBank:
     # ------------------------------------------------------------------ configuration
 
     @property
-    def torque(self) -> LevelDetector:
+    def torque(self) -> Detector:
         """The |T_f| detector of :attr:`faults`."""
         return self.faults.torque
 
     @property
-    def steer(self) -> LevelDetector:
+    def steer(self) -> Detector:
         """The |delta_f| detector of :attr:`faults`."""
         return self.faults.steer
 

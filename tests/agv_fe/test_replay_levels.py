@@ -165,6 +165,47 @@ def test_torque_bias_raises_warn_then_fault_after_the_onset_with_the_profiles_th
     assert [r["torque_fault_hat"] for r in custom_rows] == [r["torque_fault_hat"] for r in rows]
 
 
+def first_cusum_crossing(rows: list[dict[str, str]], column: str, threshold: float, sigma: float) -> float | None:
+    """The CUSUM rule written out (service.fleet.cusum): 10-sample block means after the 3 s warm-up,
+    g+- = max(0, g+- +- m / sigma - k), k = threshold / (2 sigma), the first block end with max(g+, g-) > h."""
+    from service.fleet.cusum import blocks_per_false_alarm, cusum_threshold
+
+    k = threshold / (2.0 * sigma)
+    h = cusum_threshold(round(k, 9), blocks_per_false_alarm(1.0, 0.1))
+    t0 = round(float(rows[0]["t"]) * 1e9)
+    warm = [r for r in rows if round(float(r["t"]) * 1e9) - t0 >= 3_000_000_000]
+    g_plus = g_minus = 0.0
+    for start in range(0, len(warm) - 9, 10):
+        block = warm[start : start + 10]
+        m = sum(float(r[column]) for r in block) / 10.0
+        g_plus, g_minus = max(0.0, g_plus + m / sigma - k), max(0.0, g_minus - m / sigma - k)
+        if max(g_plus, g_minus) > h:
+            return float(block[-1]["t"])
+    return None
+
+
+def test_a_cusum_profile_replays_with_the_cusum_rule(tmp_path, capsys, gains_file, bias_recording):
+    alarms = {"rule": "cusum", "torque_block_sigma_nm": 5.0, "steer_block_sigma_rad": 0.001}
+    profile = tmp_path / "cusum.json"
+    profile.write_text(json.dumps({"name": "cusum", "alarms": alarms}))
+    code, out, err = replay(
+        capsys, bias_recording, tmp_path / "cusum.csv", "--gains", str(gains_file), "--params", str(profile)
+    )
+    assert code == 0, err
+    rows = read_rows(tmp_path / "cusum.csv")
+    assert runs([r["torque_level"] for r in rows]) == ["OK", "WARN", "FAULT"]
+    assert {r["steer_level"] for r in rows} == {"OK"}
+    assert "a CUSUM on 0.1 s block means" in out
+    first_warn = first_at_least(rows, "torque_level", "WARN")
+    first_fault = first_at_least(rows, "torque_level", "FAULT")
+    defaults = AlarmThresholds()
+    assert first_warn == first_cusum_crossing(rows, "torque_fault_hat", defaults.torque_warn_nm, 5.0)
+    assert first_fault == first_cusum_crossing(rows, "torque_fault_hat", defaults.torque_fault_nm, 5.0)
+    # the same estimates through the threshold rule reach WARN later: it waits out its 0.5 s persistence
+    held = first_held(rows, "torque_fault_hat", defaults.torque_warn_nm, defaults)
+    assert first_warn is not None and held is not None and ONSET_S < first_warn < held
+
+
 def test_the_ekf_replays_with_levels_too(tmp_path, capsys, gains_file, bias_recording):
     code, _, err = replay(
         capsys, bias_recording, tmp_path / "ekf.csv", "--gains", str(gains_file), "--estimator", "ekf"
