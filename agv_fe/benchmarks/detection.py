@@ -1117,12 +1117,10 @@ def delay_stats(delays: Sequence[float | None]) -> dict[str, Any]:
 
 
 def cusum_rule(alarms: AlarmThresholds) -> Rule | None:
-    """The service's CUSUM alarm rule on the same thresholds, if :class:`AlarmThresholds` offers one (a
-    ``fault_rule`` field taking "cusum"); None otherwise."""
-    if "fault_rule" not in AlarmThresholds.model_fields:
-        return None
+    """The service's CUSUM rule (``rule`` 'cusum', :mod:`service.fleet.cusum`) on the same thresholds and the
+    calibrated block sigmas; None when the settings have no block sigmas."""
     try:
-        settings = AlarmThresholds.model_validate(alarms.model_dump() | {"fault_rule": "cusum"})
+        settings = AlarmThresholds.model_validate(alarms.model_dump() | {"rule": "cusum"})
     except ValueError:
         return None
     return Rule("cusum", 1.0, settings)
@@ -1992,9 +1990,12 @@ def _how_measured(document: dict[str, Any]) -> list[str]:
     plan = document["plan"]
     h, f = plan["healthy"], plan["faults"]
     cusum = (
-        "The CUSUM rows run the same estimates through the service's CUSUM rule (AlarmThresholds.fault_rule)."
+        "The CUSUM rows run the same estimates through the service's CUSUM rule (AlarmThresholds.rule 'cusum', "
+        "service.fleet.cusum: Page's two-sided CUSUM on 0.1 s block means normalised by the calibration drive's "
+        "block sigma, each level tuned for a shift of its threshold, h from the in-control run length of one "
+        "false alarm per 1,000 h on Gaussian block means)."
         if plan["cusum_rule"]
-        else "The service's AlarmThresholds offered no CUSUM rule when this ran, so there are no CUSUM rows."
+        else "The profile had no block sigmas, so there are no CUSUM rows."
     )
     return [
         "## How it was measured\n",

@@ -49,6 +49,7 @@ from service.calibration import (
     UNITS,
     CalibrationReport,
     ChannelThresholds,
+    block_sigma,
     calibrate_profile,
     fault_thresholds,
     gust_drives,
@@ -460,7 +461,10 @@ def ekf_thresholds(
         )
         for i, channel in enumerate(CHANNELS)
     }
+    block_n = max(1, round(alarms.cusum_block_s / report.profile.params.sample_period_s))
     settings = alarms.model_dump() | {
+        "torque_block_sigma_nm": block_sigma(estimated.f_hat[after, 0], block_n),
+        "steer_block_sigma_rad": block_sigma(estimated.f_hat[after, 1], block_n),
         "torque_warn_nm": thresholds["torque"].warn,
         "torque_fault_nm": thresholds["torque"].fault,
         "steer_warn_rad": thresholds["steer"].warn,

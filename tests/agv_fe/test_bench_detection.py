@@ -62,6 +62,8 @@ def test_registered_and_writes_report_json_and_figure(outcome):
     assert "](detection.png)" in text
     assert "Parameter set 2 is never used here" in text
     assert document["plan"]["quick"] is True and document["plan"]["multibody"]["parameter_sets"] == [SET]
+    # the calibrated profile carries the block sigmas, so the service's CUSUM rule runs beside the thresholds
+    assert document["plan"]["cusum_rule"] is True and "CUSUM rule" in text
     assert document["timings"]["total_s"] > 0
 
 
@@ -96,7 +98,7 @@ def test_healthy_counts_are_counts_consistent_with_the_vehicle_hours(outcome):
         figures = healthy[name]
         expected_hours = figures["vehicles"] * (healthy["duration_s"] - warmup_s) / 3600.0
         assert figures["hours"] == pytest.approx(expected_hours)
-        assert set(figures["rules"]) >= {"default"} | {f"x{f:g}" for f in bench.THRESHOLD_FACTORS if f != 1.0}
+        assert set(figures["rules"]) >= {"default", "cusum"} | {f"x{f:g}" for f in bench.THRESHOLD_FACTORS if f != 1.0}
         for rule in figures["rules"].values():
             for channel in CHANNELS:
                 c = rule["channels"][channel]
