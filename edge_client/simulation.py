@@ -20,6 +20,7 @@ from edge_client.scenario import Scenario
 from synth.gains import ObserverGains
 from synth.model import FloatArray
 from synth.observer import FuzzyObserver
+from synth.options import EffectivenessOptions
 
 
 class EstimatorOutput(Protocol):
@@ -56,6 +57,19 @@ def observer_factory(gains: ObserverGains) -> EstimatorFactory:
 
     def make(y0: FloatArray, x_hat0: FloatArray | None, u0: FloatArray | None = None) -> BatchEstimator:
         return FuzzyObserver(gains, y0, x_hat0, u0)
+
+    return make
+
+
+def effectiveness_factory(gains: ObserverGains, options: EffectivenessOptions | None = None) -> EstimatorFactory:
+    """An :class:`EstimatorFactory` for the fuzzy observer with its loss-of-effectiveness stage
+    (synth.effectiveness): the faults it reports are the totals, bias plus (alpha - 1) demand."""
+    from synth.effectiveness import EffectivenessObserver
+
+    chosen = options or EffectivenessOptions(enabled=True)
+
+    def make(y0: FloatArray, x_hat0: FloatArray | None, u0: FloatArray | None = None) -> BatchEstimator:
+        return EffectivenessObserver(gains, chosen, y0, x_hat0, u0)
 
     return make
 

@@ -50,6 +50,44 @@ class NoiseModel(BaseModel):
     )
 
 
+class EffectivenessOptions(BaseModel):
+    """The loss-of-effectiveness stage (synth.effectiveness): f = b + (alpha - 1) u per actuator.
+
+    A Kalman filter on the observer's reported faults; it does not change the observer or its gains, so these
+    options are not part of the design (changing them needs no resynthesis).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    enabled: bool = Field(False, description="estimate each actuator's effectiveness alpha beside its bias")
+    torque_sigma_nm: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = Field(
+        10.0, description="RMS of the healthy T_f estimate: the stage's measurement noise [N m] (calibration sets it)"
+    )
+    steer_sigma_rad: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
+        0.0005, description="RMS of the healthy delta_f estimate [rad] (calibration sets it)"
+    )
+    bias_drift_share: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = Field(
+        0.1, description="per-sample standard deviation of the bias's random walk, as a share of the sigma [-]"
+    )
+    effectiveness_rate_per_sqrt_s: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = Field(
+        0.02, description="standard deviation of alpha's random walk over one second [1/sqrt(s)]"
+    )
+    initial_alpha_sigma: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = Field(
+        0.05, description="standard deviation of alpha when the stage starts (at 1) [-]"
+    )
+    alpha_bounds: tuple[float, float] = Field((0.0, 1.5), description="alpha_hat is kept within these [-]")
+    start_after_s: Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)] = Field(
+        3.0, description="the stage starts once the observer has converged, this long after it starts [s]"
+    )
+
+    @model_validator(mode="after")
+    def _bounds_ordered(self) -> EffectivenessOptions:
+        low, high = self.alpha_bounds
+        if not (0.0 <= low < 1.0 < high <= 10.0):
+            raise ValueError(f"alpha_bounds must satisfy 0 <= low < 1 < high <= 10, got {self.alpha_bounds}")
+        return self
+
+
 class SwitchingRule(BaseModel):
     """When a switched robust design uses its fast gain set instead of its quiet one.
 

@@ -1,0 +1,233 @@
+"""Loss of effectiveness: each actuator's fault as a bias plus a share of its demand, f = b + (alpha - 1) u.
+
+The paper's multiplicative fault (eqs. 9-11) is f = (alpha - 1) u_d. The
+observer (eq. 19) estimates the fault as a random walk, which lags every
+change of the demand: after a step of u the estimate follows (alpha - 1) u
+through the observer's own error dynamics. This module estimates b and
+alpha in a second stage that reads the observer and never feeds back into
+it, so the observer, its gains and its certificate are exactly those of the
+additive design:
+
+1. **The observer's response to the demand.** For a fault equal to the
+   demand, f_k = u_k, the error e = x_bar - x_hat of eq. (20) obeys
+
+       eps_{k+1} = N(h_k) eps_k + D (u_{k+1} - u_k)
+
+   with N(h_k) the blended transition the observer ran at k (its gain set,
+   for a switched design) and D the fault rows (fault order 1: the fault is a
+   random walk, its change the model's drift input). The reported fault then
+   responds as H[u]_k = u_k - (eps_f - K_f C_bar eps)_k (K_f the output gain),
+   so for f = b + theta u with b and theta = alpha - 1 slowly varying,
+
+       f_hat_k = b + theta H[u]_k + (the observer's noise).
+
+   H is the certified observer's own dynamics (uniformly exponentially
+   stable at the certified rate), evaluated exactly on the measured premise
+   each sample.
+2. **A Kalman filter on that regression**, per actuator: the parameters
+   [b, theta] are random walks (per-sample standard deviations
+   ``bias_drift_share`` x sigma and ``effectiveness_rate_per_sqrt_s`` x sqrt(s)),
+   the measurement is the observer's reported f_hat with the healthy
+   estimate's RMS sigma as its noise. theta is told apart from b only by
+   changes of the demand (with a constant demand the two are one number), so
+   alpha_hat holds where the demand does not vary.
+3. **Reported**: alpha_hat = 1 + theta_hat (clipped to ``alpha_bounds``), the
+   total fault f_hat + theta_hat (u - H[u]) (the observer's estimate with the
+   lag of its demand-proportional part taken out: a bias still comes through
+   at the observer's speed), and the bias b_hat = f_hat - theta_hat H[u].
+
+The torque demand is T_d; the steering demand is the road-wheel angle the
+actuator model gives for delta_d (its lag, as the observer carries it), so a
+loss of steering effectiveness scales the angle the actuator delivers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from synth.augmented import N_FAULTS, N_STATES
+from synth.errors import BadParameters
+from synth.gains import ObserverGains
+from synth.model import FloatArray
+from synth.observer import FuzzyObserver, StepResult
+from synth.options import EffectivenessOptions
+
+FAULTS = slice(N_STATES, N_STATES + N_FAULTS)
+
+
+@dataclass(slots=True)
+class EffectivenessResult:
+    """One sample of the second stage for a batch of nv vehicles.
+
+    alpha : (nv, 2) estimated effectiveness of [torque, steering] [-]
+    total : (nv, 2) estimated total fault b + (alpha - 1) u [N m, rad]
+    bias : (nv, 2) estimated bias b [N m, rad]
+    """
+
+    alpha: FloatArray
+    total: FloatArray
+    bias: FloatArray
+
+
+class EffectivenessEstimator:
+    """The second stage for a fixed batch of vehicles sharing one design (module docstring).
+
+    Call :meth:`step` after each observer step with that step's result and the same y, u.
+    """
+
+    def __init__(
+        self, gains: ObserverGains, options: EffectivenessOptions, nv: int, u0: ArrayLike | None = None
+    ) -> None:
+        if gains.options.fault_order != 1:
+            raise BadParameters(
+                f"the effectiveness stage needs a design of fault order 1 (a random-walk fault), "
+                f"got {gains.options.fault_order}"
+            )
+        if np.any(gains.E) or not np.allclose(gains.M, np.eye(gains.M.shape[0])):
+            raise BadParameters("the effectiveness stage needs a design with E = 0 and M = I (the 'robust' designs)")
+        self.gains = gains
+        self.options = options
+        aug = gains.model
+        self.nts = aug.nts
+        n = aug.n
+        self.n = n
+        self.C = aug.C_bar
+        self.sets = [gains] if gains.quiet is None else [gains, gains.quiet_gains()]
+        #: per gain set: N_i (r, n, n) and the reported fault rows' map of the error, I_f - K_f C (2, n)
+        self.N = [g.N for g in self.sets]
+        self.report = [np.eye(n)[FAULTS] - g.output_gain[FAULTS] @ self.C for g in self.sets]
+        s = gains.params.sample_period_s
+        self.steer_lag = gains.params.steer_lag_factor
+        self.steer_lag_mean = gains.params.steer_lag_mean_factor
+        sigma = np.array([options.torque_sigma_nm, options.steer_sigma_rad])
+        self.R = sigma**2
+        self.Q = np.stack(
+            [
+                np.diag([(options.bias_drift_share * sg) ** 2, options.effectiveness_rate_per_sqrt_s**2 * s])
+                for sg in sigma
+            ]
+        )
+        self.start_samples = round(options.start_after_s / s)
+        self.theta_low, self.theta_high = options.alpha_bounds[0] - 1.0, options.alpha_bounds[1] - 1.0
+        u0 = np.zeros((nv, 2)) if u0 is None else np.atleast_2d(np.asarray(u0, dtype=float))
+        self.steer_state = u0[:, 1].copy()
+        self.eps = np.zeros((nv, n, 2))
+        self.N_prev: FloatArray | None = None
+        self.report_prev: FloatArray | None = None
+        self.u_prev: FloatArray | None = None
+        #: per vehicle and channel: [b, theta] and their covariance
+        self.par = np.zeros((nv, 2, 2))
+        self.P = np.zeros((nv, 2, 2, 2))
+        self.P[:, :, 0, 0] = (10.0 * sigma) ** 2
+        self.P[:, :, 1, 1] = options.initial_alpha_sigma**2
+        self.samples = 0
+
+    def regressor(self, u: FloatArray) -> FloatArray:
+        """The demand each fault is a share of, (nv, 2): T_d, and the actuator model's angle over the sample."""
+        out = u.copy()
+        if self.steer_lag != 0.0:
+            out[:, 1] = self.steer_state + self.steer_lag_mean * (u[:, 1] - self.steer_state)
+            self.steer_state = self.steer_lag * self.steer_state + (1.0 - self.steer_lag) * u[:, 1]
+        return out
+
+    def step(self, result: StepResult, y: ArrayLike, u: ArrayLike) -> EffectivenessResult:
+        """The estimates at k from the observer's result at k and the sample's y_k, u_k (nv, 2) each."""
+        y = np.atleast_2d(np.asarray(y, dtype=float))
+        u_d = self.regressor(np.atleast_2d(np.asarray(u, dtype=float)))
+        f_hat = result.faults
+        if self.N_prev is not None and self.u_prev is not None:
+            # eps_k = N_{k-1} eps_{k-1} + D (u_k - u_{k-1})
+            self.eps = np.einsum("vjk,vkc->vjc", self.N_prev, self.eps)
+            self.eps[:, N_STATES, 0] += u_d[:, 0] - self.u_prev[:, 0]
+            self.eps[:, N_STATES + 1, 1] += u_d[:, 1] - self.u_prev[:, 1]
+        # this sample's transition and reported-fault map: the gain set the observer ran
+        xi = self.nts.clip_premise(self.nts.premise(y[:, 0], y[:, 1]))
+        h = self.nts.memberships(xi)
+        fast = result.fast
+        if len(self.sets) == 1 or fast is None:
+            N, report = np.einsum("vi,ijk->vjk", h, self.N[0]), np.broadcast_to(self.report[0], (h.shape[0], 2, self.n))
+        else:
+            pick = np.asarray(fast, dtype=bool)[:, None, None]
+            N = np.where(pick, np.einsum("vi,ijk->vjk", h, self.N[0]), np.einsum("vi,ijk->vjk", h, self.N[1]))
+            report = np.where(pick, self.report[0][None], self.report[1][None])
+        # H[u]_k = u_k - (I_f - K_f C) eps_k, per channel (its own column)
+        response = np.einsum("vfj,vjc->vfc", report, self.eps)
+        H = u_d - np.stack([response[:, 0, 0], response[:, 1, 1]], axis=1)
+        if self.samples >= self.start_samples:
+            self._update(f_hat, H)
+        self.samples += 1
+        self.N_prev, self.u_prev = N, u_d
+        theta = self.par[:, :, 1]
+        bias = f_hat - theta * H
+        total = f_hat + theta * (u_d - H)
+        return EffectivenessResult(alpha=1.0 + theta, total=total, bias=bias)
+
+    def _update(self, f_hat: FloatArray, H: FloatArray) -> None:
+        """One Kalman step per channel of [b, theta] with the measurement f_hat = b + theta H."""
+        phi = np.stack([np.ones_like(H), H], axis=2)  # (nv, 2 channels, 2)
+        P = self.P + self.Q[None]
+        P_phi = np.einsum("vcij,vcj->vci", P, phi)
+        S = np.einsum("vci,vci->vc", phi, P_phi) + self.R[None]
+        G = P_phi / S[:, :, None]
+        innovation = f_hat - np.einsum("vci,vci->vc", phi, self.par)
+        self.par = self.par + G * innovation[:, :, None]
+        P = P - G[:, :, :, None] * P_phi[:, :, None, :]
+        self.P = 0.5 * (P + np.swapaxes(P, 2, 3))
+        self.par[:, :, 1] = np.clip(self.par[:, :, 1], self.theta_low, self.theta_high)
+
+
+@dataclass(slots=True)
+class EffectivenessStep:
+    """One step of :class:`EffectivenessObserver` for a batch: the observer's result with the total faults.
+
+    x_hat : (nv, n) the observer's reported estimate, its fault rows replaced by the total faults
+    in_domain : (nv,) as the observer's; alpha, bias : (nv, 2) as :class:`EffectivenessResult`;
+    observer_faults : (nv, 2) the observer's own (additive) fault estimate
+    """
+
+    x_hat: FloatArray
+    in_domain: np.ndarray
+    alpha: FloatArray
+    bias: FloatArray
+    observer_faults: FloatArray
+
+    @property
+    def state(self) -> FloatArray:
+        """(nv, 3) estimated [v_x, v_y, r]."""
+        return self.x_hat[:, :3]
+
+    @property
+    def faults(self) -> FloatArray:
+        """(nv, 2) estimated total faults [T_f [N m], delta_f [rad]]: bias plus (alpha - 1) demand."""
+        return self.x_hat[:, FAULTS]
+
+
+class EffectivenessObserver:
+    """A :class:`~synth.observer.FuzzyObserver` and its :class:`EffectivenessEstimator`, stepped together."""
+
+    def __init__(
+        self,
+        gains: ObserverGains,
+        options: EffectivenessOptions,
+        y0: ArrayLike,
+        x_hat0: ArrayLike | None = None,
+        u0: ArrayLike | None = None,
+    ) -> None:
+        self.observer = FuzzyObserver(gains, y0, x_hat0, u0)
+        self.stage = EffectivenessEstimator(gains, options, self.observer.n_vehicles, u0)
+
+    def step(self, y: ArrayLike, u: ArrayLike) -> EffectivenessStep:
+        result = self.observer.step(y, u)
+        second = self.stage.step(result, y, u)
+        x_hat = np.array(result.x_hat, dtype=float)
+        x_hat[:, FAULTS] = second.total
+        return EffectivenessStep(
+            x_hat=x_hat,
+            in_domain=result.in_domain,
+            alpha=second.alpha,
+            bias=second.bias,
+            observer_faults=np.array(result.faults, dtype=float),
+        )
