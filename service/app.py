@@ -74,6 +74,7 @@ class Service:
                 unknown_vehicles=ingest.unknown_vehicles,
                 default_profile=ingest.default_profile,
                 long_gap_s=ingest.long_gap_s,
+                seq_jump_slack=ingest.seq_jump_slack,
                 estimate_every_n=ingest.estimate_every_n,
                 history_samples=ingest.history_samples,
                 prefix=settings.zenoh.prefix,

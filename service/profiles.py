@@ -58,6 +58,11 @@ class AlarmThresholds(BaseModel):
         10, description="this many rejected measurements within the window raise WARN"
     )
     reject_burst_window_s: Positive = Field(1.0, description="window of the rejected-input count [s]")
+    sequence_reject_count: Annotated[int, Field(ge=1, le=1_000_000)] = Field(
+        100,
+        description="this many samples in a row refused as late (out_of_order) or with an implausible sequence "
+        "jump (implausible_seq) raise WARN sequence_rejected",
+    )
 
     @model_validator(mode="after")
     def _warn_below_fault(self) -> AlarmThresholds:

@@ -509,7 +509,7 @@ class FleetEstimates(_Json):
         return [e for g in self.groups for e in g.estimates()]
 
 
-AlarmKind = Literal["torque_fault", "steer_fault", "out_of_domain", "stale", "rejected_inputs"]
+AlarmKind = Literal["torque_fault", "steer_fault", "out_of_domain", "stale", "rejected_inputs", "sequence_rejected"]
 AlarmState = Literal["raised", "cleared", "acknowledged"]
 
 

@@ -81,6 +81,11 @@ class IngestSettings(_Section):
     long_gap_s: Annotated[float, Field(gt=0)] = Field(
         0.5, description="a sequence gap longer than this re-initialises the vehicle's observer [s]"
     )
+    seq_jump_slack: Annotated[int, Field(ge=1, le=1_000_000)] = Field(
+        100,
+        description="a sequence jump is believed when it is at most this many samples beyond twice what the time "
+        "stamps allow at the profile's sample period; a larger one is rejected as implausible_seq [samples]",
+    )
     estimate_every_n: Annotated[int, Field(ge=1)] = Field(
         1,
         description="publish every Nth estimate of a vehicle (1: every sample); all samples are still observed; "

@@ -24,6 +24,7 @@ _REJECTED_EXAMPLE: dict[str, JsonValue] = {
     "unknown_vehicle": 0,
     "duplicate": 2,
     "out_of_order": 1,
+    "implausible_seq": 0,
     "non_finite": 0,
     "out_of_range": 0,
     "no_gains": 0,

@@ -12,11 +12,14 @@ import numpy as np
 import pytest
 
 from edge_client.library import paper_1
-from service.protocol import Measurement, vehicle_key
+from service.profiles import ProfileSpec
+from service.protocol import FLAG_SEQUENCE_RESTART, Measurement, vehicle_key
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver
 from tests.service.helpers import (
     FAST_DESIGN,
+    PERIOD_NS,
+    T0_NS,
     as_array,
     constant_measurement,
     make_settings,
@@ -152,6 +155,42 @@ def test_alarm_raised_published_stored_latched_and_acknowledged(server, zprobe):
     events = server.get(f"/alarms/{alarm_id}").json()["events"]
     assert events[0]["state"] == "raised" and events[-1]["state"] == "acknowledged"
     assert server.http.post("/alarms/al-unknown/ack", headers=server.auth).status_code == 404
+
+
+def test_a_forged_sequence_number_is_refused_and_late_samples_raise_an_alarm(server, zprobe):
+    """One put of seq 2^64 - 1 on a vehicle's key between its genuine samples: refused as implausible_seq, nothing
+    missing, no genuine sample lost. A forgery whose time stamp agrees with its seq is believed, and the genuine
+    samples after it are late: after sequence_reject_count of them in a row the vehicle raises sequence_rejected,
+    stored and published on Zenoh, which clears when the vehicle restarts its sequence."""
+    vid = "forged-1"
+    for k in range(30):
+        zprobe.put(constant_measurement(vid, k))
+    zprobe.put(Measurement(vid, (1 << 64) - 1, T0_NS + 30 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0))
+    for k in range(30, 60):
+        zprobe.put(constant_measurement(vid, k))
+    wait_for(lambda: len(zprobe.estimates_of(vid)) >= 60, what="every genuine sample's estimate")
+    status = server.vehicle(vid)
+    assert status["rejected"]["implausible_seq"] == 1 and status["rejected"]["out_of_order"] == 0
+    assert status["counters"]["missing"] == 0 and status["last_seq"] == 59
+    assert all(a.vehicle != vid for a in zprobe.collect().alarms)
+    count = ProfileSpec.model_validate({}).alarms.sequence_reject_count
+    zprobe.put(constant_measurement(vid, 10**9))  # seq and time stamp forged together
+    for k in range(60, 60 + count):
+        zprobe.put(constant_measurement(vid, k))
+    raised = wait_for(
+        lambda: [a for a in zprobe.collect().alarms if a.vehicle == vid and a.kind == "sequence_rejected"],
+        what="sequence_rejected on Zenoh",
+    )
+    assert raised[0].state == "raised" and raised[0].level == "WARN" and raised[0].value == count
+    assert server.vehicle(vid)["rejected"]["out_of_order"] == count
+    stored = [a for a in server.get("/alarms", params={"vehicle": vid}).json() if a["kind"] == "sequence_rejected"]
+    assert [a["id"] for a in stored] == [raised[0].id] and stored[0]["latched"]
+    zprobe.put(Measurement(vid, 0, T0_NS + 200 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0, flags=FLAG_SEQUENCE_RESTART))
+    wait_for(
+        lambda: any(a.id == raised[0].id and a.state == "cleared" for a in zprobe.collect().alarms),
+        what="sequence_rejected cleared",
+    )
+    assert server.vehicle(vid)["last_seq"] == 0
 
 
 def test_stale_by_lost_liveliness_and_by_timeout(server, zprobe):
