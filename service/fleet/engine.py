@@ -250,6 +250,9 @@ class FleetEngine:
         self.vehicles: dict[str, Vehicle] = {}
         self._by_key: dict[str, Vehicle] = {}
         self._presence: dict[str, bool] = {}  # liveliness of vehicles not registered yet
+        #: registered vehicles of a profile that could not be loaded: (profile, registration time [ns]); their
+        #: samples are rejected as no_gains, not taken by the default profile
+        self.held: dict[str, tuple[str, int]] = {}
         self._clock_ns = clock_ns
         self._monotonic = monotonic
         self.started_mono = monotonic()
@@ -278,6 +281,23 @@ class FleetEngine:
         self._refresh_limits()
         return bank
 
+    def remove_profile(self, name: str) -> None:
+        """Take back a profile that has no vehicle (one just added whose storage failed)."""
+        bank = self._bank(name)
+        if bank.used.any():
+            raise FleetError(f"profile {name!r} has vehicles")
+        del self.banks[name]
+        self._refresh_limits()
+
+    def hold(self, vehicle_id: str, profile: str, registered_t_ns: int) -> None:
+        """Keep a registered vehicle of a profile that is not running for when it runs (see :meth:`release_held`)."""
+        self.held[vehicle_id] = (profile, registered_t_ns)
+
+    def release_held(self, profile: str) -> list[Vehicle]:
+        """Register the held vehicles of ``profile``, which runs now."""
+        ids = [vehicle_id for vehicle_id, (name, _) in self.held.items() if name == profile]
+        return [self.register(vehicle_id, profile, self.held[vehicle_id][1]) for vehicle_id in ids]
+
     def update_profile_spec(self, name: str, spec: ProfileSpec) -> None:
         self._bank(name).set_spec(spec)
         self._refresh_limits()
@@ -299,6 +319,7 @@ class FleetEngine:
     def register(self, vehicle_id: str, profile: str, registered_t_ns: int | None = None) -> Vehicle:
         """Add a vehicle (or move it to ``profile``); its observer starts at its next measurement."""
         bank = self._bank(profile)
+        self.held.pop(vehicle_id, None)
         existing = self.vehicles.get(vehicle_id)
         if existing is not None:
             if existing.bank is bank:
@@ -530,6 +551,9 @@ class FleetEngine:
             return None
         if claimed != vehicle_id:
             self._reject(None, "id_mismatch", now_mono, result)
+            return None
+        if vehicle_id in self.held:  # its profile is not running
+            self._reject(None, "no_gains", now_mono, result)
             return None
         if self.config.unknown_vehicles == "reject" or self.config.default_profile not in self.banks:
             self._reject(None, "unknown_vehicle", now_mono, result)
