@@ -83,7 +83,7 @@ class ProtocolError(ValueError):
 
 def check_vehicle_id(vehicle_id: str) -> str:
     """Return ``vehicle_id`` if it is a valid id (1-64 of A-Z a-z 0-9 _ . -), else raise."""
-    if not VEHICLE_ID_PATTERN.match(vehicle_id):
+    if not VEHICLE_ID_PATTERN.fullmatch(vehicle_id):  # fullmatch: '$' would let a trailing newline in
         raise ProtocolError(
             f"invalid vehicle id {vehicle_id!r}: use 1 to 64 characters from A-Z, a-z, 0-9, '_', '.', '-'"
         )
@@ -149,7 +149,7 @@ def parse_vehicle_key(key: str) -> tuple[str, Kind]:
     if (
         len(parts) != 5
         or parts[1] != f"v{PROTOCOL_VERSION}"
-        or not BUCKET_PATTERN.match(parts[2])  # e.g. the service replicas' 'service/<id>/alive'
+        or not BUCKET_PATTERN.fullmatch(parts[2])  # e.g. the service replicas' 'service/<id>/alive'
         or parts[4] not in KINDS
     ):
         raise ProtocolError(f"not a vehicle key of protocol v{PROTOCOL_VERSION}: {key!r}")

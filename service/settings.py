@@ -67,7 +67,7 @@ class ZenohSettings(_Section):
     @field_validator("endpoint")
     @classmethod
     def _endpoint_form(cls, value: str) -> str:
-        if not _ENDPOINT.match(value):
+        if not _ENDPOINT.fullmatch(value):
             raise ValueError(f"expected PROTOCOL/HOST:PORT such as tcp/127.0.0.1:7447, got {value!r}")
         return value
 

@@ -86,6 +86,13 @@ class Storage:
     def __init__(self, path: Path) -> None:
         self.path = path
         try:
+            if path.exists() and path.stat().st_size == 0:
+                # SQLite would take it for a new database and the service would start with nothing: a truncated
+                # copy or a failed restore. A database this service creates has its header before anything else.
+                raise StorageError(
+                    f"{path}: the database file is empty (0 bytes), so it holds none of the service's profiles, "
+                    "gains, vehicles or alarms; restore it, or remove it to start with a new database"
+                )
             path.parent.mkdir(parents=True, exist_ok=True)
             self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
             self._db.execute("PRAGMA journal_mode=WAL")
@@ -97,8 +104,9 @@ class Storage:
         found = self._db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
         if found is None:
             self._db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
-        elif int(found[0]) != SCHEMA_VERSION:
-            raise StorageError(f"{path}: schema version {found[0]}, this service reads {SCHEMA_VERSION}")
+        elif str(found[0]).strip() != str(SCHEMA_VERSION):
+            self._db.close()
+            raise StorageError(f"{path}: schema version {found[0]!r}, this service reads {SCHEMA_VERSION}")
 
     def close(self) -> None:
         self._db.close()

@@ -15,9 +15,11 @@ from service.fleet.engine import REJECT_REASONS
 from service.profiles import ProfileSpec
 from service.protocol import (
     FLAG_SEQUENCE_RESTART,
+    MEASUREMENT_HEADER_SIZE,
     Estimate,
     FleetEstimates,
     Measurement,
+    bucket_of,
     encode_fleet_estimates,
     vehicle_key,
 )
@@ -178,6 +180,17 @@ def test_malformed_id_mismatch_and_unknown_vehicles(fast_gains):
     assert engine.rejected["id_mismatch"] == 2
     assert engine.vehicles["v"].rejected["malformed"] == 3 and engine.vehicles["v"].rejected["id_mismatch"] == 2
     assert set(engine.vehicles) == {"v"}
+
+
+def test_an_id_with_a_trailing_newline_registers_nothing(fast_gains):
+    """'victim-01\\n' on its own key, with its own id in the payload: malformed, not a new vehicle."""
+    engine = make_engine(fast_gains)
+    vehicle_id = "victim-01\n"
+    header = constant_measurement("x", 0).encode()[:MEASUREMENT_HEADER_SIZE]
+    payload = header[:6] + len(vehicle_id).to_bytes(2, "little") + header[8:] + vehicle_id.encode()
+    key = f"agv/v1/{bucket_of(vehicle_id)}/{vehicle_id}/meas"
+    result = engine.process([(key, payload)])
+    assert result.new_vehicles == [] and engine.vehicles == {} and engine.rejected["malformed"] == 1
 
 
 def test_unknown_vehicles_are_registered_with_the_default_profile(fast_gains):

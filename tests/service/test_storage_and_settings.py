@@ -151,6 +151,30 @@ def test_profile_names_that_are_refused(name):
     assert not valid_profile_name(name)
 
 
+def test_an_empty_database_file_is_refused_not_taken_for_a_new_database(tmp_path):
+    """A 0-byte file (a truncated copy, a failed restore) would open as a new, empty database: the service would
+    start with none of its profiles, gains, vehicles or alarms. A database the service creates is never empty."""
+    path = tmp_path / "service.sqlite3"
+    path.touch()
+    with pytest.raises(StorageError, match="empty"):
+        Storage(path)
+    assert path.stat().st_size == 0  # left as it was found
+    fresh = tmp_path / "new" / "service.sqlite3"
+    Storage(fresh).close()  # a file that does not exist yet is created
+    Storage(fresh).close()  # and opens again
+    assert fresh.stat().st_size > 0
+
+
+def test_a_foreign_schema_version_is_a_storage_error_naming_it(tmp_path):
+    path = tmp_path / "db.sqlite3"
+    Storage(path).close()
+    for stored in ("abc", "", "2"):  # not even a number: once a ValueError with a traceback
+        with sqlite3.connect(path) as db:
+            db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (stored,))
+        with pytest.raises(StorageError, match=f"schema version '{stored}', this service reads 1"):
+            Storage(path)
+
+
 def test_stored_documents_that_are_not_json_are_reported_not_raised_as_decoder_errors(tmp_path):
     path = tmp_path / "db.sqlite3"
     db = Storage(path)
@@ -164,3 +188,9 @@ def test_stored_documents_that_are_not_json_are_reported_not_raised_as_decoder_e
     assert bad.name == "bad" and bad.spec == {} and "not JSON" in str(bad.problem)
     with pytest.raises(StorageError, match="gains abc of profile bad are not JSON"):
         db.gains("bad", "abc")
+
+
+def test_a_zenoh_endpoint_is_the_whole_setting_not_a_prefix_before_a_newline():
+    with pytest.raises(ValidationError, match="PROTOCOL/HOST:PORT"):
+        Settings.model_validate({"zenoh": {"endpoint": "tcp/127.0.0.1:7447\n"}})
+    assert Settings.model_validate({"zenoh": {"endpoint": "tcp/127.0.0.1:7447"}}).zenoh.endpoint.endswith(":7447")
