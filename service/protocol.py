@@ -69,6 +69,8 @@ MEASUREMENT_HEADER_DTYPE = np.dtype(
     ]
 )
 FLAG_SEQUENCE_RESTART = 0x01
+#: Every flag bit this version defines; the others, like the reserved bytes, must be zero.
+KNOWN_FLAGS = FLAG_SEQUENCE_RESTART
 
 VEHICLE_ID_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 BUCKET_PATTERN = re.compile(r"^b[0-9a-f]{2}$")

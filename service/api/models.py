@@ -25,6 +25,7 @@ _REJECTED_EXAMPLE: dict[str, JsonValue] = {
     "duplicate": 2,
     "out_of_order": 1,
     "implausible_seq": 0,
+    "reserved_bits": 0,
     "non_finite": 0,
     "out_of_range": 0,
     "no_gains": 0,

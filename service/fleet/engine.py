@@ -15,6 +15,7 @@ unknown_vehicle     no such vehicle and ``unknown_vehicles = reject``: rejected,
 duplicate           seq equal to the last one: dropped, counted
 out_of_order        seq below the last one: dropped, counted
 implausible_seq     seq jumped further ahead than the time stamps allow: dropped, counted, believed in nothing
+reserved_bits       a flag bit this version does not define, or non-zero reserved bytes: rejected, counted
 non_finite          NaN or infinite value: rejected, counted, observer untouched
 out_of_range        outside the profile's plausibility limits: rejected, counted
 no_gains            the profile has no active gains yet: rejected, counted
@@ -54,6 +55,7 @@ from service.fleet.events import EventBus, FleetEvent
 from service.profiles import ProfileSpec
 from service.protocol import (
     FLAG_SEQUENCE_RESTART,
+    KNOWN_FLAGS,
     MAGIC,
     MEASUREMENT_HEADER_DTYPE,
     MEASUREMENT_HEADER_SIZE,
@@ -83,6 +85,7 @@ RejectReason = Literal[
     "duplicate",
     "out_of_order",
     "implausible_seq",
+    "reserved_bits",
     "non_finite",
     "out_of_range",
     "no_gains",
@@ -94,12 +97,13 @@ REJECT_REASONS: tuple[RejectReason, ...] = (
     "duplicate",
     "out_of_order",
     "implausible_seq",
+    "reserved_bits",
     "non_finite",
     "out_of_range",
     "no_gains",
 )
 #: Rejects that count towards a vehicle's rejected-input burst alarm (duplicates and late samples do not).
-BURST_REASONS = frozenset({"malformed", "id_mismatch", "non_finite", "out_of_range"})
+BURST_REASONS = frozenset({"malformed", "id_mismatch", "reserved_bits", "non_finite", "out_of_range"})
 #: Rejects of samples whose sequence number is not believed; enough in a row raise ``sequence_rejected``.
 SEQUENCE_REASONS = frozenset({"out_of_order", "implausible_seq"})
 
@@ -409,9 +413,12 @@ class FleetEngine:
         bank_of = np.array([ordinal[v.bank.name] for v in frame_vehicles], dtype=np.intp)
         lim = self._limits[bank_of]
         finite = np.isfinite(values).all(axis=1)
+        # flag bits this version does not define and the reserved bytes are zero in a v1 measurement
+        conforming = ((header["flags"] & ~np.uint8(KNOWN_FLAGS)) == 0) & (header["reserved"] == 0)
         with np.errstate(invalid="ignore"):
             ok = (
-                finite
+                conforming
+                & finite
                 & (values[:, 0] >= lim[:, 0])
                 & (values[:, 0] <= lim[:, 1])
                 & (np.abs(values[:, 1]) <= lim[:, 2])
@@ -454,7 +461,14 @@ class FleetEngine:
             if vehicle.stale:
                 self._unstale(vehicle, now_ns, result)
             if not good[position]:
-                self._reject(vehicle, "non_finite" if not finite[position] else "out_of_range", now_mono, result)
+                reason: RejectReason = (
+                    "reserved_bits"
+                    if not conforming[position]
+                    else "non_finite"
+                    if not finite[position]
+                    else "out_of_range"
+                )
+                self._reject(vehicle, reason, now_mono, result)
                 continue
             last = vehicle.last_seq
             restart = False

@@ -143,6 +143,31 @@ def test_bad_values_are_rejected_counted_and_leave_the_state_intact(fast_gains, 
     assert dirty.stats["missing"] == 0 and dirty.rejected["out_of_order"] == 0
 
 
+@pytest.mark.parametrize(
+    "corrupt",
+    [
+        lambda b: b[:5] + bytes([0x02]) + b[6:],  # a flag bit version 1 does not define
+        lambda b: b[:5] + bytes([0x81]) + b[6:],  # the restart bit and an undefined one
+        lambda b: b[:56] + (1).to_bytes(8, "little") + b[64:],  # reserved bytes not zero
+        lambda b: b[:63] + b"\x80" + b[64:],
+    ],
+)
+def test_flags_and_reserved_bytes_that_must_be_zero_are_rejected_by_name(fast_gains, corrupt):
+    """docs/protocol.md: flag bits other than bit 0 and the 8 reserved bytes are zero. A sample that sets them is
+    not a version 1 measurement: rejected as reserved_bits, counted, and nothing else moves."""
+    good = [constant_measurement("v", k) for k in range(20)]
+    clean = make_engine(fast_gains)
+    clean.process(pairs(good[:10]))
+    clean_after = decoded(clean.process(pairs(good[11:])))
+    engine = make_engine(fast_gains)
+    engine.process(pairs(good[:10]))
+    result = engine.process([(vehicle_key("v", "meas"), corrupt(good[10].encode()))])
+    assert result.accepted == 0 and result.estimates == []
+    assert engine.rejected["reserved_bits"] == 1 and engine.vehicles["v"].rejected["reserved_bits"] == 1
+    assert engine.vehicles["v"].last_seq == 9
+    assert decoded(engine.process(pairs(good[11:]))) == clean_after  # as if the sample had been lost
+
+
 def test_a_bad_sample_in_sequence_counts_as_one_missing_sample(fast_gains):
     """A NaN sample at its proper seq is rejected; the observer continues as if it had been lost."""
     good = [constant_measurement("v", k) for k in range(20)]
