@@ -438,5 +438,5 @@ def create_app(settings: Settings) -> FastAPI:
     if settings.dashboard.enabled:
         from service.api.routes.ui import install_dashboard
 
-        install_dashboard(app)
+        install_dashboard(app, settings.auth.open_reads)
     return app

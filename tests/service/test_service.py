@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from edge_client.library import paper_1
+from service.app import create_app
 from service.profiles import ProfileSpec
 from service.protocol import FLAG_SEQUENCE_RESTART, Measurement, vehicle_key
 from synth.gains import ObserverGains
@@ -252,6 +253,29 @@ def test_openapi_documents_every_route_with_examples(server):
     assert set(parameters) == {"profile", "level", "limit", "after"}
     assert all(p["schema"].get("examples") for p in parameters.values())
     assert "Link" in listing["responses"]["200"]["headers"] and "404" in listing["responses"]
+
+
+def _secured(spec: dict) -> dict[tuple[str, str], bool]:
+    return {
+        (method, path): bool(op.get("security"))
+        for path, item in spec["paths"].items()
+        for method, op in item.items()
+        if method in ("get", "put", "post", "delete")
+    }
+
+
+def test_openapi_marks_only_what_needs_the_token_as_secured(server, tmp_path):
+    """Reads are open by default: their operations carry no security requirement, while every mutating one does;
+    with auth.open_reads = false the reads need the token too, and say so."""
+    secured = _secured(server.get("/openapi.json").json())
+    for (method, path), needs_token in secured.items():
+        assert needs_token == (method != "get"), (method, path)
+    assert ("get", "/vehicles") in secured and ("put", "/profiles/{name}") in secured
+    closed = create_app(make_settings(tmp_path, auth={"open_reads": False}))
+    closed_secured = _secured(closed.openapi())
+    health = {"/health", "/ready", "/metrics", "/"}
+    for (method, path), needs_token in closed_secured.items():
+        assert needs_token == (path not in health), (method, path)
 
 
 def test_unknown_vehicles_are_rejected_when_the_setting_says_so(tmp_path):
