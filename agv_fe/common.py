@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,7 +11,7 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
-from service.profiles import PROFILE_NAME_PATTERN, AlarmThresholds, InputLimits
+from service.profiles import PROFILE_NAME_RULE, AlarmThresholds, InputLimits, valid_profile_name
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
 
@@ -131,8 +130,8 @@ def load_profile_file(path: str | Path | None) -> VehicleProfileFile:
     alarms = validate(AlarmThresholds, data.get("alarms", {}), "alarms.")
     limits = validate(InputLimits, data.get("limits", {}), "limits.")
     name, description = data.get("name", ""), data.get("description", "")
-    if not isinstance(name, str) or (name and not re.match(PROFILE_NAME_PATTERN, name)):
-        raise CommandError(f"{path}: name: expected 1-64 of A-Z a-z 0-9 _ . - (got {name!r})")
+    if not isinstance(name, str) or (name and not valid_profile_name(name)):
+        raise CommandError(f"{path}: name: expected {PROFILE_NAME_RULE} (got {name!r})")
     if not isinstance(description, str) or len(description) > _DESCRIPTION_MAX_CHARS:
         raise CommandError(f"{path}: description: expected text of at most {_DESCRIPTION_MAX_CHARS} characters")
     return VehicleProfileFile(params, bounds, options, alarms, limits, name, description, source=str(path))

@@ -42,6 +42,7 @@ SHORT_KIND = {
     "out_of_domain": "domain",
     "stale": "stale",
     "rejected_inputs": "inputs",
+    "sequence_rejected": "sequence",
 }
 
 

@@ -20,14 +20,21 @@ from contextlib import asynccontextmanager, suppress
 from typing import Any
 
 from fastapi import FastAPI
+from pydantic import ValidationError
 
-from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine
+from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine, FleetError
 from service.jobs import FINAL_STATES, Job, JobKind, SynthesisJobs
 from service.metrics import ServiceMetrics
-from service.profiles import DEFAULT_PROFILE_NAME, ProfileSpec, load_profiles_file
+from service.profiles import (
+    DEFAULT_PROFILE_NAME,
+    PROFILE_NAME_RULE,
+    ProfileSpec,
+    load_profiles_file,
+    valid_profile_name,
+)
 from service.protocol import all_buckets, shard_buckets
 from service.settings import Settings
-from service.storage import Storage
+from service.storage import Storage, StorageError, StoredProfile
 from service.transport import Transport
 from service.web.hub import DashboardHub
 from synth.gains import ObserverGains
@@ -38,6 +45,19 @@ log = logging.getLogger("agv_fe.service")
 
 class ServiceError(Exception):
     """The service cannot start; the text says what to fix."""
+
+
+class ProfileLoadError(ServiceError):
+    """A stored profile the service cannot run; the text says why. The other profiles run."""
+
+
+def _valid_spec(stored: dict[str, Any]) -> ProfileSpec | None:
+    """A job's stored spec, or None if it is no longer a valid profile (stored before a validation was added)."""
+    try:
+        return ProfileSpec.model_validate(stored)
+    except ValidationError as exc:
+        log.error("an interrupted design's spec is not a valid profile, not resumed: %s", exc)
+        return None
 
 
 def load_or_create_token(settings: Settings) -> str:
@@ -74,6 +94,7 @@ class Service:
                 unknown_vehicles=ingest.unknown_vehicles,
                 default_profile=ingest.default_profile,
                 long_gap_s=ingest.long_gap_s,
+                seq_jump_slack=ingest.seq_jump_slack,
                 estimate_every_n=ingest.estimate_every_n,
                 history_samples=ingest.history_samples,
                 prefix=settings.zenoh.prefix,
@@ -85,6 +106,8 @@ class Service:
         self.storage: Storage | None = None
         self.transport: Transport | None = None
         self.jobs = SynthesisJobs(settings.synthesis_workers, self._activate_job, self._persist_job)
+        #: stored profiles that could not be loaded at start-up, and why; they do not run
+        self.failed_profiles: dict[str, str] = {}
         self.token = ""
         self.started_mono = time.monotonic()
         self._tasks: list[asyncio.Task[None]] = []
@@ -160,35 +183,60 @@ class Service:
             if job.profile not in resume or job.created_t_ns > resume[job.profile].created_t_ns:
                 resume[job.profile] = job
         for profile in stored:
-            spec = ProfileSpec.model_validate(profile.spec)
-            self.engine.add_profile(profile.name, spec)
-            gains_doc = storage.gains(profile.name, profile.active_version) if profile.active_version else None
-            if gains_doc is not None:
-                try:
-                    gains = await asyncio.to_thread(ObserverGains.from_dict, gains_doc)
-                except Exception as exc:
-                    log.error(
-                        "stored gains %s of %s are unusable (%s): resynthesising",
-                        profile.active_version,
-                        profile.name,
-                        exc,
-                    )
-                else:
-                    self.engine.activate(profile.name, gains, RuntimeGains.from_gains(gains))
+            try:
+                spec = self._add_stored_profile(profile)
+            except ProfileLoadError as exc:
+                # one profile the service cannot run must not keep the others from running
+                self.failed_profiles[profile.name] = str(exc)
+                log.error("stored profile %r cannot be loaded and does not run: %s", profile.name, exc)
+                continue
+            if profile.active_version:
+                await self._activate_stored_gains(profile.name, profile.active_version)
             earlier = resume.get(profile.name)
-            if earlier is not None:
+            resumed = None if earlier is None else _valid_spec(earlier.spec)
+            if earlier is not None and resumed is not None:
                 log.warning(
                     "profile %s: resuming the design of job %s, interrupted by a restart", profile.name, earlier.id
                 )
-                self.jobs.submit(
-                    profile.name, ProfileSpec.model_validate(earlier.spec), earlier.kind, resumes=earlier.id
-                )
+                self.jobs.submit(profile.name, resumed, earlier.kind, resumes=earlier.id)
             elif self.engine.banks[profile.name].gains is None:
                 self.jobs.submit(profile.name, spec, "initial")
         for vehicle_id, profile_name, registered in storage.vehicles():
             if profile_name in self.engine.banks:
                 self.engine.register(vehicle_id, profile_name, registered)
+            elif profile_name in self.failed_profiles:  # kept for its profile, not moved to the default one
+                self.engine.hold(vehicle_id, profile_name, registered)
         self.engine.alarms.load([AlarmRecord.from_dict(r) for r in storage.latched_alarms()])
+
+    def _add_stored_profile(self, profile: StoredProfile) -> ProfileSpec:
+        """Validate a stored profile as a request body would be and add it to the fleet, or say why not."""
+        if not valid_profile_name(profile.name):
+            raise ProfileLoadError(f"invalid profile name {profile.name!r}: use {PROFILE_NAME_RULE}")
+        if profile.problem is not None:
+            raise ProfileLoadError(profile.problem)
+        try:
+            spec = ProfileSpec.model_validate(profile.spec)
+        except ValidationError as exc:
+            problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+            raise ProfileLoadError(f"the stored spec is not a valid profile: {problems}") from exc
+        try:
+            self.engine.add_profile(profile.name, spec)
+        except (FleetError, ArithmeticError, ValueError) as exc:
+            raise ProfileLoadError(f"the profile cannot run: {type(exc).__name__}: {exc}") from exc
+        return spec
+
+    async def _activate_stored_gains(self, name: str, version: str) -> None:
+        """The profile's stored active gains, re-verified; unusable ones are logged and the profile resynthesised."""
+        try:
+            gains_doc = self.db.gains(name, version)
+            if gains_doc is None:
+                raise StorageError(f"gain version {version} of profile {name} is not in the database")
+            gains = await asyncio.to_thread(ObserverGains.from_dict, gains_doc)
+            runtime = RuntimeGains.from_gains(gains)
+        except Exception as exc:
+            log.error("stored gains %s of %s are unusable (%s): resynthesising", version, name, exc)
+            return
+        self.engine.activate(name, gains, runtime)
 
     @property
     def db(self) -> Storage:
@@ -278,11 +326,21 @@ class Service:
     # ------------------------------------------------------------------ profiles and jobs
 
     def put_profile(self, name: str, spec: ProfileSpec) -> Job | None:
-        """Create or change a profile. A change of the design inputs starts a job; otherwise it applies at once."""
+        """Create or change a profile. A change of the design inputs starts a job; otherwise it applies at once.
+
+        A new profile is added to the fleet before it is stored: one that cannot run is never stored (a stored
+        profile is loaded at every start). A profile that failed to load at start-up is replaced."""
         bank = self.engine.banks.get(name)
         if bank is None:
-            self.db.put_profile(name, spec.stored(), time.time_ns())
             self.engine.add_profile(name, spec)
+            try:
+                self.db.put_profile(name, spec.stored(), time.time_ns())
+            except BaseException:
+                self.engine.remove_profile(name)
+                raise
+            if self.failed_profiles.pop(name, None) is not None:
+                log.info("profile %s, which failed to load at start-up, replaced", name)
+                self.engine.release_held(name)
             return self.jobs.submit(name, spec, "create")
         if bank.gains is not None and _same_design(bank.gains, spec):
             # the latest request wins: a design still pending for the profile would overwrite this spec
@@ -380,5 +438,5 @@ def create_app(settings: Settings) -> FastAPI:
     if settings.dashboard.enabled:
         from service.api.routes.ui import install_dashboard
 
-        install_dashboard(app)
+        install_dashboard(app, settings.auth.open_reads)
     return app

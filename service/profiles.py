@@ -20,11 +20,23 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
 
+#: The characters of a profile name, 1 to 64 of ``A-Z a-z 0-9 _ . -``. Check a name with
+#: :func:`valid_profile_name`: Python's ``re.match`` would let a trailing newline through ``$``, and the
+#: names ``.`` and ``..`` are refused as well.
 PROFILE_NAME_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
+PROFILE_NAME_RULE = "1-64 of A-Z a-z 0-9 _ . -, not '.' or '..'"
 DEFAULT_PROFILE_NAME = "default"
 
-NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+#: The longest duration an alarm rule may name [s]: one day, 8.64e13 ns, far inside int64 sample time
+#: (the detectors count in integer nanoseconds, :func:`service.fleet.alarms.seconds_to_ns`).
+MAX_RULE_DURATION_S = 86_400.0
+#: The largest threshold or limit a profile may set, in its unit: finite, and far beyond any vehicle.
+MAX_MAGNITUDE = 1e12
+
+NonNegative = Annotated[float, Field(ge=0, le=MAX_MAGNITUDE, allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0, le=MAX_MAGNITUDE, allow_inf_nan=False)]
+Duration = Annotated[float, Field(ge=0, le=MAX_RULE_DURATION_S, allow_inf_nan=False)]
+PositiveDuration = Annotated[float, Field(gt=0, le=MAX_RULE_DURATION_S, allow_inf_nan=False)]
 
 
 class AlarmThresholds(BaseModel):
@@ -45,20 +57,25 @@ class AlarmThresholds(BaseModel):
     torque_fault_nm: Positive = Field(80.0, description="|T_f| raising FAULT [N m]")
     steer_warn_rad: Positive = Field(0.01, description="|delta_f| raising WARN [rad]")
     steer_fault_rad: Positive = Field(0.02, description="|delta_f| raising FAULT [rad]")
-    hysteresis: Annotated[float, Field(gt=0, le=1)] = Field(
+    hysteresis: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = Field(
         0.8, description="a level holds until the value falls below hysteresis x its threshold [-]"
     )
-    raise_after_s: NonNegative = Field(0.5, description="how long a condition must hold before it raises [s]")
-    clear_after_s: NonNegative = Field(1.0, description="how long a condition must be gone before it clears [s]")
-    warmup_s: NonNegative = Field(3.0, description="no fault alarms this long after an observer (re)starts [s]")
-    out_of_domain_after_s: NonNegative = Field(
+    raise_after_s: Duration = Field(0.5, description="how long a condition must hold before it raises [s]")
+    clear_after_s: Duration = Field(1.0, description="how long a condition must be gone before it clears [s]")
+    warmup_s: Duration = Field(3.0, description="no fault alarms this long after an observer (re)starts [s]")
+    out_of_domain_after_s: Duration = Field(
         0.5, description="premise or estimated v_y outside the design bounds this long raises WARN [s]"
     )
-    stale_after_s: Positive = Field(1.0, description="no measurement this long makes the vehicle STALE [s]")
-    reject_burst_count: Annotated[int, Field(ge=1)] = Field(
+    stale_after_s: PositiveDuration = Field(1.0, description="no measurement this long makes the vehicle STALE [s]")
+    reject_burst_count: Annotated[int, Field(ge=1, le=1_000_000)] = Field(
         10, description="this many rejected measurements within the window raise WARN"
     )
-    reject_burst_window_s: Positive = Field(1.0, description="window of the rejected-input count [s]")
+    reject_burst_window_s: PositiveDuration = Field(1.0, description="window of the rejected-input count [s]")
+    sequence_reject_count: Annotated[int, Field(ge=1, le=1_000_000)] = Field(
+        100,
+        description="this many samples in a row refused as late (out_of_order) or with an implausible sequence "
+        "jump (implausible_seq) raise WARN sequence_rejected",
+    )
     rule: Literal["threshold", "cusum"] = Field(
         "threshold",
         description="how the fault channels raise levels: 'threshold' (|estimate| above a threshold for "
@@ -101,7 +118,7 @@ class InputLimits(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    vx_min_mps: Annotated[float, Field(ge=0, allow_inf_nan=False)] = Field(0.0, description="lowest v_x [m/s]")
+    vx_min_mps: NonNegative = Field(0.0, description="lowest v_x [m/s]")
     vx_max_mps: Positive = Field(100.0, description="highest v_x [m/s]")
     r_abs_max_radps: Positive = Field(5.0, description="highest |r| [rad/s]")
     torque_abs_max_nm: Positive = Field(20_000.0, description="highest |T_d| [N m]")
@@ -155,6 +172,19 @@ class ProfileSpec(BaseModel):
         }
 
 
+def valid_profile_name(name: str) -> bool:
+    """Whether ``name`` is a usable profile name: all of it matches :data:`PROFILE_NAME_PATTERN`, and it is
+    neither ``.`` nor ``..`` (path segments, not names)."""
+    return re.fullmatch(PROFILE_NAME_PATTERN, name) is not None and name not in (".", "..")
+
+
+def check_profile_name(name: str) -> str:
+    """Return ``name`` if it is a usable profile name, else raise ValueError saying what a name is."""
+    if not valid_profile_name(name):
+        raise ValueError(f"invalid profile name {name!r}: use {PROFILE_NAME_RULE}")
+    return name
+
+
 class ProfileFileError(ValueError):
     """An initial-profiles file that cannot be used; the text names the file and the field."""
 
@@ -174,8 +204,8 @@ def load_profiles_file(path: Path) -> dict[str, ProfileSpec]:
         raise ProfileFileError(f'{path}: expected an object {{"profiles": {{NAME: PROFILE, ...}}}} with one or more')
     profiles: dict[str, ProfileSpec] = {}
     for name, body in data["profiles"].items():
-        if not re.match(PROFILE_NAME_PATTERN, str(name)):
-            raise ProfileFileError(f"{path}: invalid profile name {name!r}: use 1-64 of A-Z a-z 0-9 _ . -")
+        if not valid_profile_name(str(name)):
+            raise ProfileFileError(f"{path}: invalid profile name {name!r}: use {PROFILE_NAME_RULE}")
         try:
             profiles[str(name)] = ProfileSpec.model_validate(body)
         except ValidationError as exc:

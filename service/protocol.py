@@ -69,6 +69,8 @@ MEASUREMENT_HEADER_DTYPE = np.dtype(
     ]
 )
 FLAG_SEQUENCE_RESTART = 0x01
+#: Every flag bit this version defines; the others, like the reserved bytes, must be zero.
+KNOWN_FLAGS = FLAG_SEQUENCE_RESTART
 
 VEHICLE_ID_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 BUCKET_PATTERN = re.compile(r"^b[0-9a-f]{2}$")
@@ -83,7 +85,7 @@ class ProtocolError(ValueError):
 
 def check_vehicle_id(vehicle_id: str) -> str:
     """Return ``vehicle_id`` if it is a valid id (1-64 of A-Z a-z 0-9 _ . -), else raise."""
-    if not VEHICLE_ID_PATTERN.match(vehicle_id):
+    if not VEHICLE_ID_PATTERN.fullmatch(vehicle_id):  # fullmatch: '$' would let a trailing newline in
         raise ProtocolError(
             f"invalid vehicle id {vehicle_id!r}: use 1 to 64 characters from A-Z, a-z, 0-9, '_', '.', '-'"
         )
@@ -149,7 +151,7 @@ def parse_vehicle_key(key: str) -> tuple[str, Kind]:
     if (
         len(parts) != 5
         or parts[1] != f"v{PROTOCOL_VERSION}"
-        or not BUCKET_PATTERN.match(parts[2])  # e.g. the service replicas' 'service/<id>/alive'
+        or not BUCKET_PATTERN.fullmatch(parts[2])  # e.g. the service replicas' 'service/<id>/alive'
         or parts[4] not in KINDS
     ):
         raise ProtocolError(f"not a vehicle key of protocol v{PROTOCOL_VERSION}: {key!r}")
@@ -509,7 +511,7 @@ class FleetEstimates(_Json):
         return [e for g in self.groups for e in g.estimates()]
 
 
-AlarmKind = Literal["torque_fault", "steer_fault", "out_of_domain", "stale", "rejected_inputs"]
+AlarmKind = Literal["torque_fault", "steer_fault", "out_of_domain", "stale", "rejected_inputs", "sequence_rejected"]
 AlarmState = Literal["raised", "cleared", "acknowledged"]
 
 

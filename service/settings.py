@@ -67,7 +67,7 @@ class ZenohSettings(_Section):
     @field_validator("endpoint")
     @classmethod
     def _endpoint_form(cls, value: str) -> str:
-        if not _ENDPOINT.match(value):
+        if not _ENDPOINT.fullmatch(value):
             raise ValueError(f"expected PROTOCOL/HOST:PORT such as tcp/127.0.0.1:7447, got {value!r}")
         return value
 
@@ -80,6 +80,11 @@ class IngestSettings(_Section):
     default_profile: str = Field("default", description="profile of auto-registered vehicles")
     long_gap_s: Annotated[float, Field(gt=0)] = Field(
         0.5, description="a sequence gap longer than this re-initialises the vehicle's observer [s]"
+    )
+    seq_jump_slack: Annotated[int, Field(ge=1, le=1_000_000)] = Field(
+        100,
+        description="a sequence jump is believed when it is at most this many samples beyond twice what the time "
+        "stamps allow at the profile's sample period; a larger one is rejected as implausible_seq [samples]",
     )
     estimate_every_n: Annotated[int, Field(ge=1)] = Field(
         1,

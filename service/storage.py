@@ -76,6 +76,8 @@ class StoredProfile:
     active_version: str | None
     created_t_ns: int
     updated_t_ns: int
+    #: why the stored spec is not even JSON (``spec`` is then empty); None when it parsed
+    problem: str | None = None
 
 
 class Storage:
@@ -84,6 +86,13 @@ class Storage:
     def __init__(self, path: Path) -> None:
         self.path = path
         try:
+            if path.exists() and path.stat().st_size == 0:
+                # SQLite would take it for a new database and the service would start with nothing: a truncated
+                # copy or a failed restore. A database this service creates has its header before anything else.
+                raise StorageError(
+                    f"{path}: the database file is empty (0 bytes), so it holds none of the service's profiles, "
+                    "gains, vehicles or alarms; restore it, or remove it to start with a new database"
+                )
             path.parent.mkdir(parents=True, exist_ok=True)
             self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
             self._db.execute("PRAGMA journal_mode=WAL")
@@ -95,8 +104,9 @@ class Storage:
         found = self._db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
         if found is None:
             self._db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
-        elif int(found[0]) != SCHEMA_VERSION:
-            raise StorageError(f"{path}: schema version {found[0]}, this service reads {SCHEMA_VERSION}")
+        elif str(found[0]).strip() != str(SCHEMA_VERSION):
+            self._db.close()
+            raise StorageError(f"{path}: schema version {found[0]!r}, this service reads {SCHEMA_VERSION}")
 
     def close(self) -> None:
         self._db.close()
@@ -118,7 +128,19 @@ class Storage:
         rows = self._db.execute(
             "SELECT name, spec, active_version, created_t_ns, updated_t_ns FROM profiles ORDER BY name"
         ).fetchall()
-        return [StoredProfile(r[0], json.loads(r[1]), r[2], r[3], r[4]) for r in rows]
+        out = []
+        for name, text, active, created, updated in rows:
+            try:
+                spec = json.loads(text)
+            except (json.JSONDecodeError, TypeError) as exc:
+                out.append(StoredProfile(name, {}, active, created, updated, f"the stored spec is not JSON: {exc}"))
+                continue
+            if not isinstance(spec, dict):
+                problem = f"the stored spec is JSON {type(spec).__name__}, not an object"
+                out.append(StoredProfile(name, {}, active, created, updated, problem))
+                continue
+            out.append(StoredProfile(name, spec, active, created, updated))
+        return out
 
     def put_profile(self, name: str, spec: dict[str, Any], t_ns: int, active_version: str | None = None) -> None:
         """Create or update a profile's spec (and, if given, its active version)."""
@@ -149,7 +171,15 @@ class Storage:
         row = self._db.execute(
             "SELECT gains FROM gain_versions WHERE profile = ? AND version = ?", (profile, version)
         ).fetchone()
-        return None if row is None else dict(json.loads(row[0]))
+        if row is None:
+            return None
+        try:
+            doc = json.loads(row[0])
+        except (json.JSONDecodeError, TypeError) as exc:
+            raise StorageError(f"{self.path}: gains {version} of profile {profile} are not JSON: {exc}") from exc
+        if not isinstance(doc, dict):
+            raise StorageError(f"{self.path}: gains {version} of profile {profile} are not a JSON object")
+        return doc
 
     def gain_versions(self, profile: str) -> list[tuple[str, int]]:
         rows = self._db.execute(

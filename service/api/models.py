@@ -24,6 +24,8 @@ _REJECTED_EXAMPLE: dict[str, JsonValue] = {
     "unknown_vehicle": 0,
     "duplicate": 2,
     "out_of_order": 1,
+    "implausible_seq": 0,
+    "reserved_bits": 0,
     "non_finite": 0,
     "out_of_range": 0,
     "no_gains": 0,
@@ -81,6 +83,11 @@ class Readiness(BaseModel):
         default_factory=dict, description="every profile without active gains, and why"
     )
     detail: str | None = Field(None, description="why the service is not ready, in words (null when ready)")
+    failed_profiles: dict[str, str] = Field(
+        default_factory=dict,
+        description="stored profiles that could not be loaded at start-up, and why: they do not run (the others "
+        "do) until a valid PUT /profiles/{name} replaces them",
+    )
 
 
 class VehicleStatus(BaseModel):
@@ -271,7 +278,13 @@ class JobInfo(BaseModel):
 
 class ProfileInfo(BaseModel):
     name: str
-    spec: ProfileSpec
+    state: Literal["running", "failed"] = Field(
+        "running",
+        description="'failed': the stored profile could not be loaded at start-up and does not run (see error); "
+        "a valid PUT /profiles/{name} replaces it",
+    )
+    error: str | None = Field(None, description="why a failed profile could not be loaded (null when running)")
+    spec: ProfileSpec | None = Field(description="the profile (null when it failed to load)")
     active_version: str | None
     gain_versions: list[str] = Field(description="every stored gain version, oldest first")
     vehicles: int

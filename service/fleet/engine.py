@@ -14,12 +14,22 @@ id_mismatch         the payload's vehicle id differs from the key's: rejected, c
 unknown_vehicle     no such vehicle and ``unknown_vehicles = reject``: rejected, counted
 duplicate           seq equal to the last one: dropped, counted
 out_of_order        seq below the last one: dropped, counted
+implausible_seq     seq jumped further ahead than the time stamps allow: dropped, counted, believed in nothing
+reserved_bits       a flag bit this version does not define, or non-zero reserved bytes: rejected, counted
 non_finite          NaN or infinite value: rejected, counted, observer untouched
 out_of_range        outside the profile's plausibility limits: rejected, counted
 no_gains            the profile has no active gains yet: rejected, counted
 gap                 seq jumped: missing samples counted; a gap longer than
                     ``long_gap_s`` re-initialises the observer at the new sample
 ==================  ==================================================================
+
+A sequence number is believed only as far as the time stamps carry it: a jump
+of ``seq - last`` samples needs ``seq - last <= seq_jump_slack + 2 x (t - t_last)
+/ sample_period`` (``t_last``, the time stamp of the sample at ``last``), so one
+forged sequence number far ahead cannot make the vehicle's genuine samples look
+late nor count billions of missing samples. A vehicle whose samples are refused
+as late or implausible ``sequence_reject_count`` times in a row (its alarm rules)
+raises ``sequence_rejected``, which clears at its next sample accepted in sequence.
 
 A rejected sample never reaches the observer, and the values of a sample are
 checked before its sequence number is believed: a non-finite or out-of-range
@@ -39,12 +49,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange
+from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange, seconds_to_ns
 from service.fleet.bank import ProfileBank, StepOutput
 from service.fleet.events import EventBus, FleetEvent
 from service.profiles import ProfileSpec
 from service.protocol import (
     FLAG_SEQUENCE_RESTART,
+    KNOWN_FLAGS,
     MAGIC,
     MEASUREMENT_HEADER_DTYPE,
     MEASUREMENT_HEADER_SIZE,
@@ -68,7 +79,16 @@ from synth.observer import RuntimeGains
 _FAST_SEQ_LIMIT = 1 << 62
 
 RejectReason = Literal[
-    "malformed", "id_mismatch", "unknown_vehicle", "duplicate", "out_of_order", "non_finite", "out_of_range", "no_gains"
+    "malformed",
+    "id_mismatch",
+    "unknown_vehicle",
+    "duplicate",
+    "out_of_order",
+    "implausible_seq",
+    "reserved_bits",
+    "non_finite",
+    "out_of_range",
+    "no_gains",
 ]
 REJECT_REASONS: tuple[RejectReason, ...] = (
     "malformed",
@@ -76,12 +96,16 @@ REJECT_REASONS: tuple[RejectReason, ...] = (
     "unknown_vehicle",
     "duplicate",
     "out_of_order",
+    "implausible_seq",
+    "reserved_bits",
     "non_finite",
     "out_of_range",
     "no_gains",
 )
 #: Rejects that count towards a vehicle's rejected-input burst alarm (duplicates and late samples do not).
-BURST_REASONS = frozenset({"malformed", "id_mismatch", "non_finite", "out_of_range"})
+BURST_REASONS = frozenset({"malformed", "id_mismatch", "reserved_bits", "non_finite", "out_of_range"})
+#: Rejects of samples whose sequence number is not believed; enough in a row raise ``sequence_rejected``.
+SEQUENCE_REASONS = frozenset({"out_of_order", "implausible_seq"})
 
 
 def _limits_row(spec: ProfileSpec) -> tuple[float, float, float, float, float]:
@@ -118,6 +142,7 @@ class EngineConfig:
     unknown_vehicles: Literal["register", "reject"] = "register"
     default_profile: str = "default"
     long_gap_s: float = 0.5
+    seq_jump_slack: int = 100
     estimate_every_n: int = 1
     history_samples: int = 500
     prefix: str = "agv"
@@ -135,12 +160,14 @@ class Vehicle:
         "last_seen_mono",
         "last_seen_ns",
         "last_seq",
+        "last_seq_t_ns",
         "meas_key",
         "payload_len",
         "pending",
         "registered_t_ns",
         "reject_times",
         "rejected",
+        "seq_rejects",
         "slot",
         "stale",
     )
@@ -153,6 +180,8 @@ class Vehicle:
         self.id_bytes = vehicle_id.encode()
         self.payload_len = MEASUREMENT_HEADER_SIZE + len(self.id_bytes)
         self.last_seq = -1
+        self.last_seq_t_ns = 0  # the time stamp of the sample at last_seq [ns, vehicle clock]
+        self.seq_rejects = 0  # samples refused as late or implausible since the last one accepted in sequence
         self.last_seen_mono: float | None = None
         self.last_seen_ns: int | None = None
         self.registered_t_ns = registered_t_ns
@@ -225,6 +254,9 @@ class FleetEngine:
         self.vehicles: dict[str, Vehicle] = {}
         self._by_key: dict[str, Vehicle] = {}
         self._presence: dict[str, bool] = {}  # liveliness of vehicles not registered yet
+        #: registered vehicles of a profile that could not be loaded: (profile, registration time [ns]); their
+        #: samples are rejected as no_gains, not taken by the default profile
+        self.held: dict[str, tuple[str, int]] = {}
         self._clock_ns = clock_ns
         self._monotonic = monotonic
         self.started_mono = monotonic()
@@ -253,6 +285,23 @@ class FleetEngine:
         self._refresh_limits()
         return bank
 
+    def remove_profile(self, name: str) -> None:
+        """Take back a profile that has no vehicle (one just added whose storage failed)."""
+        bank = self._bank(name)
+        if bank.used.any():
+            raise FleetError(f"profile {name!r} has vehicles")
+        del self.banks[name]
+        self._refresh_limits()
+
+    def hold(self, vehicle_id: str, profile: str, registered_t_ns: int) -> None:
+        """Keep a registered vehicle of a profile that is not running for when it runs (see :meth:`release_held`)."""
+        self.held[vehicle_id] = (profile, registered_t_ns)
+
+    def release_held(self, profile: str) -> list[Vehicle]:
+        """Register the held vehicles of ``profile``, which runs now."""
+        ids = [vehicle_id for vehicle_id, (name, _) in self.held.items() if name == profile]
+        return [self.register(vehicle_id, profile, self.held[vehicle_id][1]) for vehicle_id in ids]
+
     def update_profile_spec(self, name: str, spec: ProfileSpec) -> None:
         self._bank(name).set_spec(spec)
         self._refresh_limits()
@@ -274,6 +323,7 @@ class FleetEngine:
     def register(self, vehicle_id: str, profile: str, registered_t_ns: int | None = None) -> Vehicle:
         """Add a vehicle (or move it to ``profile``); its observer starts at its next measurement."""
         bank = self._bank(profile)
+        self.held.pop(vehicle_id, None)
         existing = self.vehicles.get(vehicle_id)
         if existing is not None:
             if existing.bank is bank:
@@ -363,9 +413,12 @@ class FleetEngine:
         bank_of = np.array([ordinal[v.bank.name] for v in frame_vehicles], dtype=np.intp)
         lim = self._limits[bank_of]
         finite = np.isfinite(values).all(axis=1)
+        # flag bits this version does not define and the reserved bytes are zero in a v1 measurement
+        conforming = ((header["flags"] & ~np.uint8(KNOWN_FLAGS)) == 0) & (header["reserved"] == 0)
         with np.errstate(invalid="ignore"):
             ok = (
-                finite
+                conforming
+                & finite
                 & (values[:, 0] >= lim[:, 0])
                 & (values[:, 0] <= lim[:, 1])
                 & (np.abs(values[:, 1]) <= lim[:, 2])
@@ -379,11 +432,15 @@ class FleetEngine:
         fast_at = np.flatnonzero(fast)
         if len(fast_at):
             at_list = fast_at.tolist()
-            for position, seq in zip(at_list, header["seq"][fast_at].tolist(), strict=True):
+            fast_seq, fast_t = header["seq"][fast_at].tolist(), header["t_ns"][fast_at].tolist()
+            for position, seq, t in zip(at_list, fast_seq, fast_t, strict=True):
                 vehicle = frame_vehicles[position]
                 vehicle.last_seen_mono = now_mono
                 vehicle.last_seen_ns = now_ns
                 vehicle.last_seq = seq
+                vehicle.last_seq_t_ns = t
+                if vehicle.seq_rejects:
+                    self._sequence_resumed(vehicle, now_ns, result)
             names = list(self.banks)
             fast_banks = bank_of[fast_at]
             for o in [0] if len(names) == 1 else np.unique(fast_banks).tolist():
@@ -395,14 +452,23 @@ class FleetEngine:
                 rows.slots.extend([frame_vehicles[i].slot for i in at])
                 rows.positions.extend(at)
         # pass 2b: every other sample, one by one in arrival order
-        for position in np.flatnonzero(~fast).tolist():
+        slow_at = np.flatnonzero(~fast).tolist()
+        t_list = header["t_ns"].tolist() if slow_at else []
+        for position in slow_at:
             vehicle, seq, flags = frames[position]
             vehicle.last_seen_mono = now_mono
             vehicle.last_seen_ns = now_ns
             if vehicle.stale:
                 self._unstale(vehicle, now_ns, result)
             if not good[position]:
-                self._reject(vehicle, "non_finite" if not finite[position] else "out_of_range", now_mono, result)
+                reason: RejectReason = (
+                    "reserved_bits"
+                    if not conforming[position]
+                    else "non_finite"
+                    if not finite[position]
+                    else "out_of_range"
+                )
+                self._reject(vehicle, reason, now_mono, result)
                 continue
             last = vehicle.last_seq
             restart = False
@@ -416,6 +482,9 @@ class FleetEngine:
                     self._reject(vehicle, "out_of_order", now_mono, result)
                     continue
             elif last >= 0 and seq > last + 1:
+                if not self._believable_jump(vehicle, seq - last, t_list[position]):
+                    self._reject(vehicle, "implausible_seq", now_mono, result)
+                    continue
                 missing = seq - last - 1
                 vehicle.base_counters["missing"] += missing
                 vehicle.base_counters["gaps"] += 1
@@ -424,6 +493,9 @@ class FleetEngine:
                 if missing * vehicle.bank.spec.params.sample_period_s >= self.config.long_gap_s:
                     restart = True
             vehicle.last_seq = seq
+            vehicle.last_seq_t_ns = t_list[position]
+            if vehicle.seq_rejects:
+                self._sequence_resumed(vehicle, now_ns, result)
             if vehicle.bank.runtime is None:
                 self._reject(vehicle, "no_gains", now_mono, result)
                 continue
@@ -494,6 +566,9 @@ class FleetEngine:
         if claimed != vehicle_id:
             self._reject(None, "id_mismatch", now_mono, result)
             return None
+        if vehicle_id in self.held:  # its profile is not running
+            self._reject(None, "no_gains", now_mono, result)
+            return None
         if self.config.unknown_vehicles == "reject" or self.config.default_profile not in self.banks:
             self._reject(None, "unknown_vehicle", now_mono, result)
             return None
@@ -501,11 +576,28 @@ class FleetEngine:
         result.new_vehicles.append(vehicle)
         return vehicle
 
+    def _believable_jump(self, vehicle: Vehicle, jump: int, t_ns: int) -> bool:
+        """Whether a sequence jump of ``jump`` samples is carried by the time stamps: ``jump <= slack + 2 x
+        elapsed / sample_period``, with ``elapsed`` from the time stamp of the vehicle's last sample in sequence
+        (none if the clock went back). Exact integers: a forged seq may be anything up to 2^64 - 1."""
+        period_ns = seconds_to_ns(vehicle.bank.spec.params.sample_period_s)
+        elapsed_ns = max(t_ns - vehicle.last_seq_t_ns, 0)
+        return jump * period_ns <= self.config.seq_jump_slack * period_ns + 2 * elapsed_ns
+
+    def _sequence_resumed(self, vehicle: Vehicle, now_ns: int, result: TickResult) -> None:
+        """A sample of a vehicle whose samples were refused as late or implausible was accepted in sequence."""
+        vehicle.seq_rejects = 0
+        change = self.alarms.clear(vehicle.id, "sequence_rejected", now_ns, "samples accepted in sequence again")
+        self._emit(change, result)
+
     def _reject(self, vehicle: Vehicle | None, reason: RejectReason, now_mono: float, result: TickResult) -> None:
         self.rejected[reason] += 1
         if vehicle is None:
             return
         vehicle.rejected[reason] += 1
+        if reason in SEQUENCE_REASONS:
+            self._sequence_refused(vehicle, reason, result)
+            return
         if reason not in BURST_REASONS:
             return
         alarms = vehicle.bank.spec.alarms
@@ -525,6 +617,25 @@ class FleetEngine:
                 f"{len(times)} rejected measurements within {alarms.reject_burst_window_s:g} s (last: {reason})",
             )
             self._emit(change, result)
+
+    def _sequence_refused(self, vehicle: Vehicle, reason: RejectReason, result: TickResult) -> None:
+        """One more sample of the vehicle refused as late or implausible; enough in a row raise an alarm."""
+        vehicle.seq_rejects += 1
+        count = vehicle.bank.spec.alarms.sequence_reject_count
+        if vehicle.seq_rejects < count:
+            return
+        change = self.alarms.raise_level(
+            vehicle.id,
+            vehicle.profile,
+            "sequence_rejected",
+            "WARN",
+            self._clock_ns(),
+            float(vehicle.seq_rejects),
+            float(count),
+            f"{vehicle.seq_rejects} samples in a row refused as late or with an implausible sequence jump "
+            f"(last: {reason}; last sample in sequence: seq {vehicle.last_seq})",
+        )
+        self._emit(change, result)
 
     def _step_bank(
         self,

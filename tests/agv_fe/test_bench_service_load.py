@@ -11,7 +11,11 @@ pytestmark = pytest.mark.network
 def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
     """Short steps of 10 vehicles against a real `agv-fe serve`, with an estimate for every sample (a subscriber on
     every key), for every 10th, and for every sample from the fleet stream, the vehicles at spread phases; and the
-    last with all of them aligned: the tables, the engine alone and the verdicts all come from the run's own figures."""
+    last with all of them aligned: the tables, the engine alone and the verdicts all come from the run's own figures.
+
+    Behaviour only: nothing lost, the counts, the report's structure, and verdicts that agree with the figures the
+    run measured. Whether a latency or the generator's pace met a target is a figure of the machine at that moment,
+    for the benchmark to report, not for a test to assert (a busy machine must not fail it)."""
     monkeypatch.setattr(bench, "STEP_S", 3.0)
     monkeypatch.setattr(bench, "WARMUP_S", 1.0)
     monkeypatch.setattr(bench, "ENGINE_TICKS", 30)
@@ -24,7 +28,7 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
     for sweep, expected in zip(sweeps, (3000, 300, 3000, 3000), strict=True):
         (row,) = sweep["service"]
         (engine,) = sweep["engine"]
-        assert row["vehicles"] == 10 and row["sent"] == 3000 and row["zero_loss"] and row["paced"]
+        assert row["vehicles"] == 10 and row["sent"] == 3000 and row["zero_loss"]
         assert row["estimates_received"] == row["estimates_expected"] == expected
         assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
         assert row["receiver_cpu"] > 0
@@ -32,17 +36,26 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
         assert f"{engine['us_per_msg']:.2f} us per measurement" in text
         # every tick drained at least one sample; the ticks' measurements add up to what was accepted
         assert 0 < row["service_ticks"] <= row["accepted"]
-        assert f"({row['accepted'] / row['service_ticks']:.0f}) | sustained |" in text
-    # the sweep stopped at its largest size without a failure: a lower bound, said as such
+        assert f"({row['accepted'] / row['service_ticks']:.0f}) | {bench._verdict(row)} |" in text
     # the fleet stream carried every estimate; the vehicle keys, which nobody watched, stopped after the first second
     (fleet,) = sweeps[2]["service"]
     assert fleet["published_in_fleet_stream"] == 3000 and fleet["published_per_vehicle"] < 3000
     (keys,) = sweeps[0]["service"]
     assert keys["published_per_vehicle"] == 3000 and keys["published_in_fleet_stream"] == 0
-    assert "vehicle's key (a subscriber on every key): **at least 10 vehicles (the largest size tried)**" in text
-    assert "every 10th sample, on each vehicle's key: **at least 10 vehicles (the largest size tried)**" in text
-    assert "the fleet stream (one message per tick): **at least 10 vehicles (the largest size tried)**" in text
-    assert "aligned clocks, the worst case): **at least 10 vehicles (the largest size tried)**" in text
+    # each mode's headline says what its own step measured: a lower bound when the step kept up, none otherwise
+    for sweep, ending in zip(
+        sweeps,
+        (
+            "vehicle's key (a subscriber on every key)",
+            "every 10th sample, on each vehicle's key",
+            "the fleet stream (one message per tick)",
+            "aligned clocks, the worst case)",
+        ),
+        strict=True,
+    ):
+        (row,) = sweep["service"]
+        said = "at least 10 vehicles (the largest size tried)" if bench._sustained(row) else "none of the sizes tried"
+        assert f"{ending}: **{said}**" in text
     verdicts = text.split("**Against the targets (this run).**")[1:]
     assert len(verdicts) == 4
     for sweep, verdict in zip(sweeps, verdicts, strict=True):
@@ -50,7 +63,7 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
         line = verdict.split("\n", 1)[0]
         assert f"p99 {row['p99_ms']:.1f} ms" in line
         held = re.search(r"held up to ([\d,]+) vehicles", line)
-        assert (held is not None) == (row["p99_ms"] < 10.0)
+        assert (held is not None) == (bench._sustained(row) and row["p99_ms"] < bench.TARGET_P99_MS)
 
 
 def test_the_verdict_says_when_the_latency_target_is_missed():

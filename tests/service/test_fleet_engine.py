@@ -15,9 +15,11 @@ from service.fleet.engine import REJECT_REASONS
 from service.profiles import ProfileSpec
 from service.protocol import (
     FLAG_SEQUENCE_RESTART,
+    MEASUREMENT_HEADER_SIZE,
     Estimate,
     FleetEstimates,
     Measurement,
+    bucket_of,
     encode_fleet_estimates,
     vehicle_key,
 )
@@ -141,6 +143,31 @@ def test_bad_values_are_rejected_counted_and_leave_the_state_intact(fast_gains, 
     assert dirty.stats["missing"] == 0 and dirty.rejected["out_of_order"] == 0
 
 
+@pytest.mark.parametrize(
+    "corrupt",
+    [
+        lambda b: b[:5] + bytes([0x02]) + b[6:],  # a flag bit version 1 does not define
+        lambda b: b[:5] + bytes([0x81]) + b[6:],  # the restart bit and an undefined one
+        lambda b: b[:56] + (1).to_bytes(8, "little") + b[64:],  # reserved bytes not zero
+        lambda b: b[:63] + b"\x80" + b[64:],
+    ],
+)
+def test_flags_and_reserved_bytes_that_must_be_zero_are_rejected_by_name(fast_gains, corrupt):
+    """docs/protocol.md: flag bits other than bit 0 and the 8 reserved bytes are zero. A sample that sets them is
+    not a version 1 measurement: rejected as reserved_bits, counted, and nothing else moves."""
+    good = [constant_measurement("v", k) for k in range(20)]
+    clean = make_engine(fast_gains)
+    clean.process(pairs(good[:10]))
+    clean_after = decoded(clean.process(pairs(good[11:])))
+    engine = make_engine(fast_gains)
+    engine.process(pairs(good[:10]))
+    result = engine.process([(vehicle_key("v", "meas"), corrupt(good[10].encode()))])
+    assert result.accepted == 0 and result.estimates == []
+    assert engine.rejected["reserved_bits"] == 1 and engine.vehicles["v"].rejected["reserved_bits"] == 1
+    assert engine.vehicles["v"].last_seq == 9
+    assert decoded(engine.process(pairs(good[11:]))) == clean_after  # as if the sample had been lost
+
+
 def test_a_bad_sample_in_sequence_counts_as_one_missing_sample(fast_gains):
     """A NaN sample at its proper seq is rejected; the observer continues as if it had been lost."""
     good = [constant_measurement("v", k) for k in range(20)]
@@ -180,6 +207,17 @@ def test_malformed_id_mismatch_and_unknown_vehicles(fast_gains):
     assert set(engine.vehicles) == {"v"}
 
 
+def test_an_id_with_a_trailing_newline_registers_nothing(fast_gains):
+    """'victim-01\\n' on its own key, with its own id in the payload: malformed, not a new vehicle."""
+    engine = make_engine(fast_gains)
+    vehicle_id = "victim-01\n"
+    header = constant_measurement("x", 0).encode()[:MEASUREMENT_HEADER_SIZE]
+    payload = header[:6] + len(vehicle_id).to_bytes(2, "little") + header[8:] + vehicle_id.encode()
+    key = f"agv/v1/{bucket_of(vehicle_id)}/{vehicle_id}/meas"
+    result = engine.process([(key, payload)])
+    assert result.new_vehicles == [] and engine.vehicles == {} and engine.rejected["malformed"] == 1
+
+
 def test_unknown_vehicles_are_registered_with_the_default_profile(fast_gains):
     engine = make_engine(fast_gains)
     result = engine.process(pairs([constant_measurement("new-1", 0)]))
@@ -205,6 +243,74 @@ def test_duplicates_out_of_order_gaps_and_restarts(fast_gains):
     restarted = Measurement("v", 0, T0_NS, 10.0, 0.0, 60.0, 0.0, flags=FLAG_SEQUENCE_RESTART)
     assert [e.seq for e in decoded(engine.process(pairs([restarted])))] == [0]
     assert engine.vehicles["v"].counters["restarts"] == 2
+
+
+def test_one_forged_sequence_number_neither_blacks_out_the_vehicle_nor_counts_missing_samples(fast_gains):
+    """The hardening issue's case: seq 2^64 - 1 put once on a vehicle's key, between its genuine samples. A jump
+    the time stamps cannot carry is refused as implausible_seq and moves nothing; the genuine samples go on."""
+    m = lambda k: constant_measurement("v", k)  # noqa: E731
+    clean = make_engine(fast_gains)
+    clean.process(pairs([m(k) for k in range(724)]))
+    clean_after = decoded(clean.process(pairs([m(k) for k in range(724, 1000)])))
+    engine = make_engine(fast_gains)
+    engine.process(pairs([m(k) for k in range(724)]))
+    forged = Measurement("v", (1 << 64) - 1, T0_NS + 724 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0)
+    assert engine.process(pairs([forged])).accepted == 0
+    v = engine.vehicles["v"]
+    assert v.rejected["implausible_seq"] == 1 and engine.rejected["implausible_seq"] == 1 and v.last_seq == 723
+    after = decoded(engine.process(pairs([m(k) for k in range(724, 1000)])))
+    assert after == clean_after and len(after) == 276  # every genuine sample observed, as if the forgery never came
+    assert v.counters["missing"] == 0 and engine.stats["missing"] == 0 and v.rejected["out_of_order"] == 0
+    assert engine.alarms.current("v", "sequence_rejected") is None
+
+
+def test_a_sequence_jump_is_believed_as_far_as_the_time_stamps_carry_it(fast_gains):
+    """A vehicle back after 5 s off the air (500 samples lost, 5 s of time stamps) is a gap, not a forgery; a jump
+    within the slack needs no time at all; one beyond twice the elapsed time plus the slack is refused."""
+    engine = make_engine(fast_gains, seq_jump_slack=100)
+    m = lambda k: constant_measurement("v", k)  # noqa: E731
+    engine.process(pairs([m(k) for k in range(10)]))
+    v = engine.vehicles["v"]
+    assert [e.seq for e in decoded(engine.process(pairs([m(510)])))] == [510]  # the time stamps moved 5 s
+    assert v.counters["missing"] == 500 and v.counters["restarts"] == 1
+    at_once = Measurement("v", 611, T0_NS + 510 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0)  # 101 ahead, same time stamp
+    assert engine.process(pairs([at_once])).accepted == 0 and v.rejected["implausible_seq"] == 1
+    slack = Measurement("v", 610, T0_NS + 510 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0)  # 100 ahead: within the slack
+    assert [e.seq for e in decoded(engine.process(pairs([slack])))] == [610]
+    # 2 x 10 samples of time plus 100 of slack: 120 ahead is believed, 121 is not
+    too_far = Measurement("v", 610 + 121, T0_NS + 520 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0)
+    assert engine.process(pairs([too_far])).accepted == 0 and v.rejected["implausible_seq"] == 2
+    just = Measurement("v", 610 + 120, T0_NS + 520 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0)
+    assert [e.seq for e in decoded(engine.process(pairs([just])))] == [730]
+    assert v.counters["missing"] == 500 + 99 + 119 and v.rejected["out_of_order"] == 0
+
+
+def test_samples_refused_as_late_in_a_row_raise_an_alarm_that_clears_when_they_are_accepted(fast_gains):
+    """A forgery whose time stamp is as far ahead as its seq is believed; the genuine samples after it are then
+    late, and a vehicle refused this way sequence_reject_count times in a row raises sequence_rejected (stored and
+    published like every alarm change). It clears when the vehicle's samples are accepted in sequence again, here
+    at its restart."""
+    clock = FakeClock()
+    engine = make_engine(fast_gains, clock, alarms={"sequence_reject_count": 20})
+    m = lambda k: constant_measurement("v", k)  # noqa: E731
+    engine.process(pairs([m(k) for k in range(50)]))
+    forged = m(10**9)  # time stamp and seq agree: nothing tells it from a vehicle back after 115 days
+    assert engine.process(pairs([forged])).accepted == 1
+    result = engine.process(pairs([m(k) for k in range(50, 69)]))
+    assert result.alarms == [] and engine.vehicles["v"].rejected["out_of_order"] == 19
+    result = engine.process(pairs([m(69), m(70)]))
+    assert [(c.event.kind, c.event.state, c.event.level) for c in result.alarms] == [
+        ("sequence_rejected", "raised", "WARN")
+    ]
+    assert result.alarms[0].event.value == 20.0 and result.alarms[0].event.threshold == 20.0
+    assert engine.process(pairs([m(k) for k in range(71, 90)])).alarms == []  # raised once, not per sample
+    restarted = Measurement("v", 0, T0_NS + 90 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0, flags=FLAG_SEQUENCE_RESTART)
+    result = engine.process(pairs([restarted]))
+    assert [(c.event.kind, c.event.state) for c in result.alarms] == [("sequence_rejected", "cleared")]
+    assert [e.seq for e in decoded(result)] == [0]
+    # a vehicle whose single late sample is followed by good ones raises nothing
+    engine.process(pairs([constant_measurement("v", k) for k in (1, 2, 0, 3)]))
+    assert engine.vehicles["v"].seq_rejects == 0 and engine.alarms.current("v", "sequence_rejected").state == "cleared"
 
 
 def test_every_reject_reason_is_counted_by_name(fast_gains):

@@ -3,18 +3,22 @@ of that work."""
 
 from __future__ import annotations
 
+import sqlite3
+
 import numpy as np
 import pytest
 from pydantic import TypeAdapter
 
 from service.api.models import VehicleStatus
 from service.protocol import Measurement
+from service.storage import Storage
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver
 from tests.service.helpers import (
     FAST_DESIGN,
     RunningService,
     as_array,
+    constant_measurement,
     job_done,
     make_settings,
     parse_metrics,
@@ -131,3 +135,64 @@ def assert_metrics_show_the_work(srv: RunningService, measurements: int) -> None
     assert metrics.value("agv_fe_synthesis_jobs_total", status="succeeded") == 2
     for profile in set(FLEET.values()):
         assert metrics.value("agv_fe_vehicles", profile=profile) == 1
+
+
+def test_a_bad_profile_body_is_refused_before_anything_is_stored(tmp_path):
+    """The hardening issue's request: a duration that no clock can hold was stored, answered 500, and made every
+    later start fail. Each bad value is a 422 naming the field, and nothing is stored or added."""
+    settings = make_settings(tmp_path)
+    with running(settings) as srv:
+        for alarms in ({"clear_after_s": 1e300}, {"warmup_s": 1e15}, {"stale_after_s": 1e300}):
+            r = srv.http.put("/profiles/poison", json={"alarms": alarms}, headers=srv.auth)
+            assert r.status_code == 422 and next(iter(alarms)) in r.text, r.text
+        for name in ("..", "."):  # path segments, not names (sent encoded: a client would resolve them)
+            r = srv.http.put(f"/profiles/{name.replace('.', '%2E')}", json={}, headers=srv.auth)
+            assert r.status_code == 422 and "invalid profile name" in r.text, (name, r.text)
+        assert srv.get("/profiles/poison").status_code == 404
+        assert [p["name"] for p in srv.get("/profiles").json()] == ["default"]
+        assert [p.name for p in srv.service.db.profiles()] == ["default"]
+
+
+def test_a_stored_profile_that_cannot_be_loaded_is_reported_and_the_others_run(tmp_path):
+    """A database written before the bounds existed, or edited by hand: a profile with a duration no clock can
+    hold, one whose spec is not JSON, and the default profile's active gains garbled. The service starts, runs the
+    default profile (its unusable gains resynthesised, as the log says), reports the two others as failed in
+    GET /profiles, /ready and /metrics, keeps their vehicles for them, and a valid PUT replaces a failed one."""
+    settings = make_settings(tmp_path)
+    db = Storage(settings.database_path)
+    db.activate_gains("default", {"design": FAST_DESIGN}, {"version": "garbled", "certificate": {}}, 1)
+    db.put_profile("poison", {"alarms": {"clear_after_s": 1e300}}, 1)
+    db.put_profile("garbled", {}, 1)
+    db.put_vehicles([("car-1", "default", 1), ("held-1", "poison", 2)])
+    db.close()
+    with sqlite3.connect(settings.database_path) as raw:
+        raw.execute("UPDATE profiles SET spec = '{\"alarms\": {' WHERE name = 'garbled'")
+        raw.execute("UPDATE gain_versions SET gains = '{not json' WHERE version = 'garbled'")
+    with running(settings) as srv, probe(settings.zenoh.endpoint) as p:
+        ready = srv.get("/ready").json()
+        assert ready["ready"] and set(ready["failed_profiles"]) == {"poison", "garbled"}
+        assert srv.get("/profiles/default").json()["active_version"] not in (None, "garbled")  # resynthesised
+        profiles = {q["name"]: q for q in srv.get("/profiles").json()}
+        assert profiles["default"]["state"] == "running" and profiles["default"]["error"] is None
+        poison = srv.get("/profiles/poison").json()
+        assert poison == profiles["poison"]
+        assert poison["state"] == "failed" and poison["spec"] is None and poison["vehicles"] == 1
+        assert "alarms.clear_after_s" in poison["error"]
+        assert profiles["garbled"]["state"] == "failed" and "not JSON" in profiles["garbled"]["error"]
+        assert parse_metrics(srv.get("/metrics").text).value("agv_fe_profiles_failed") == 2
+        # the vehicle of a failed profile is neither observed nor moved to the default profile
+        for k in range(5):
+            p.put(constant_measurement("held-1", k))
+            p.put(constant_measurement("car-1", k))
+        wait_for(lambda: len(p.estimates_of("car-1")) >= 5, what="the running profile's estimates")
+        line = 'agv_fe_measurements_rejected_total{reason="no_gains"} 5'
+        wait_for(lambda: line in srv.get("/metrics").text, what="the held vehicle's samples refused")
+        assert p.estimates_of("held-1") == [] and srv.get("/vehicles/held-1").status_code == 404
+        assert srv.service.db.vehicles() == [("car-1", "default", 1), ("held-1", "poison", 2)]
+        # a valid profile of that name replaces the failed one and takes its vehicles back
+        put = srv.http.put("/profiles/poison", json={"design": FAST_DESIGN}, headers=srv.auth)
+        assert put.status_code == 202, put.text
+        assert wait_for(lambda: job_done(srv, put.json()["job"]), what="the design")["status"] == "succeeded"
+        assert srv.get("/profiles/poison").json()["state"] == "running"
+        assert set(srv.get("/ready").json()["failed_profiles"]) == {"garbled"}
+        assert srv.vehicle("held-1")["profile"] == "poison"

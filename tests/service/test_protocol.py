@@ -15,6 +15,7 @@ from service.protocol import (
     ProtocolError,
     all_buckets,
     bucket_of,
+    check_vehicle_id,
     parse_vehicle_key,
     shard_buckets,
     unpack_measurement_sequence,
@@ -57,6 +58,20 @@ def test_malformed_measurements_say_what_is_wrong(mutate, message):
     good = Measurement("veh-001", 1, 0, 10.0, 0.0, 0.0, 0.0).encode()
     with pytest.raises(ProtocolError, match=message):
         Measurement.decode(mutate(good))
+
+
+@pytest.mark.parametrize("vehicle_id", ["victim-01\n", "victim-01\r", "\nvictim-01", ""])
+def test_a_vehicle_id_is_the_whole_string_not_a_prefix_before_a_newline(vehicle_id):
+    """``$`` matches before a trailing newline: 'victim-01\\n' was registered and stored as a vehicle."""
+    with pytest.raises(ProtocolError, match="invalid vehicle id"):
+        check_vehicle_id(vehicle_id)
+    header = Measurement("x", 1, 0, 10.0, 0.0, 0.0, 0.0).encode()[:MEASUREMENT_HEADER_SIZE]
+    raw = vehicle_id.encode()
+    payload = header[:6] + len(raw).to_bytes(2, "little") + header[8:] + raw
+    with pytest.raises(ProtocolError, match="invalid vehicle id"):
+        Measurement.decode(payload)
+    with pytest.raises(ProtocolError):
+        parse_vehicle_key(f"agv/v1/{bucket_of(vehicle_id)}/{vehicle_id}/meas")
 
 
 def test_non_finite_values_survive_decoding_for_the_service_to_reject():

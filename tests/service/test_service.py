@@ -12,11 +12,15 @@ import numpy as np
 import pytest
 
 from edge_client.library import paper_1
-from service.protocol import Measurement, vehicle_key
+from service.app import create_app
+from service.profiles import ProfileSpec
+from service.protocol import FLAG_SEQUENCE_RESTART, Measurement, vehicle_key
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver
 from tests.service.helpers import (
     FAST_DESIGN,
+    PERIOD_NS,
+    T0_NS,
     as_array,
     constant_measurement,
     make_settings,
@@ -154,6 +158,42 @@ def test_alarm_raised_published_stored_latched_and_acknowledged(server, zprobe):
     assert server.http.post("/alarms/al-unknown/ack", headers=server.auth).status_code == 404
 
 
+def test_a_forged_sequence_number_is_refused_and_late_samples_raise_an_alarm(server, zprobe):
+    """One put of seq 2^64 - 1 on a vehicle's key between its genuine samples: refused as implausible_seq, nothing
+    missing, no genuine sample lost. A forgery whose time stamp agrees with its seq is believed, and the genuine
+    samples after it are late: after sequence_reject_count of them in a row the vehicle raises sequence_rejected,
+    stored and published on Zenoh, which clears when the vehicle restarts its sequence."""
+    vid = "forged-1"
+    for k in range(30):
+        zprobe.put(constant_measurement(vid, k))
+    zprobe.put(Measurement(vid, (1 << 64) - 1, T0_NS + 30 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0))
+    for k in range(30, 60):
+        zprobe.put(constant_measurement(vid, k))
+    wait_for(lambda: len(zprobe.estimates_of(vid)) >= 60, what="every genuine sample's estimate")
+    status = server.vehicle(vid)
+    assert status["rejected"]["implausible_seq"] == 1 and status["rejected"]["out_of_order"] == 0
+    assert status["counters"]["missing"] == 0 and status["last_seq"] == 59
+    assert all(a.vehicle != vid for a in zprobe.collect().alarms)
+    count = ProfileSpec.model_validate({}).alarms.sequence_reject_count
+    zprobe.put(constant_measurement(vid, 10**9))  # seq and time stamp forged together
+    for k in range(60, 60 + count):
+        zprobe.put(constant_measurement(vid, k))
+    raised = wait_for(
+        lambda: [a for a in zprobe.collect().alarms if a.vehicle == vid and a.kind == "sequence_rejected"],
+        what="sequence_rejected on Zenoh",
+    )
+    assert raised[0].state == "raised" and raised[0].level == "WARN" and raised[0].value == count
+    assert server.vehicle(vid)["rejected"]["out_of_order"] == count
+    stored = [a for a in server.get("/alarms", params={"vehicle": vid}).json() if a["kind"] == "sequence_rejected"]
+    assert [a["id"] for a in stored] == [raised[0].id] and stored[0]["latched"]
+    zprobe.put(Measurement(vid, 0, T0_NS + 200 * PERIOD_NS, 10.0, 0.0, 60.0, 0.0, flags=FLAG_SEQUENCE_RESTART))
+    wait_for(
+        lambda: any(a.id == raised[0].id and a.state == "cleared" for a in zprobe.collect().alarms),
+        what="sequence_rejected cleared",
+    )
+    assert server.vehicle(vid)["last_seq"] == 0
+
+
 def test_stale_by_lost_liveliness_and_by_timeout(server, zprobe):
     token = zprobe.session.liveliness().declare_token(vehicle_key("live-1", "alive"))
     for k in range(20):
@@ -213,6 +253,29 @@ def test_openapi_documents_every_route_with_examples(server):
     assert set(parameters) == {"profile", "level", "limit", "after"}
     assert all(p["schema"].get("examples") for p in parameters.values())
     assert "Link" in listing["responses"]["200"]["headers"] and "404" in listing["responses"]
+
+
+def _secured(spec: dict) -> dict[tuple[str, str], bool]:
+    return {
+        (method, path): bool(op.get("security"))
+        for path, item in spec["paths"].items()
+        for method, op in item.items()
+        if method in ("get", "put", "post", "delete")
+    }
+
+
+def test_openapi_marks_only_what_needs_the_token_as_secured(server, tmp_path):
+    """Reads are open by default: their operations carry no security requirement, while every mutating one does;
+    with auth.open_reads = false the reads need the token too, and say so."""
+    secured = _secured(server.get("/openapi.json").json())
+    for (method, path), needs_token in secured.items():
+        assert needs_token == (method != "get"), (method, path)
+    assert ("get", "/vehicles") in secured and ("put", "/profiles/{name}") in secured
+    closed = create_app(make_settings(tmp_path, auth={"open_reads": False}))
+    closed_secured = _secured(closed.openapi())
+    health = {"/health", "/ready", "/metrics", "/"}
+    for (method, path), needs_token in closed_secured.items():
+        assert needs_token == (path not in health), (method, path)
 
 
 def test_unknown_vehicles_are_rejected_when_the_setting_says_so(tmp_path):

@@ -7,9 +7,16 @@ import sqlite3
 import pytest
 from pydantic import ValidationError
 
-from service.profiles import ProfileFileError, ProfileSpec, load_profiles_file
+from service.fleet import ProfileBank
+from service.profiles import (
+    MAX_RULE_DURATION_S,
+    ProfileFileError,
+    ProfileSpec,
+    load_profiles_file,
+    valid_profile_name,
+)
 from service.settings import Settings
-from service.storage import Storage
+from service.storage import Storage, StorageError
 
 
 def test_storage_round_trip_in_wal_mode(tmp_path):
@@ -108,3 +115,82 @@ def test_serve_flags_override_the_environment(monkeypatch, tmp_path):
         2,
     )
     assert s.auth.token.get_secret_value() == "s3cret"
+
+
+@pytest.mark.parametrize(
+    "alarms",
+    [
+        {"clear_after_s": 1e300},
+        {"raise_after_s": 1e300},
+        {"warmup_s": 1e12},
+        {"out_of_domain_after_s": 86_401.0},
+        {"stale_after_s": 1e300},
+        {"reject_burst_window_s": 1e300},
+        {"reject_burst_count": 10**12},
+        {"sequence_reject_count": 10**12},
+        {"torque_warn_nm": 1e300, "torque_fault_nm": 2e300},
+    ],
+)
+def test_a_profile_is_refused_unless_every_rule_is_finite_and_bounded(alarms):
+    """Durations end up as integer nanoseconds of sample time: a profile is valid only if every one converts."""
+    with pytest.raises(ValidationError, match=next(iter(alarms))):
+        ProfileSpec.model_validate({"alarms": alarms})
+    with pytest.raises(ValidationError, match="vx_max_mps"):
+        ProfileSpec.model_validate({"limits": {"vx_max_mps": 1e300}})
+    longest = {k: MAX_RULE_DURATION_S for k in ("raise_after_s", "clear_after_s", "warmup_s", "stale_after_s")}
+    ProfileBank("p", ProfileSpec.model_validate({"alarms": longest}), 10)  # the bounds themselves convert
+
+
+@pytest.mark.parametrize("name", ["van", "van-2.b_c", "...", "x" * 64])
+def test_profile_names_that_are_accepted(name):
+    assert valid_profile_name(name)
+
+
+@pytest.mark.parametrize("name", [".", "..", "van\n", "", "x" * 65, "van/2", "v an"])
+def test_profile_names_that_are_refused(name):
+    assert not valid_profile_name(name)
+
+
+def test_an_empty_database_file_is_refused_not_taken_for_a_new_database(tmp_path):
+    """A 0-byte file (a truncated copy, a failed restore) would open as a new, empty database: the service would
+    start with none of its profiles, gains, vehicles or alarms. A database the service creates is never empty."""
+    path = tmp_path / "service.sqlite3"
+    path.touch()
+    with pytest.raises(StorageError, match="empty"):
+        Storage(path)
+    assert path.stat().st_size == 0  # left as it was found
+    fresh = tmp_path / "new" / "service.sqlite3"
+    Storage(fresh).close()  # a file that does not exist yet is created
+    Storage(fresh).close()  # and opens again
+    assert fresh.stat().st_size > 0
+
+
+def test_a_foreign_schema_version_is_a_storage_error_naming_it(tmp_path):
+    path = tmp_path / "db.sqlite3"
+    Storage(path).close()
+    for stored in ("abc", "", "2"):  # not even a number: once a ValueError with a traceback
+        with sqlite3.connect(path) as db:
+            db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (stored,))
+        with pytest.raises(StorageError, match=f"schema version '{stored}', this service reads 1"):
+            Storage(path)
+
+
+def test_stored_documents_that_are_not_json_are_reported_not_raised_as_decoder_errors(tmp_path):
+    path = tmp_path / "db.sqlite3"
+    db = Storage(path)
+    db.put_profile("good", {"design": {"fault_order": 1}}, 1)
+    db.activate_gains("bad", {}, {"version": "abc", "certificate": {}}, 2)
+    with sqlite3.connect(path) as raw:
+        raw.execute("UPDATE profiles SET spec = '{not json' WHERE name = 'bad'")
+        raw.execute("UPDATE gain_versions SET gains = '[1, 2' WHERE version = 'abc'")
+    bad, good = db.profiles()
+    assert good.problem is None and good.spec == {"design": {"fault_order": 1}}
+    assert bad.name == "bad" and bad.spec == {} and "not JSON" in str(bad.problem)
+    with pytest.raises(StorageError, match="gains abc of profile bad are not JSON"):
+        db.gains("bad", "abc")
+
+
+def test_a_zenoh_endpoint_is_the_whole_setting_not_a_prefix_before_a_newline():
+    with pytest.raises(ValidationError, match="PROTOCOL/HOST:PORT"):
+        Settings.model_validate({"zenoh": {"endpoint": "tcp/127.0.0.1:7447\n"}})
+    assert Settings.model_validate({"zenoh": {"endpoint": "tcp/127.0.0.1:7447"}}).zenoh.endpoint.endswith(":7447")

@@ -37,6 +37,7 @@ async def ready(service: ServiceDep, response: Response) -> Readiness:
         transport=service.transport_up,
         profiles={name: bank.version for name, bank in service.engine.banks.items()},
         missing_gains=missing,
+        failed_profiles=dict(service.failed_profiles),
     )
     if not answer.ready:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
@@ -143,6 +144,12 @@ async def metrics(service: ServiceDep) -> PlainTextResponse:
         "counter",
         "finished synthesis jobs by outcome",
         [({"status": s}, n) for s, n in jobs.finished.items()],
+    )
+    out.metric(
+        "agv_fe_profiles_failed",
+        "gauge",
+        "stored profiles that could not be loaded at start-up and do not run (GET /profiles says why)",
+        [({}, len(service.failed_profiles))],
     )
     out.metric("agv_fe_ready", "gauge", "1 when every profile has active gains", [({}, int(service.ready))])
     return PlainTextResponse(out.text(), media_type="text/plain; version=0.0.4")

@@ -6,17 +6,20 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Query, Response, status
+from pydantic import AfterValidator
 
 from service.api.deps import Operator, ServiceDep, profile_bank
 from service.api.models import CalibrationProposal, CalibrationRequest, GainsInfo, ProfileChange, ProfileInfo
 from service.app import Service
 from service.calibration import run_calibration
 from service.fleet import ProfileBank
-from service.profiles import PROFILE_NAME_PATTERN, ProfileSpec
+from service.profiles import PROFILE_NAME_PATTERN, ProfileSpec, check_profile_name
 
 router = APIRouter(prefix="/profiles", tags=["profiles"])
 
-ProfileName = Annotated[str, Path(description="profile name", pattern=PROFILE_NAME_PATTERN)]
+ProfileName = Annotated[
+    str, Path(description="profile name", pattern=PROFILE_NAME_PATTERN), AfterValidator(check_profile_name)
+]
 AUTH: dict[int | str, dict[str, Any]] = {401: {"description": "missing or invalid token"}}
 
 
@@ -32,13 +35,31 @@ def _info(service: Service, bank: ProfileBank) -> ProfileInfo:
     )
 
 
-@router.get("", response_model=list[ProfileInfo], summary="every profile")
+def _failed_info(service: Service, name: str, error: str) -> ProfileInfo:
+    held = sum(1 for profile, _ in service.engine.held.values() if profile == name)
+    return ProfileInfo(
+        name=name,
+        state="failed",
+        error=error,
+        spec=None,
+        active_version=None,
+        gain_versions=[v for v, _ in service.db.gain_versions(name)],
+        vehicles=held,
+        pending_job=None,
+    )
+
+
+@router.get("", response_model=list[ProfileInfo], summary="every profile, running or failed to load")
 async def list_profiles(service: ServiceDep) -> list[ProfileInfo]:
-    return [_info(service, bank) for bank in service.engine.banks.values()]
+    running = [_info(service, bank) for bank in service.engine.banks.values()]
+    return running + [_failed_info(service, name, error) for name, error in service.failed_profiles.items()]
 
 
 @router.get("/{name}", response_model=ProfileInfo, responses={404: {"description": "no such profile"}})
 async def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
+    error = service.failed_profiles.get(name)
+    if error is not None:
+        return _failed_info(service, name, error)
     return _info(service, profile_bank(service, name))
 
 

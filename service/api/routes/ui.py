@@ -143,8 +143,9 @@ async def profile_form(service: ServiceDep, name: ProfileName) -> ProfileForm:
     )
 
 
-def install_dashboard(app: FastAPI) -> None:
-    """Serve the dashboard: the page at /, static files at /ui/static, data routes under /ui (read access)."""
+def install_dashboard(app: FastAPI, open_reads: bool = True) -> None:
+    """Serve the dashboard: the page at /, static files at /ui/static, data routes under /ui (read access: open,
+    or with the token when ``open_reads`` is false)."""
     app.include_router(page)
-    app.include_router(router, dependencies=[Depends(require_read)])
+    app.include_router(router, dependencies=[] if open_reads else [Depends(require_read)])
     app.mount("/ui/static", StaticFiles(directory=STATIC_DIR), name="dashboard-static")

@@ -26,6 +26,7 @@ export const ALARM_KINDS = {
   out_of_domain: 'Outside the design domain',
   stale: 'No data (stale)',
   rejected_inputs: 'Rejected measurements',
+  sequence_rejected: 'Samples refused as late',
 };
 
 export function levelBadge(level) {

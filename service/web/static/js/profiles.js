@@ -81,7 +81,23 @@ export class ProfilesView {
     }
   }
 
+  // A stored profile the service could not load at start-up: it does not run; say why.
+  failedCard(profile) {
+    return el(
+      'article',
+      { class: 'panel profile', 'data-profile': profile.name, 'data-state': 'failed' },
+      el('div', { class: 'profile-head' }, el('h2', {}, profile.name), el('span', {}, 'not running')),
+      el(
+        'p',
+        { class: 'errors', role: 'alert' },
+        `This stored profile could not be loaded at start-up and does not run: ${profile.error} ` +
+          `A valid PUT /profiles/${profile.name} replaces it.`,
+      ),
+    );
+  }
+
   async card(profile) {
+    if (profile.state === 'failed') return this.failedCard(profile);
     const name = encodeURIComponent(profile.name);
     const [gains, form] = await Promise.all([
       api('GET', `/profiles/${name}/gains`).catch(() => null),
