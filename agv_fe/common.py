@@ -12,7 +12,7 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 from service.profiles import PROFILE_NAME_RULE, AlarmThresholds, InputLimits, valid_profile_name
-from synth.options import DesignOptions
+from synth.options import DesignOptions, EffectivenessOptions
 from synth.params import OperatingBounds, VehicleParams
 
 #: Exit codes: bad input (files, flags, values), and designs that cannot be certified.
@@ -31,7 +31,7 @@ class CommandError(Exception):
 
 
 #: The sections of a profile file: those of the body of ``PUT /profiles/{name}`` (service.profiles.ProfileSpec).
-PROFILE_SECTIONS = ("params", "bounds", "design", "alarms", "limits")
+PROFILE_SECTIONS = ("params", "bounds", "design", "alarms", "limits", "effectiveness")
 #: Plain fields a profile file may carry beside its sections.
 PROFILE_FIELDS = ("name", "description")
 _DESCRIPTION_MAX_CHARS = 500
@@ -44,6 +44,7 @@ class VehicleProfileFile:
     params, bounds : the vehicle (Table 1) and its operating box (eq. 13); options : the design options as
     written (flags override them, :func:`design_options`); alarms : the alarm thresholds the service (and
     `agv-fe replay`) raise levels with; limits : the service's plausibility limits of a measurement;
+    effectiveness : the loss-of-effectiveness stage's options (synth.effectiveness), run by replay when enabled;
     source : where it came from, for messages.
     """
 
@@ -52,6 +53,7 @@ class VehicleProfileFile:
     options: dict[str, Any]
     alarms: AlarmThresholds = field(default_factory=AlarmThresholds)
     limits: InputLimits = field(default_factory=InputLimits)
+    effectiveness: EffectivenessOptions = field(default_factory=EffectivenessOptions)
     name: str = ""
     description: str = ""
     source: str = "the defaults"
@@ -129,12 +131,15 @@ def load_profile_file(path: str | Path | None) -> VehicleProfileFile:
         raise CommandError(f"{path}: 'design' must be an object")
     alarms = validate(AlarmThresholds, data.get("alarms", {}), "alarms.")
     limits = validate(InputLimits, data.get("limits", {}), "limits.")
+    effectiveness = validate(EffectivenessOptions, data.get("effectiveness", {}), "effectiveness.")
     name, description = data.get("name", ""), data.get("description", "")
     if not isinstance(name, str) or (name and not valid_profile_name(name)):
         raise CommandError(f"{path}: name: expected {PROFILE_NAME_RULE} (got {name!r})")
     if not isinstance(description, str) or len(description) > _DESCRIPTION_MAX_CHARS:
         raise CommandError(f"{path}: description: expected text of at most {_DESCRIPTION_MAX_CHARS} characters")
-    return VehicleProfileFile(params, bounds, options, alarms, limits, name, description, source=str(path))
+    return VehicleProfileFile(
+        params, bounds, options, alarms, limits, effectiveness, name, description, source=str(path)
+    )
 
 
 def add_design_arguments(parser: argparse.ArgumentParser, *, default_design: str) -> None:

@@ -122,12 +122,15 @@ def write_estimates(
     in_domain: np.ndarray,
     torque_level: Sequence[str],
     steer_level: Sequence[str],
+    extra: dict[str, FloatArray] | None = None,
 ) -> None:
     """Write the replay output: t (K,) [s], x_hat (K, 3), f_hat (K, 2), in_domain (K,) and the level names
-    (OK, WARN, FAULT) of the torque and steering fault channels, (K,) each."""
+    (OK, WARN, FAULT) of the torque and steering fault channels, (K,) each; ``extra`` columns (K,) after them
+    (the effectiveness stage's bias and alpha)."""
+    extra = extra or {}
     with Path(path).open("w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(OUTPUT_COLUMNS)
+        writer.writerow([*OUTPUT_COLUMNS, *extra])
         for k in range(t.size):
             writer.writerow(
                 [
@@ -137,6 +140,7 @@ def write_estimates(
                     int(in_domain[k]),
                     torque_level[k],
                     steer_level[k],
+                    *(f"{column[k]:.9g}" for column in extra.values()),
                 ]
             )
 

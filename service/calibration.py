@@ -39,7 +39,7 @@ from synth.design import synthesize
 from synth.gains import ObserverGains
 from synth.model import FloatArray, rk4_step
 from synth.observer import FuzzyObserver
-from synth.options import DesignOptions, NoiseModel
+from synth.options import DesignOptions, EffectivenessOptions, NoiseModel
 from synth.params import OperatingBounds, VehicleParams
 
 #: The paper's profile's m_eff R_w [kg m]: the default noise model's torque rates and scales are tuned for it.
@@ -238,6 +238,11 @@ def calibrate_profile(
         bounds=result.bounds,
         design=design_options,
         alarms=AlarmThresholds.model_validate(alarm_settings.model_dump()),
+        # the effectiveness stage's measurement noise: the healthy estimates' RMS (the stage stays off until asked)
+        effectiveness=EffectivenessOptions(
+            torque_sigma_nm=_round_up(max(thresholds["torque"].sigma, 1e-6)),
+            steer_sigma_rad=_round_up(max(thresholds["steer"].sigma, 1e-9)),
+        ),
     )
     return CalibrationReport(
         profile=profile,

@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from synth.options import DesignOptions
+from synth.options import DesignOptions, EffectivenessOptions
 from synth.params import OperatingBounds, VehicleParams
 
 #: The characters of a profile name, 1 to 64 of ``A-Z a-z 0-9 _ . -``. Check a name with
@@ -158,6 +158,11 @@ class ProfileSpec(BaseModel):
     )
     alarms: AlarmThresholds = Field(default_factory=AlarmThresholds)
     limits: InputLimits = Field(default_factory=InputLimits)
+    effectiveness: EffectivenessOptions = Field(
+        default_factory=EffectivenessOptions,
+        description="the loss-of-effectiveness stage (alpha beside the bias); `agv-fe replay` and the benchmarks "
+        "run it, the service does not yet (a profile with it enabled is refused)",
+    )
 
     def stored(self) -> dict[str, Any]:
         """The JSON kept in the database: only what was set, so defaults keep propagating."""

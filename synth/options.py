@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 DesignName = Literal["paper", "paper-decoupled", "robust"]
 SolverName = Literal["CLARABEL", "SCS"]
@@ -80,12 +80,13 @@ class EffectivenessOptions(BaseModel):
         3.0, description="the stage starts once the observer has converged, this long after it starts [s]"
     )
 
-    @model_validator(mode="after")
-    def _bounds_ordered(self) -> EffectivenessOptions:
-        low, high = self.alpha_bounds
+    @field_validator("alpha_bounds")
+    @classmethod
+    def _bounds_ordered(cls, bounds: tuple[float, float]) -> tuple[float, float]:
+        low, high = bounds
         if not (0.0 <= low < 1.0 < high <= 10.0):
-            raise ValueError(f"alpha_bounds must satisfy 0 <= low < 1 < high <= 10, got {self.alpha_bounds}")
-        return self
+            raise ValueError(f"must satisfy 0 <= low < 1 < high <= 10, got {bounds}")
+        return bounds
 
 
 class SwitchingRule(BaseModel):

@@ -52,6 +52,13 @@ def register(sub: Any) -> None:
         metavar="VX,VY,R",
         help="observer initial [v_x, v_y, r] (default: measured v_x, r and v_y = 0, as the service starts)",
     )
+    parser.add_argument(
+        "--effectiveness",
+        action="store_true",
+        help="estimate each actuator's effectiveness beside its bias (synth.effectiveness), as the profile's "
+        "'effectiveness' section sets it (enabled there too): torque_fault_hat and steer_fault_hat are then the "
+        "total faults, and the columns torque_bias_hat, steer_bias_hat, torque_alpha_hat, steer_alpha_hat follow",
+    )
     add_design_arguments(parser, default_design="robust")
     add_estimator_argument(parser)
     parser.set_defaults(handler=run)
@@ -68,6 +75,9 @@ class Replay:
     in_domain: np.ndarray
     levels: np.ndarray
     restarts: int
+    #: with the effectiveness stage: the estimated bias and effectiveness (K, 2) each, [torque, steer]
+    bias: FloatArray | None = None
+    alpha: FloatArray | None = None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,12 +92,39 @@ def run(args: argparse.Namespace) -> int:
             recording = read_recording(args.input, gains.params.sample_period_s)
         except RecordingError as exc:
             raise CommandError(str(exc)) from exc
+        effectiveness = args.effectiveness or profile.effectiveness.enabled
+        if effectiveness and args.estimator == "ekf":
+            raise CommandError("--effectiveness runs beside the observer, not the EKF")
+        if effectiveness:
+            from edge_client.simulation import effectiveness_factory
+            from synth.errors import BadParameters
+
+            options = profile.effectiveness.model_copy(update={"enabled": True})
+            try:
+                effectiveness_factory(gains, options)(recording.y[:1], None, recording.u[:1])
+            except BadParameters as exc:
+                raise CommandError(f"--effectiveness: {exc}") from exc
+            factory = effectiveness_factory(gains, options)
+        else:
+            factory = estimator_factory(args, gains)
     except CommandError as exc:
         return fail(exc)
-    result = replay(recording, estimator_factory(args, gains), x0, profile.alarms, profile.params.sample_period_s)
+    result = replay(recording, factory, x0, profile.alarms, profile.params.sample_period_s)
     names = np.array(LEVEL_NAMES)[result.levels]
+    extra = (
+        {}
+        if result.alpha is None or result.bias is None
+        else {
+            "torque_bias_hat": result.bias[:, 0],
+            "steer_bias_hat": result.bias[:, 1],
+            "torque_alpha_hat": result.alpha[:, 0],
+            "steer_alpha_hat": result.alpha[:, 1],
+        }
+    )
     try:
-        write_estimates(args.out, recording.t, result.x_hat, result.f_hat, result.in_domain, names[:, 0], names[:, 1])
+        write_estimates(
+            args.out, recording.t, result.x_hat, result.f_hat, result.in_domain, names[:, 0], names[:, 1], extra
+        )
     except OSError as exc:
         return fail(CommandError(f"{args.out}: cannot write: {exc.strerror}"))
     n = len(recording)
@@ -124,6 +161,7 @@ def replay(
     restarts the estimator from the next measurement (cold, like the service's bank).
     """
     from service.fleet.alarms import FaultLevels
+    from synth.effectiveness import EffectivenessStep
 
     n = len(recording)
     t_ns = np.rint(recording.t * 1e9).astype(np.int64)
@@ -133,6 +171,8 @@ def replay(
     f_hat = np.zeros((n, 2))
     in_domain = np.zeros(n, dtype=bool)
     level = np.zeros((n, 2), dtype=np.intp)
+    bias: FloatArray | None = None
+    alpha: FloatArray | None = None
     estimator = None
     restarts = 0
     for k in range(n):
@@ -142,13 +182,17 @@ def replay(
             levels.restart(row, t)
         step = estimator.step(y, u)
         x_hat[k], f_hat[k], in_domain[k] = step.state[0], step.faults[0], step.in_domain[0]
+        if isinstance(step, EffectivenessStep):
+            if alpha is None or bias is None:
+                alpha, bias = np.ones((n, 2)), np.zeros((n, 2))
+            alpha[k], bias[k] = step.alpha[0], step.bias[0]
         if np.isfinite(x_hat[k]).all() and np.isfinite(f_hat[k]).all():
             levels.update(row, f_hat[k : k + 1], t)
         else:
             estimator = None
             restarts += 1
         level[k] = levels.torque.level[0], levels.steer.level[0]
-    return Replay(x_hat, f_hat, in_domain, level, restarts)
+    return Replay(x_hat, f_hat, in_domain, level, restarts, bias, alpha)
 
 
 def level_summary(t: FloatArray, levels: np.ndarray, profile: VehicleProfileFile) -> list[str]:

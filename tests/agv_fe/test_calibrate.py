@@ -37,6 +37,10 @@ def test_calibrate_writes_a_profile_that_synth_and_replay_accept(files, capsys):
     assert summary["gust"] == {"force_n": 800.0, "duration_s": 2.0} and "in the gust" in printed
     steer = summary["thresholds"]["steer"]
     assert steer["gust_peak"] > 0.004 and steer["warn"] >= 1.25 * steer["gust_peak"]
+    # the effectiveness stage gets the healthy estimates' RMS as its noise, and stays off until asked
+    effectiveness = doc["effectiveness"]
+    assert effectiveness["enabled"] is False
+    assert effectiveness["torque_sigma_nm"] == pytest.approx(summary["thresholds"]["torque"]["sigma"], rel=0.01)
     # the same file is a --params profile: it designs the same gains and replays with its own thresholds
     gains = root / "gains.json"
     assert main(["synth", "--params", str(profile), "--out", str(gains)]) == 0

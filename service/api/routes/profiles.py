@@ -73,6 +73,12 @@ async def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
 async def put_profile(
     service: ServiceDep, name: ProfileName, spec: ProfileSpec, _operator: Operator, response: Response
 ) -> ProfileChange:
+    if spec.effectiveness.enabled:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            detail="effectiveness.enabled: the service does not run the loss-of-effectiveness stage yet "
+            "(`agv-fe replay` and the benchmarks do); put the profile with it disabled",
+        )
     job = service.put_profile(name, spec)
     if job is None:
         response.status_code = status.HTTP_200_OK
