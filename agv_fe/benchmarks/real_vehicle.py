@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from agv_fe.benchmarks import report_header
 from edge_client import multibody as mb
 from edge_client.faults import CHANNEL_INDEX, BiasFault, Channel, Fault, LossOfEffectivenessFault, SinusoidalFault
-from edge_client.simulation import EstimatorFactory, ekf_factory, observer_factory
+from edge_client.simulation import EstimatorFactory, effectiveness_factory, ekf_factory, observer_factory
 from service.calibration import (
     CHANNELS,
     UNITS,
@@ -59,6 +59,7 @@ from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, FaultLevels
 from service.profiles import AlarmThresholds
 from synth.calibration import Drive as Recording
 from synth.design import synthesize
+from synth.effectiveness import EffectivenessStep
 from synth.errors import SynthesisError
 from synth.gains import ObserverGains
 from synth.model import FloatArray
@@ -119,6 +120,7 @@ KEPT_EVENTS = 50
 
 ESTIMATOR_LABELS: dict[str, str] = {
     "calibrated": "calibrated observer",
+    "effectiveness": "calibrated observer + effectiveness stage",
     "EKF": "augmented EKF",
     "paper": "`paper` profile (before)",
 }
@@ -383,6 +385,8 @@ class Estimated:
     levels: LevelArray
     in_domain: NDArray[np.bool_]
     finite: NDArray[np.bool_]
+    #: the effectiveness stage's alpha_hat (K, 2) [torque, steer]; None for the other estimators
+    alpha: FloatArray | None = None
 
 
 def estimate_runs(
@@ -424,16 +428,24 @@ def _estimate_batch(
     level = np.empty((n, nv, 2), dtype=np.int8)
     in_domain = np.empty((n, nv), dtype=bool)
     finite = np.empty((n, nv), dtype=bool)
+    alpha: FloatArray | None = None
     for k in range(n):
         step = estimator.step(y[k], u[k])
         f_hat[k] = step.faults
+        if isinstance(step, EffectivenessStep):
+            if alpha is None:
+                alpha = np.ones((n, nv, 2))
+            alpha[k] = step.alpha
         in_domain[k] = step.in_domain
         finite[k] = np.isfinite(f_hat[k]).all(axis=1)
         usable = None if finite[k].all() else finite[k]
         levels.update(rows, f_hat[k], np.full(nv, t_ns[k], dtype=np.int64), usable)
         level[k, :, 0] = levels.torque.level
         level[k, :, 1] = levels.steer.level
-    return [Estimated(f_hat[:, j], level[:, j], in_domain[:, j], finite[:, j]) for j in range(nv)]
+    return [
+        Estimated(f_hat[:, j], level[:, j], in_domain[:, j], finite[:, j], None if alpha is None else alpha[:, j])
+        for j in range(nv)
+    ]
 
 
 def ekf_thresholds(
@@ -644,7 +656,36 @@ def fault_run_figures(
         "peak_lateral_accel_mps2": float(np.abs(run.a_y).max()),
         "non_finite_samples": int((~est.finite).sum()),
         "time_course": course,
+        **effectiveness_figures(case, run, est, alarms, onset_s),
     }
+
+
+#: The effectiveness target: alpha_hat within this share of the truth this long after the loss ramp ends [s].
+ALPHA_TOLERANCE = 0.03
+ALPHA_AFTER_RAMP_S = 2.0
+#: ... and the stage's total-fault RMSE at most this share of the additive design's, WARN within this long [s].
+LOSS_RMSE_SHARE = 1.0 / 3.0
+EFFECTIVENESS_WARN_WITHIN_S = 2.0
+
+
+def effectiveness_figures(
+    case: FaultCase, run: mb.MultibodyRun, est: Estimated, alarms: AlarmThresholds, onset_s: float
+) -> dict[str, Any]:
+    """For the effectiveness stage's runs: alpha_hat on the faulty channel ALPHA_AFTER_RAMP_S after a loss ramp
+    ends (and the truth), at the end, and its largest distance from 1 between the warm-up and the onset."""
+    if est.alpha is None:
+        return {}
+    c = CHANNEL_INDEX[case.channel]
+    warm = (run.t >= alarms.warmup_s) & (run.t < onset_s)
+    out: dict[str, Any] = {
+        "alpha_max_deviation_before_onset": float(np.abs(est.alpha[warm, c] - 1.0).max(initial=0.0)),
+        "alpha_at_end": float(est.alpha[-1, c]),
+    }
+    if case.kind == "loss_of_effectiveness":
+        at = onset_s + (1.0 - LOSS_ALPHA_MIN) / LOSS_RATE_PER_S + ALPHA_AFTER_RAMP_S
+        k = min(int(np.searchsorted(run.t, at - 1e-9)), len(run) - 1)
+        out |= {"alpha_after_ramp": float(est.alpha[k, c]), "alpha_true": LOSS_ALPHA_MIN, "alpha_after_ramp_t_s": at}
+    return out
 
 
 def meets(case: FaultCase, seeds: Sequence[dict[str, Any]]) -> bool:
@@ -822,6 +863,11 @@ def evaluate_set(
     ekf_channel, ekf_alarms = ekf_thresholds(report, runs.calibration)
     estimators: dict[str, tuple[EstimatorFactory, AlarmThresholds, float]] = {
         "calibrated": (observer_factory(report.gains), report.profile.alarms, report.profile.params.sample_period_s),
+        "effectiveness": (
+            effectiveness_factory(report.gains, report.profile.effectiveness.model_copy(update={"enabled": True})),
+            report.profile.alarms,
+            report.profile.params.sample_period_s,
+        ),
         "EKF": (ekf_factory(report.gains), ekf_alarms, report.profile.params.sample_period_s),
         "paper": (observer_factory(paper_gains), AlarmThresholds(), paper_gains.params.sample_period_s),
     }
@@ -929,6 +975,7 @@ def must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
             for s in seeds
             if s["other_channel_level"] != "OK"
         ]
+    lines += effectiveness_must_show(result)
     lines.append(
         {
             "target": "the other channel stays OK after the warm-up in every fault case and seed (calibrated observer)",
@@ -937,6 +984,43 @@ def must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
         }
     )
     lines.append(sensitivity_line(result["sensitivity"]["random"], driving["minutes"]))
+    return lines
+
+
+def effectiveness_must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
+    """The loss-of-effectiveness targets, measured with the effectiveness stage: on the torque loss ramp its
+    total-fault RMSE at most a third of the additive design's and WARN within 2 s of the onset in every seed;
+    alpha_hat within 3 % of the truth 2 s after the ramp ends (torque; the steering loss is shown beside)."""
+    lines: list[dict[str, Any]] = []
+    for key in ("torque_loss", "steer_loss"):
+        entry = result["faults"].get(key)
+        if entry is None or "effectiveness" not in entry:
+            continue
+        stage, additive = entry["effectiveness"]["seeds"], entry["calibrated"]["seeds"]
+        ratios = [s["rmse_after_onset"] / a["rmse_after_onset"] for s, a in zip(stage, additive, strict=True)]
+        alphas = [s["alpha_after_ramp"] for s in stage]
+        warn = [s["warn_delay_s"] for s in stage]
+        label = "torque" if key == "torque_loss" else "steering (shown)"
+        rmse_ok = all(r <= LOSS_RMSE_SHARE for r in ratios)
+        warn_ok = all(w is not None and w <= EFFECTIVENESS_WARN_WITHIN_S for w in warn)
+        alpha_ok = all(abs(a - LOSS_ALPHA_MIN) <= ALPHA_TOLERANCE * LOSS_ALPHA_MIN for a in alphas)
+        lines.append(
+            {
+                "target": f"{label} loss of effectiveness, effectiveness stage: total-fault RMSE at most a third of "
+                f"the additive design's, WARN within {EFFECTIVENESS_WARN_WITHIN_S:g} s of the onset",
+                "figure": f"RMSE ratio {' / '.join(f'{r:.2f}' for r in ratios)}; WARN after "
+                f"{' / '.join(_delay(w) for w in warn)} s",
+                "passed": rmse_ok and warn_ok if key == "torque_loss" else None,
+            }
+        )
+        lines.append(
+            {
+                "target": f"{label} loss of effectiveness: alpha_hat within {100 * ALPHA_TOLERANCE:g} % of the truth "
+                f"({LOSS_ALPHA_MIN:g}) {ALPHA_AFTER_RAMP_S:g} s after the ramp ends",
+                "figure": " / ".join(f"{a:.3f}" for a in alphas),
+                "passed": alpha_ok if key == "torque_loss" else None,
+            }
+        )
     return lines
 
 
@@ -1138,7 +1222,7 @@ def render(document: dict[str, Any]) -> str:
     ]
     for result in sets:
         for line in result["must_show"]:
-            verdict = "pass" if line["passed"] else "**FAIL**"
+            verdict = "shown" if line["passed"] is None else "pass" if line["passed"] else "**FAIL**"
             lines.append(f"| {result['parameter_set']} | {line['target']} | {line['figure']} | {verdict} |")
     lines.append("")
     lines.append(_stiffness_note(sets))
@@ -1421,7 +1505,9 @@ def _fault_section(result: dict[str, Any], plan: dict[str, Any]) -> list[str]:
     for case in FAULT_CASES:
         entry = result["faults"][case.key]
         unit = UNITS[case.channel]
-        for name in ("calibrated", "EKF"):
+        for name in ("calibrated", "effectiveness", "EKF"):
+            if name not in entry:
+                continue
             seeds = entry[name]["seeds"]
             demand = " / ".join(_fmt(s["demand_rms_after_onset"], 3) for s in seeds)
             verdict = entry[name]["meets_target"]
@@ -1477,7 +1563,10 @@ def _how_measured(plan: dict[str, Any]) -> list[str]:
         "speeds from the onset on (the MB has no drag, so cruising needs no torque and a loss of effectiveness, "
         "f = (alpha - 1) T_d, only shows under a demand); the steering loss in a steady turn. "
         "Estimators: the calibrated profile's observer (`FuzzyObserver` with the calibration's gains, u0 = "
-        "first demand); the augmented EKF (synth/ekf.py) with the same parameters, bounds and noise model; the "
+        "first demand); the same observer with its loss-of-effectiveness stage (synth/effectiveness.py, the "
+        "profile's effectiveness options: a Kalman filter on the observer's reported faults against its own "
+        "response to the demand; its faults are the totals, bias plus (alpha - 1) demand, and the alarm rule "
+        "runs on them); the augmented EKF (synth/ekf.py) with the same parameters, bounds and noise model; the "
         "`paper` profile (VehicleParams(), OperatingBounds(), DesignOptions(), AlarmThresholds()). Each starts "
         "from its drive's first measurement at t = 0; drives of equal length run as one batch. Alarm levels: "
         "`service.fleet.alarms.FaultLevels` with the profile's thresholds, warm-up, persistence and hysteresis, "

@@ -97,13 +97,17 @@ def test_must_show_has_a_line_per_target_matching_the_json(outcome, figures):
         *(case.label for case in bench.FAULT_CASES if case.target is not None),
         "the other channel stays OK",
         "sensitivity: no alarm on healthy driving with any of the random-drive calibrations",
+        "torque loss of effectiveness, effectiveness stage",
+        "torque loss of effectiveness: alpha_hat within 3 %",
+        "steering (shown) loss of effectiveness, effectiveness stage",
+        "steering (shown) loss of effectiveness: alpha_hat within 3 %",
     ]
     for target in targets:
         matching = [row for row in rows if target in row]
         assert len(matching) == 1, (target, rows)
     for row, line in zip(rows, figures["must_show"], strict=True):
         verdict = row.rstrip(" |").rsplit("|", 1)[1].strip()
-        assert verdict == ("pass" if line["passed"] else "**FAIL**"), row
+        assert verdict == ("shown" if line["passed"] is None else "pass" if line["passed"] else "**FAIL**"), row
         assert line["target"] in row and line["figure"] in row
 
 
@@ -388,3 +392,17 @@ def test_sensitivity_line_fails_on_an_alarm_or_a_refused_calibration(outcome, fi
     assert row.rstrip(" |").endswith(reason)
     (must,) = [line for line in text.splitlines() if line.startswith(f"| {SET} | sensitivity:")]
     assert must.rstrip(" |").endswith("**FAIL**")
+
+
+def test_the_effectiveness_stage_is_measured_beside_the_additive_design(figures):
+    for result in (figures,):
+        for key in ("torque_loss", "steer_loss"):
+            entry = result["faults"][key]
+            stage, additive = entry["effectiveness"]["seeds"], entry["calibrated"]["seeds"]
+            assert len(stage) == len(additive) >= 1
+            for s, a in zip(stage, additive, strict=True):
+                assert 0.0 <= s["alpha_after_ramp"] <= 1.5 and s["alpha_true"] == bench.LOSS_ALPHA_MIN
+                assert s["rmse_after_onset"] > 0 and a["rmse_after_onset"] > 0
+        (line,) = [m for m in result["must_show"] if m["target"].startswith("torque loss of effectiveness: alpha")]
+        alphas = [s["alpha_after_ramp"] for s in result["faults"]["torque_loss"]["effectiveness"]["seeds"]]
+        assert line["passed"] is all(abs(a - bench.LOSS_ALPHA_MIN) <= 0.03 * bench.LOSS_ALPHA_MIN for a in alphas)
