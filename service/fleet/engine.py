@@ -153,6 +153,7 @@ class Vehicle:
 
     __slots__ = (
         "alive",
+        "announced",
         "bank",
         "base_counters",
         "id",
@@ -193,6 +194,8 @@ class Vehicle:
         self.reject_times: deque[float] = deque()
         self.stale = False
         self.alive: bool | None = None
+        #: registered through the API before its first measurement: not STALE until it has sent one
+        self.announced = False
 
     @property
     def profile(self) -> str:
@@ -320,8 +323,13 @@ class FleetEngine:
         except KeyError:
             raise UnknownProfile(f"no profile named {name!r}; known: {', '.join(sorted(self.banks))}") from None
 
-    def register(self, vehicle_id: str, profile: str, registered_t_ns: int | None = None) -> Vehicle:
-        """Add a vehicle (or move it to ``profile``); its observer starts at its next measurement."""
+    def register(
+        self, vehicle_id: str, profile: str, registered_t_ns: int | None = None, announced: bool = False
+    ) -> Vehicle:
+        """Add a vehicle (or move it to ``profile``); its observer starts at its next measurement.
+
+        ``announced``: registered through the API ahead of its first measurement, so it is not made STALE for
+        sending nothing until it has sent something (a vehicle restored from storage, unannounced, is)."""
         bank = self._bank(profile)
         self.held.pop(vehicle_id, None)
         existing = self.vehicles.get(vehicle_id)
@@ -343,6 +351,7 @@ class FleetEngine:
             self._clock_ns() if registered_t_ns is None else registered_t_ns,
         )
         vehicle.alive = self._presence.pop(vehicle_id, None)
+        vehicle.announced = announced
         self._stagger(vehicle)
         self.vehicles[vehicle_id] = vehicle
         self._by_key[vehicle.meas_key] = vehicle
@@ -550,10 +559,12 @@ class FleetEngine:
             vehicle_id, kind = parse_vehicle_key(key)
             if kind != "meas":
                 raise ProtocolError(f"{key!r} is not a measurement key")
-            if key.split("/")[0] != self.config.prefix or key.split("/")[2] != bucket_of(vehicle_id):
-                raise ProtocolError(f"{key!r} has the wrong prefix or bucket for {vehicle_id!r}")
         except ProtocolError:
             self._reject(None, "malformed", now_mono, result)
+            return None
+        if key.split("/")[0] != self.config.prefix or key.split("/")[2] != bucket_of(vehicle_id):
+            # a known vehicle's own counters say it too, as for every other reject of its samples
+            self._reject(self.vehicles.get(vehicle_id), "malformed", now_mono, result)
             return None
         vehicle = self.vehicles.get(vehicle_id)
         if vehicle is not None:
@@ -865,7 +876,9 @@ class FleetEngine:
         for vehicle in self.vehicles.values():
             a = vehicle.bank.spec.alarms
             seen = vehicle.last_seen_mono if vehicle.last_seen_mono is not None else self.started_mono
-            if not vehicle.stale and now_mono - seen > a.stale_after_s:
+            # a vehicle announced through the API that has not sent anything yet is not stale: it has not started
+            announced = vehicle.last_seen_mono is None and vehicle.announced
+            if not vehicle.stale and not announced and now_mono - seen > a.stale_after_s:
                 self._make_stale(vehicle, now_ns, f"no measurement for {now_mono - seen:.1f} s", changes)
             times = vehicle.reject_times
             while times and now_mono - times[0] > a.reject_burst_window_s:
@@ -964,7 +977,9 @@ class FleetEngine:
             steer_fault=x[4],
             in_domain=bool(bank.last_in_domain[slot]),
             gain_version=bank.version or "",
-            level=self.level_of(vehicle),
+            # the estimate's own level, as its document carried it: STALE is the vehicle's state, not an estimate's
+            level=LEVEL_NAMES[int(bank.levels(slot))],
+            gain_set=bank.gain_set(slot),
         )
 
     def estimate_history(self, vehicle: Vehicle, limit: int) -> list[dict[str, Any]]:

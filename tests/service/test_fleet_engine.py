@@ -205,6 +205,10 @@ def test_malformed_id_mismatch_and_unknown_vehicles(fast_gains):
     assert engine.rejected["id_mismatch"] == 2
     assert engine.vehicles["v"].rejected["malformed"] == 3 and engine.vehicles["v"].rejected["id_mismatch"] == 2
     assert set(engine.vehicles) == {"v"}
+    # a known vehicle's sample on the wrong bucket is counted in its own counters too, like every other reject
+    wrong = vehicle_key("v", "meas").replace(bucket_of("v"), "b0f" if bucket_of("v") != "b0f" else "b00")
+    engine.process([(wrong, constant_measurement("v", 1).encode())])
+    assert engine.rejected["malformed"] == 6 and engine.vehicles["v"].rejected["malformed"] == 4
 
 
 def test_an_id_with_a_trailing_newline_registers_nothing(fast_gains):
@@ -393,6 +397,37 @@ def test_stale_by_timeout_and_by_liveliness_then_resume(fast_gains):
     assert engine.level_of(engine.vehicles["v"]) == "OK"
     lost = engine.liveliness("v", alive=False)
     assert [(c.event.kind, c.event.state) for c in lost] == [("stale", "raised")]
+
+
+def test_a_vehicle_announced_through_the_api_is_not_stale_before_its_first_sample(fast_gains):
+    clock = FakeClock()
+    engine = make_engine(fast_gains, clock=clock, alarms={"stale_after_s": 1.0})
+    engine.register("announced", "default", announced=True)
+    engine.register("restored", "default", registered_t_ns=T0_NS)  # restored from storage: seen before, maybe
+    clock.mono += 5.0
+    assert [(c.event.vehicle, c.event.level) for c in engine.housekeeping()] == [("restored", "STALE")]
+    # once it has sent something, silence makes it stale like any other vehicle
+    engine.process(pairs([constant_measurement("announced", 0)]))
+    clock.mono += 1.5
+    assert [c.event.vehicle for c in engine.housekeeping()] == ["announced"]
+
+
+def test_the_latest_estimate_carries_the_estimates_level_and_gain_set_not_the_vehicles_staleness():
+    from synth.design import synthesize
+    from synth.options import DesignOptions
+
+    switched = synthesize(options=DesignOptions())
+    clock = FakeClock()
+    engine = make_engine(switched, clock=clock, alarms={"stale_after_s": 1.0})
+    engine.process(pairs([constant_measurement("v", 0)]))
+    vehicle = engine.vehicles["v"]
+    latest = engine.latest_estimate(vehicle)
+    assert latest is not None and latest.level == "OK" and latest.gain_set in ("fast", "quiet")
+    clock.mono += 2.0
+    engine.housekeeping()
+    assert engine.level_of(vehicle) == "STALE"  # the vehicle is stale ...
+    stale_latest = engine.latest_estimate(vehicle)
+    assert stale_latest is not None and stale_latest.level == "OK"  # ... its last estimate was OK when made
 
 
 def test_a_burst_of_rejected_inputs_raises_and_clears(fast_gains):

@@ -167,6 +167,14 @@ def test_json_messages_round_trip():
         Alarm.decode(b'{"v": 1, "vehicle": "v1"}')
 
 
+def test_the_bucket_is_zlibs_crc32_of_the_utf8_id_as_documented():
+    import zlib
+
+    for vehicle_id in ("truck-7", "agv-\u00e9-01", "x" * 64):
+        assert bucket_of(vehicle_id) == "b%02x" % (zlib.crc32(vehicle_id.encode("utf-8")) % 16)
+    assert bucket_of("truck-7") == "b0f"  # the example of docs/protocol.md
+
+
 def test_a_fleet_message_holds_each_batch_as_columns_that_read_as_the_per_vehicle_documents():
     from service.protocol import (
         FleetEstimates,
@@ -192,6 +200,14 @@ def test_a_fleet_message_holds_each_batch_as_columns_that_read_as_the_per_vehicl
         FleetEstimates.decode(message.replace(b'"vehicle":["a","b","c"]', b'"vehicle":["a","b"]'))
     with pytest.raises(ProtocolError):
         FleetEstimates.decode(b'{"v":1,"replica":"r","groups":[{"vehicle":[]}]}')
+    # a profile stepped twice in one tick (a vehicle with two samples in it) gives two batches of one version:
+    # one group, the vehicle's rows in their order, so a reader keying groups by gain version loses nothing
+    again = _batch([[2.0, 0.0, 0.0, 1.0, 0.0]], ["a"], 11)
+    merged = FleetEstimates.decode(encode_fleet_estimates("replica-1", [first, second, again]))
+    assert [g.gain_version for g in merged.groups] == ["3f9a1c0b7d2e", "ab12"]
+    assert merged.groups[0].vehicle == ["a", "b", "c", "a"] and merged.groups[0].seq == [10, 11, 12, 11]
+    expected = [Estimate.decode(d) for d in [*first.documents(), *again.documents(), *second.documents()]]
+    assert merged.estimates() == expected
     # the fleet key is outside every per-vehicle selector, and its selector matches every replica's key
     key = fleet_estimates_key("replica-1")
     assert key == "agv/v1/service/replica-1/estimates"

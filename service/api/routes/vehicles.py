@@ -145,7 +145,7 @@ async def assign_vehicle(
     service: ServiceDep, vehicle_id: VehicleId, body: VehicleAssignment, _operator: Operator
 ) -> VehicleStatus:
     try:
-        vehicle = service.engine.register(vehicle_id, body.profile)
+        vehicle = service.engine.register(vehicle_id, body.profile, announced=True)
     except UnknownProfile as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail=str(exc.args[0])) from exc
     service.db.put_vehicles([(vehicle.id, vehicle.profile, vehicle.registered_t_ns)])
