@@ -76,6 +76,15 @@ class AlarmThresholds(BaseModel):
         description="this many samples in a row refused as late (out_of_order) or with an implausible sequence "
         "jump (implausible_seq) raise WARN sequence_rejected",
     )
+    effectiveness_warn: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = Field(
+        0.9, description="an actuator's estimated effectiveness alpha below this raises WARN (effectiveness stage) [-]"
+    )
+    effectiveness_fault: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = Field(
+        0.75, description="an actuator's estimated effectiveness alpha below this raises FAULT [-]"
+    )
+    effectiveness_after_s: Duration = Field(
+        1.0, description="how long alpha must stay below a threshold before it raises [s]"
+    )
     rule: Literal["threshold", "cusum"] = Field(
         "threshold",
         description="how the fault channels raise levels: 'threshold' (|estimate| above a threshold for "
@@ -101,6 +110,11 @@ class AlarmThresholds(BaseModel):
             warn, fault = getattr(self, f"{channel}_warn_{unit}"), getattr(self, f"{channel}_fault_{unit}")
             if not warn < fault:
                 raise ValueError(f"{channel}_warn_{unit} must be below {channel}_fault_{unit}, got {warn} >= {fault}")
+        if not self.effectiveness_fault < self.effectiveness_warn:
+            raise ValueError(
+                f"effectiveness_fault must be below effectiveness_warn, got {self.effectiveness_fault} >= "
+                f"{self.effectiveness_warn}"
+            )
         if self.rule == "cusum" and (self.torque_block_sigma_nm is None or self.steer_block_sigma_rad is None):
             raise ValueError(
                 "rule 'cusum' needs torque_block_sigma_nm and steer_block_sigma_rad (agv-fe calibrate sets them)"

@@ -157,15 +157,18 @@ def replay(
     """Step the estimator over the recording and the fault channels' levels, as the service does per vehicle.
 
     The levels are :class:`service.fleet.alarms.FaultLevels` fed the fault estimates on the time stamps
-    t_ns = round(t * 1e9) [ns], warm-up from the observer's start. A non-finite estimate is not fed and
-    restarts the estimator from the next measurement (cold, like the service's bank).
+    t_ns = round(t * 1e9) [ns], warm-up from the observer's start; with the effectiveness stage, each
+    channel's level is the higher of that and :class:`~service.fleet.alarms.EffectivenessLevels` on alpha_hat.
+    A non-finite estimate is not fed and restarts the estimator from the next measurement (cold, like the
+    service's bank).
     """
-    from service.fleet.alarms import FaultLevels
+    from service.fleet.alarms import EffectivenessLevels, FaultLevels
     from synth.effectiveness import EffectivenessStep
 
     n = len(recording)
     t_ns = np.rint(recording.t * 1e9).astype(np.int64)
     levels = FaultLevels(1, alarms, sample_period_s)
+    effectiveness = EffectivenessLevels(1, alarms)
     row = np.zeros(1, dtype=np.intp)
     x_hat = np.zeros((n, 3))
     f_hat = np.zeros((n, 2))
@@ -180,6 +183,7 @@ def replay(
         if estimator is None:
             estimator = make(y, x0 if k == 0 else None, u)
             levels.restart(row, t)
+            effectiveness.reset(row, keep_level=True)
         step = estimator.step(y, u)
         x_hat[k], f_hat[k], in_domain[k] = step.state[0], step.faults[0], step.in_domain[0]
         if isinstance(step, EffectivenessStep):
@@ -188,10 +192,15 @@ def replay(
             alpha[k], bias[k] = step.alpha[0], step.bias[0]
         if np.isfinite(x_hat[k]).all() and np.isfinite(f_hat[k]).all():
             levels.update(row, f_hat[k : k + 1], t)
+            if alpha is not None and t[0] - levels.started_t_ns[0] >= levels.warmup_ns:
+                effectiveness.update(row, alpha[k : k + 1], t)
         else:
             estimator = None
             restarts += 1
-        level[k] = levels.torque.level[0], levels.steer.level[0]
+        level[k] = (
+            max(levels.torque.level[0], effectiveness.torque.level[0]),
+            max(levels.steer.level[0], effectiveness.steer.level[0]),
+        )
     return Replay(x_hat, f_hat, in_domain, level, restarts, bias, alpha)
 
 

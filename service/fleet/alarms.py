@@ -240,6 +240,48 @@ class FaultLevels:
         return steer if not len(torque) else np.concatenate([torque, steer])
 
 
+class EffectivenessLevels:
+    """The alarm levels of the actuators' estimated effectiveness (synth.effectiveness), one row per slot.
+
+    Two :class:`LevelDetector` on the loss 1 - alpha_hat (a gain above 1 is no loss): WARN below
+    ``effectiveness_warn``, FAULT below ``effectiveness_fault``, each held ``effectiveness_after_s``; cleared
+    with the profile's hysteresis and ``clear_after_s``. They run beside :class:`FaultLevels`, with its warm-up.
+    """
+
+    def __init__(self, capacity: int, alarms: AlarmThresholds) -> None:
+        self.torque = LevelDetector(capacity, 1.0, 1.0, 1.0, 0, 0)
+        self.steer = LevelDetector(capacity, 1.0, 1.0, 1.0, 0, 0)
+        self.configure(alarms)
+
+    def configure(self, alarms: AlarmThresholds) -> None:
+        settings = (
+            1.0 - alarms.effectiveness_warn,
+            1.0 - alarms.effectiveness_fault,
+            alarms.hysteresis,
+            seconds_to_ns(alarms.effectiveness_after_s),
+            seconds_to_ns(alarms.clear_after_s),
+        )
+        self.torque.configure(*settings)
+        self.steer.configure(*settings)
+
+    def grow(self, capacity: int) -> None:
+        self.torque.grow(capacity)
+        self.steer.grow(capacity)
+
+    def reset(self, rows: np.ndarray, keep_level: bool = False) -> None:
+        self.torque.reset(rows, keep_level)
+        self.steer.reset(rows, keep_level)
+
+    def update(self, rows: np.ndarray, alpha: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+        """Feed alpha_hat (k, 2) [torque, steer] of one sample per row; the indices (into rows) whose level changed."""
+        loss = np.maximum(1.0 - alpha, 0.0)
+        torque = self.torque.update(rows, loss[:, 0], t_ns)
+        steer = self.steer.update(rows, loss[:, 1], t_ns)
+        if not len(steer):
+            return torque
+        return steer if not len(torque) else np.concatenate([torque, steer])
+
+
 @dataclass
 class AlarmRecord:
     """One alarm: latched from when it is raised until it is both cleared and acknowledged."""

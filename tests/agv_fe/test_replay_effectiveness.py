@@ -80,6 +80,26 @@ def test_replay_writes_the_total_faults_and_the_bias_and_effectiveness_columns(t
     assert [r["vy_hat"] for r in additive] == [r["vy_hat"] for r in rows]
 
 
+def test_an_effectiveness_alarm_raises_the_channels_level_when_alpha_stays_low(tmp_path, capsys, files):
+    rec, gains, _ = files
+    # fault thresholds out of reach: only the effectiveness rule can raise the torque channel
+    profile = tmp_path / "quiet.json"
+    alarms = {"torque_warn_nm": 1e5, "torque_fault_nm": 2e5, "effectiveness_warn": 0.9, "effectiveness_after_s": 1.0}
+    profile.write_text(json.dumps({"alarms": alarms, "effectiveness": {"enabled": True, "torque_sigma_nm": 6.0}}))
+    out = tmp_path / "levels.csv"
+    assert main(["replay", str(rec), "--out", str(out), "--gains", str(gains), "--params", str(profile)]) == 0
+    capsys.readouterr()
+    rows = rows_of(out)
+    t = np.array([float(r["t"]) for r in rows])
+    alpha = np.array([float(r["torque_alpha_hat"]) for r in rows])
+    levels = [r["torque_level"] for r in rows]
+    # the rule written out: alpha_hat <= 0.9 held for 1 s after the 3 s warm-up
+    low = (alpha <= 0.9) & (t >= 3.0)
+    expected = next(k for k in range(100, len(t)) if low[k - 100 : k + 1].all())
+    assert levels.index("WARN") == expected and ({"WARN"} <= set(levels) <= {"OK", "WARN", "FAULT"})
+    assert set(levels[:expected]) == {"OK"}
+
+
 def test_the_stage_runs_beside_the_observer_only(tmp_path, capsys, files):
     rec = files[0]
     code = main(["replay", str(rec), "--out", str(tmp_path / "x.csv"), "--effectiveness", "--estimator", "ekf"])

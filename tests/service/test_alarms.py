@@ -153,3 +153,28 @@ def test_a_cleared_unacknowledged_alarm_is_re_raised_with_the_same_id():
     book.clear("v", "out_of_domain", 2)
     again = book.raise_level("v", "p", "out_of_domain", "WARN", 3, None, None, "")
     assert again.record.id == first.record.id and again.record.occurrences == 2
+
+
+def test_effectiveness_levels_raise_on_a_held_loss_and_clear_when_it_is_gone():
+    from service.fleet.alarms import EffectivenessLevels
+
+    alarms = AlarmThresholds(effectiveness_after_s=1.0, clear_after_s=0.5)
+    levels = EffectivenessLevels(2, alarms)
+    rows = np.arange(2)
+    period = 10_000_000
+    history = []
+    # vehicle 0: torque alpha 1 for 1 s, 0.85 for 2 s, 0.7 for 2 s, back to 1; vehicle 1: steering 1.2 throughout
+    for k in range(700):
+        t = k * period
+        a0 = 1.0 if k < 100 else 0.85 if k < 300 else 0.7 if k < 500 else 1.0
+        alpha = np.array([[a0, 1.0], [1.0, 1.2]])
+        levels.update(rows, alpha, np.full(2, t, dtype=np.int64))
+        history.append((levels.torque.level[0], levels.steer.level[1]))
+    torque = [h[0] for h in history]
+    assert torque.index(WARN) == 200  # 0.85 from k = 100, held 1 s
+    assert torque.index(FAULT) == 400  # 0.7 from k = 300, held 1 s
+    assert torque[499] == FAULT and torque[-1] == OK  # alpha back at 1 from k = 500: cleared after 0.5 s per step
+    assert {h[1] for h in history} == {OK}  # a gain above 1 is no loss
+    # the thresholds are checked: FAULT below WARN
+    with pytest.raises(ValueError, match="effectiveness_fault must be below effectiveness_warn"):
+        AlarmThresholds(effectiveness_warn=0.8, effectiveness_fault=0.85)
