@@ -28,10 +28,21 @@ def build_parser() -> argparse.ArgumentParser:
         prog="agv-fe",
         description="Certified actuator fault estimation for autonomous ground vehicles.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in COMMANDS.values():
         importlib.import_module(module).register(sub)
     return parser
+
+
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml), or 'unknown' when run from a bare source tree."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("agv-fault-estimator")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -251,7 +251,26 @@ def synthesize_or_fail(
     except BadParameters as exc:
         raise CommandError(str(exc)) from exc
     except SynthesisError as exc:
-        raise CommandError(f"the '{options.design}' design failed: {exc}", EXIT_NO_DESIGN) from exc
+        raise CommandError(
+            f"the '{options.design}' design failed: {exc}\n\n{design_hints(profile, options)}", EXIT_NO_DESIGN
+        ) from exc
+
+
+def design_hints(profile: VehicleProfileFile, options: Any) -> str:
+    """What to change when no certified design was found: the levers in the order they usually help."""
+    b = profile.bounds
+    hints = [
+        f"the operating box is what the design must hold over: v_x {b.vx_min_mps:g} to {b.vx_max_mps:g} m/s "
+        f"(a ratio of {b.vx_max_mps / b.vx_min_mps:.3g}), |r| up to {max(-b.r_min_radps, b.r_max_radps):g} rad/s, "
+        f"v_y {b.vy_min_mps:g} to {b.vy_max_mps:g} m/s; narrow it to the vehicle's real range (bounds.vx_min_mps "
+        "up, bounds.r_max_radps down), or split a wide speed range over two profiles",
+    ]
+    if options.design == "robust":
+        hints.append(
+            f"a slower certified decay: design.robust_decay_rate closer to 1 (now {options.robust_decay_rate:g})"
+        )
+    hints.append("check the vehicle parameters (`agv-fe calibrate` identifies them from healthy recordings)")
+    return "What to try:\n" + "\n".join(f"  - {h}" for h in hints)
 
 
 def gains_from_args(args: argparse.Namespace, profile: VehicleProfileFile | None = None) -> Any:

@@ -10,6 +10,7 @@ trusted as it is: the caller re-verifies it in numpy (:mod:`synth.certificate`).
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from importlib import metadata
 from typing import TYPE_CHECKING
@@ -71,7 +72,11 @@ def solve(
     options = {**SOLVER_OPTIONS.get(solver, {}), **(tolerances or {}), TIME_LIMIT_OPTION[solver]: time_limit_s}
     started = time.perf_counter()
     try:
-        problem.solve(solver=solver, **options)
+        # cvxpy warns "Solution may be inaccurate" on optimal_inaccurate: the status is kept in SolveInfo and
+        # every point is verified in numpy afterwards, so the warning would only leak into the user's terminal
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Solution may be inaccurate", category=UserWarning)
+            problem.solve(solver=solver, **options)
     except cp.error.SolverError as exc:
         raise SolverFailed(f"{solver} stopped without a solution ({str(exc).split('.')[0]})") from exc
     wall_s = time.perf_counter() - started

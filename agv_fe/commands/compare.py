@@ -44,14 +44,14 @@ def run(args: argparse.Namespace) -> int:
         return fail(exc)
     rule = DetectionRule()
     factories = {"observer": observer_factory(gains), "EKF": ekf_factory(gains)}
-    print(f"running {args.scenario} with {args.seeds} seed(s) ...", flush=True)
+    figure = Path(args.out) / f"{args.scenario}-overlay.png"
+    print(f"running {args.scenario} with {args.seeds} seed(s); the figure goes to {figure} ...", flush=True)
     c = compare(args.scenario, factories, args.seeds, rule, batch=args.batch)
     print(format_table(c, gains, rule, RMSE_AFTER_S))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    figure.parent.mkdir(parents=True, exist_ok=True)
     path = plot_fault_overlay(
         {f"{gains.options.design} observer": c.example["observer"], "EKF": c.example["EKF"]},
-        out / f"{args.scenario}-overlay.png",
+        figure,
         title=f"{args.scenario}, seed 0: fault estimates",
     )
     print(f"written {path}")

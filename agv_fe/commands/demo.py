@@ -184,6 +184,9 @@ def run(args: argparse.Namespace) -> int:
         _stop(fleet, signal.SIGINT, timeout_s=60)  # the fleet ends early on SIGINT and writes its summary
         fleet_log.flush()
         _print_fleet_summary(data_dir / "fleet.log")
+        print(SUMMARY_LEGEND)
+        kept = f"service.sqlite3 (the service's database), service.log, fleet.log, {summary_path.name}"
+        print(f"kept in {data_dir}: {kept}")
         if fleet.returncode not in (0, -signal.SIGINT, 130):
             return fail(CommandError(f"the fleet exited with code {fleet.returncode}; its log: {fleet_log.name}"))
         return 0 if summary_path.exists() else 1
@@ -198,6 +201,18 @@ def run(args: argparse.Namespace) -> int:
         fleet_log.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+#: What the fleet summary's columns and totals mean, printed under it.
+SUMMARY_LEGEND = (
+    "columns: injected = the fault the vehicle's simulator added; est. peak = the largest |T_f| [N m] / |delta_f| "
+    "[rad] the service estimated after the onset; quiet peak = the same before the onset and on healthy vehicles "
+    "(what a false alarm would have to exceed); alarm = the fault alarms raised (FALSE: on a healthy channel); "
+    "after = from the onset to the first alarm.\n"
+    "totals: late ticks = publisher ticks that started over 1 ms late, overruns = ticks that started after the "
+    "next one was due (the machine fell behind); lost = samples sent without an estimate back; round trip = "
+    "sample sent to its estimate received."
+)
 
 
 def _set_when_done(process: subprocess.Popen[bytes], stop: threading.Event) -> None:

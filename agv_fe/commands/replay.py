@@ -87,11 +87,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         x0 = _initial_state(args.initial_state)
         profile = load_profile_file(args.params)
-        gains = gains_from_args(args, profile)
+        # stored gains load at once; a design takes seconds: the recording is checked before one is made
+        gains = gains_from_args(args, profile) if args.gains else None
         try:
-            recording = read_recording(args.input, gains.params.sample_period_s)
+            period = profile.params.sample_period_s if gains is None else gains.params.sample_period_s
+            recording = read_recording(args.input, period)
         except RecordingError as exc:
             raise CommandError(str(exc)) from exc
+        if gains is None:
+            gains = gains_from_args(args, profile)
         effectiveness = args.effectiveness or profile.effectiveness.enabled
         if effectiveness and args.estimator == "ekf":
             raise CommandError("--effectiveness runs beside the observer, not the EKF")

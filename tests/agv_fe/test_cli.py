@@ -98,3 +98,39 @@ def test_replay_names_the_bad_row(tmp_path, gains_file):
     out = agv_fe("replay", str(bad), "--gains", str(gains_file), "--out", str(tmp_path / "o.csv"))
     assert out.returncode == 2
     assert "line 3" in out.stderr and "'vx' is not finite" in out.stderr
+
+
+def test_version_is_the_installed_distributions():
+    from importlib.metadata import version
+
+    out = agv_fe("--version")
+    assert out.returncode == 0 and out.stdout.strip() == f"agv-fe {version('agv-fault-estimator')}"
+
+
+def test_replay_checks_its_input_before_designing_gains(tmp_path, monkeypatch, capsys):
+    """A missing or broken recording is reported at once, not after a design of several seconds."""
+    from agv_fe import common
+    from agv_fe.cli import main
+
+    def no_design(*args, **kwargs):
+        raise AssertionError("a design was started before the input was checked")
+
+    monkeypatch.setattr(common, "synthesize_or_fail", no_design)
+    assert main(["replay", str(tmp_path / "missing.csv"), "--out", str(tmp_path / "o.csv")]) == 2
+    assert "missing.csv" in capsys.readouterr().err
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,vx,r,torque,steer\n0,10,0,50,0\n0.01,nan,0,50,0\n")
+    assert main(["replay", str(bad), "--out", str(tmp_path / "o.csv")]) == 2
+    assert "line 3" in capsys.readouterr().err
+
+
+def test_a_failed_design_says_what_to_try():
+    from agv_fe.common import VehicleProfileFile, design_hints
+    from synth.options import DesignOptions
+    from synth.params import OperatingBounds, VehicleParams
+
+    profile = VehicleProfileFile(VehicleParams(), OperatingBounds(vx_min_mps=0.5, vx_max_mps=80.0), {})
+    hints = design_hints(profile, DesignOptions())
+    assert hints.startswith("What to try:")
+    assert "v_x 0.5 to 80 m/s (a ratio of 160)" in hints and "bounds.vx_min_mps" in hints
+    assert "design.robust_decay_rate closer to 1 (now 0.994)" in hints

@@ -46,6 +46,10 @@ def test_demo_alarms_every_injected_fault_and_no_healthy_vehicle(tmp_path):
         timeout=300,
     )
     assert out.returncode == 0, out.stdout + out.stderr
+    # the closing summary says what its columns mean and where everything was kept
+    assert "columns: injected = " in out.stdout and "late ticks = " in out.stdout
+    assert f"kept in {tmp_path / 'data'}: service.sqlite3" in out.stdout
+    assert (tmp_path / "data" / "service.sqlite3").exists() and (tmp_path / "data" / "fleet.log").exists()
     summary = json.loads(summary_path.read_text())
     vehicles = summary["vehicles"]
     assert len(vehicles) == 20
