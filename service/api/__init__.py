@@ -7,11 +7,13 @@ without locks (FastAPI would run a plain ``def`` handler in a thread pool).
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter, Depends, FastAPI, Request, status
+from fastapi.responses import JSONResponse
 
 from service.api.deps import require_read
 from service.api.routes import alarms, health, jobs, profiles, vehicles
 from service.settings import Settings
+from service.storage_writer import StorageUnavailable
 
 
 def build_router(settings: Settings) -> APIRouter:
@@ -22,3 +24,12 @@ def build_router(settings: Settings) -> APIRouter:
     for module in (vehicles, alarms, profiles, jobs):
         router.include_router(module.router, dependencies=reads)
     return router
+
+
+async def _storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    return JSONResponse({"detail": str(exc)}, status_code=status.HTTP_503_SERVICE_UNAVAILABLE)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """HTTP answers of the service's own errors: a write the database does not accept is 503 with the reason."""
+    app.add_exception_handler(StorageUnavailable, _storage_unavailable)

@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import secrets
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.app import Service
 from service.fleet import ProfileBank
+
+#: The OpenAPI answer of a mutating route while the database does not accept writes.
+STORAGE_UNAVAILABLE: dict[int | str, dict[str, Any]] = {
+    503: {
+        "description": "the database does not accept writes (storage degraded): nothing was changed, or, when the "
+        "database failed during the request, the change is applied and queued (the detail says which)"
+    }
+}
 
 _bearer = HTTPBearer(auto_error=False, description="the token of setting auth.token (or DATA_DIR/api-token)")
 
