@@ -585,7 +585,7 @@ def create_app(settings: Settings) -> FastAPI:
         lifespan=lifespan,
     )
     app.include_router(build_router(settings))
-    install_error_handlers(app)
+    install_error_handlers(app, settings)
     if settings.dashboard.enabled:
         from service.api.routes.ui import install_dashboard
 

@@ -27,6 +27,15 @@ class _Section(BaseModel):
 class HttpSettings(_Section):
     host: str = Field("127.0.0.1", description="address uvicorn binds to")
     port: Annotated[int, Field(ge=0, le=65535)] = Field(8080, description="HTTP port (0 picks a free one)")
+    max_body_bytes: Annotated[int, Field(ge=1024)] = Field(
+        1_048_576,
+        description="largest request body; a larger one is answered 413 before it is read (by its Content-Length) "
+        "or as soon as the bytes read pass it (a chunked body) [bytes]",
+    )
+    max_calibration_body_bytes: Annotated[int, Field(ge=1024)] = Field(
+        67_108_864,
+        description="largest body of POST /profiles/{name}/calibration, which carries CSV recordings [bytes]",
+    )
 
 
 class AuthSettings(_Section):

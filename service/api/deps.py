@@ -41,19 +41,21 @@ def profile_bank(service: Service, name: str) -> ProfileBank:
     return bank
 
 
+def token_problem(expected: str, scheme: str | None, token: str | None) -> tuple[str, str] | None:
+    """Why a bearer token is refused, as (detail, WWW-Authenticate value), or None if it is the right one."""
+    if scheme is None or token is None or scheme.lower() != "bearer":
+        return "missing bearer token: send 'Authorization: Bearer TOKEN'", "Bearer"
+    if not secrets.compare_digest(token.encode(), expected.encode()):
+        return "invalid bearer token", 'Bearer error="invalid_token"'
+    return None
+
+
 def _check(service: Service, credentials: HTTPAuthorizationCredentials | None) -> str:
-    if credentials is None or credentials.scheme.lower() != "bearer":
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            detail="missing bearer token: send 'Authorization: Bearer TOKEN'",
-            headers={"WWW-Authenticate": "Bearer"},
-        )
-    if not secrets.compare_digest(credentials.credentials.encode(), service.token.encode()):
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            detail="invalid bearer token",
-            headers={"WWW-Authenticate": 'Bearer error="invalid_token"'},
-        )
+    scheme, token = (None, None) if credentials is None else (credentials.scheme, credentials.credentials)
+    problem = token_problem(service.token, scheme, token)
+    if problem is not None:
+        detail, challenge = problem
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, detail=detail, headers={"WWW-Authenticate": challenge})
     return "operator"
 
 
