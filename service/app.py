@@ -4,7 +4,14 @@
 loop drains the Zenoh channels, steps the fleet and publishes; REST handlers
 read and change the fleet between two ticks, so a gain activation is atomic
 for every vehicle of a profile without locks. Heavy work stays off the loop:
-LMI designs in worker processes, gain re-verification in a thread.
+LMI designs in worker processes, gain re-verification in a thread, database
+writes on the storage writer's thread (queued in order, retried while the
+database fails, so a locked or full database never stops ingest).
+
+The ingest and housekeeping loops are supervised: one that raises is named by
+``/ready`` and restarted with backoff; when it cannot be kept running the
+service declares itself failed and, after a grace period, asks the server to
+stop, so that `agv-fe serve` exits non-zero and an orchestrator restarts it.
 """
 
 from __future__ import annotations
@@ -15,8 +22,10 @@ import logging
 import os
 import secrets
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable, Coroutine
+from concurrent.futures import Future
 from contextlib import asynccontextmanager, suppress
+from functools import partial
 from typing import Any
 
 from fastapi import FastAPI
@@ -35,12 +44,18 @@ from service.profiles import (
 from service.protocol import all_buckets, shard_buckets
 from service.settings import Settings
 from service.storage import Storage, StorageError, StoredProfile
+from service.storage_writer import StorageState, StorageUnavailable, StorageWriter, Write
 from service.transport import Transport
 from service.web.hub import DashboardHub
 from synth.gains import ObserverGains
 from synth.observer import RuntimeGains
 
 log = logging.getLogger("agv_fe.service")
+
+#: A background task that ran this long without failing has its restart count reset [s].
+TASK_RESTART_RESET_S = 60.0
+#: Longest wait before a failed background task is restarted [s].
+TASK_RESTART_MAX_DELAY_S = 10.0
 
 
 class ServiceError(Exception):
@@ -104,13 +119,30 @@ class Service:
         self.metrics = ServiceMetrics()
         self.dashboard = DashboardHub(self.engine, settings.dashboard, self.replica_id)
         self.storage: Storage | None = None
+        self.writer: StorageWriter | None = None
         self.transport: Transport | None = None
         self.jobs = SynthesisJobs(settings.synthesis_workers, self._activate_job, self._persist_job)
         #: stored profiles that could not be loaded at start-up, and why; they do not run
         self.failed_profiles: dict[str, str] = {}
         self.token = ""
         self.started_mono = time.monotonic()
-        self._tasks: list[asyncio.Task[None]] = []
+        self._tasks: dict[str, asyncio.Task[None]] = {}
+        self._loops: dict[str, Callable[[], Coroutine[Any, Any, None]]] = {
+            "ingest": self._ingest_loop,
+            "housekeeping": self._housekeeping_loop,
+        }
+        #: failures of each background task since start (for /metrics)
+        self.task_failures: dict[str, int] = dict.fromkeys(self._loops, 0)
+        #: background tasks not running now, and why (restarting, or failed for good)
+        self.down_tasks: dict[str, str] = {}
+        self._restarts: dict[str, int] = dict.fromkeys(self._loops, 0)
+        self._task_started: dict[str, float] = {}
+        #: set when a background task cannot be kept running: the process is going to exit
+        self.fatal: str | None = None
+        #: called (on the event loop) when the service has failed for good; `agv-fe serve` stops the server
+        self.on_fatal: Callable[[], None] | None = None
+        #: time.monotonic() of the ingest loop's latest iteration
+        self.ingest_heartbeat = time.monotonic()
         self._running = False
         self.transport_up = False
 
@@ -119,16 +151,15 @@ class Service:
     async def start(self) -> None:
         self.token = load_or_create_token(self.settings)
         self.storage = Storage(self.settings.database_path)
+        self.writer = StorageWriter(self.settings.database_path, self.settings.storage)
         await self._load_state()
         self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id)
         await asyncio.to_thread(self.transport.open)
         self.transport_up = True
         self._running = True
-        loop = asyncio.get_running_loop()
-        self._tasks = [
-            loop.create_task(self._ingest_loop(), name="ingest"),
-            loop.create_task(self._housekeeping_loop(), name="housekeeping"),
-        ]
+        self.ingest_heartbeat = time.monotonic()
+        for name in self._loops:
+            self._spawn(name)
         if self.settings.dashboard.enabled:
             self.dashboard.start(truth=self.transport)
         if self.settings.ingest.gc_freeze:
@@ -144,18 +175,23 @@ class Service:
 
     async def stop(self) -> None:
         self._running = False
-        for task in self._tasks:
+        tasks = list(self._tasks.values())
+        for task in tasks:
             task.cancel()
-        for task in self._tasks:
-            with suppress(asyncio.CancelledError):
+        for task in tasks:
+            with suppress(asyncio.CancelledError, Exception):  # a failed task was reported when it failed
                 await task
-        self._tasks = []
+        self._tasks = {}
         await self.dashboard.stop()
         await self.jobs.close()
         if self.transport is not None:
             await asyncio.to_thread(self.transport.close)
             self.transport = None
             self.transport_up = False
+        if self.writer is not None:
+            # the writes still queued get storage.shutdown_flush_s to land (off the loop), then are given up
+            await asyncio.to_thread(self.writer.close)
+            self.writer = None
         if self.storage is not None:
             self.storage.close()
             self.storage = None
@@ -251,7 +287,70 @@ class Service:
 
     @property
     def ready(self) -> bool:
-        return self.transport_up and self.engine.ready
+        return not self.not_ready_causes()
+
+    def not_ready_causes(self) -> list[str]:
+        """Why the replica should not take traffic, other than missing gains (empty: ready)."""
+        causes = [] if self.transport_up else ["the Zenoh transport is down"]
+        if self.transport_up and self.router_connected() is False:
+            causes.append(f"no Zenoh router: the client session lost {self.settings.zenoh.endpoint}")
+        if self.fatal is not None:
+            causes.append(self.fatal)
+        for name, why in self.down_tasks.items():
+            causes.append(f"background task {name!r} is not running: {why}")
+        age_s = self.ingest_heartbeat_age_s()
+        if self._running and age_s > self.settings.health.heartbeat_timeout_s:
+            causes.append(f"the ingest loop has not run for {age_s:.1f} s")
+        storage = self.storage_state()
+        if storage.degraded:
+            causes.append(f"storage degraded: {storage.reason} ({storage.pending} writes queued)")
+        if not self.engine.ready:
+            causes.append("not every profile has active gains")
+        return causes
+
+    def router_connected(self) -> bool | None:
+        """Client mode: whether the session has a router now; None in router mode or before start."""
+        if self.transport is None or self.settings.zenoh.mode != "client":
+            return None
+        return self.transport.router_connected()
+
+    def ingest_heartbeat_age_s(self) -> float:
+        return time.monotonic() - self.ingest_heartbeat
+
+    def storage_state(self) -> StorageState:
+        if self.writer is None:
+            return StorageState(False, None, 0, 0, 0, None)
+        return self.writer.state
+
+    # ------------------------------------------------------------------ writes
+
+    def store(self, what: str, apply: Write) -> Future[None]:
+        """Queue a database write (applied in order on the writer's thread); the future says when it is stored."""
+        if self.writer is None:
+            raise ServiceError("the service is not started")
+        return self.writer.submit(what, apply)
+
+    def require_storage(self) -> None:
+        """Before a change the API must acknowledge: refuse it while the database fails (nothing changed yet)."""
+        state = self.storage_state()
+        if state.degraded:
+            raise StorageUnavailable(
+                f"storage degraded ({state.reason}; {state.pending} writes queued): nothing was changed, retry later"
+            )
+
+    async def stored(self, what: str) -> None:
+        """Wait until every write queued so far is committed, at most ``storage.api_write_timeout_s``."""
+        if self.writer is None:
+            raise ServiceError("the service is not started")
+        barrier = asyncio.wrap_future(self.writer.barrier())
+        try:
+            await asyncio.wait_for(asyncio.shield(barrier), self.settings.storage.api_write_timeout_s)
+        except TimeoutError as exc:
+            state = self.storage_state()
+            raise StorageUnavailable(
+                f"{what} is applied but not stored yet ({state.reason or 'the database is slow'}): it is queued "
+                "and stored once the database accepts writes"
+            ) from exc
 
     def missing_gains(self) -> dict[str, dict[str, str | None]]:
         """Every profile without active gains, and why: its job is designing, or failed (with the reason)."""
@@ -271,7 +370,47 @@ class Service:
                 out[name] = {"state": job.status, "job": job.id, "error": job.error, "reason": job.reason}
         return out
 
-    # ------------------------------------------------------------------ loops
+    # ------------------------------------------------------------------ supervised loops
+
+    def _spawn(self, name: str) -> None:
+        if not self._running:
+            return
+        task = asyncio.get_running_loop().create_task(self._loops[name](), name=name)
+        self._tasks[name] = task
+        self._task_started[name] = time.monotonic()
+        self.down_tasks.pop(name, None)
+        task.add_done_callback(self._task_ended)
+
+    def _task_ended(self, task: asyncio.Task[None]) -> None:
+        """A background task ended: restart it with backoff, or, past ``health.task_restarts``, fail for good."""
+        if task.cancelled() or not self._running:
+            return
+        name = task.get_name()
+        exc = task.exception()
+        why = f"{type(exc).__name__}: {exc}" if exc is not None else "it returned"
+        self.task_failures[name] += 1
+        log.error("background task %s failed: %s", name, why, exc_info=exc)
+        loop = asyncio.get_running_loop()
+        if time.monotonic() - self._task_started[name] > TASK_RESTART_RESET_S:
+            self._restarts[name] = 0
+        done, limit = self._restarts[name], self.settings.health.task_restarts
+        if done < limit:
+            self._restarts[name] = done + 1
+            delay_s = min(0.5 * 2**done, TASK_RESTART_MAX_DELAY_S)
+            self.down_tasks[name] = f"failed ({why}); restart {done + 1} of {limit} in {delay_s:g} s"
+            loop.call_later(delay_s, self._spawn, name)
+            return
+        grace_s = self.settings.health.fatal_exit_grace_s
+        self.down_tasks[name] = f"failed ({why}) after {done} restarts"
+        self.fatal = f"the service failed: background task {name!r} cannot be kept running; it stops in {grace_s:g} s"
+        log.critical("%s (last failure: %s)", self.fatal, why)
+        loop.call_later(grace_s, self._give_up)
+
+    def _give_up(self) -> None:
+        if self.on_fatal is not None:
+            self.on_fatal()
+        else:
+            log.critical("nothing stops this process: it stays up and /ready answers 503")
 
     async def _ingest_loop(self) -> None:
         ingest = self.settings.ingest
@@ -283,6 +422,7 @@ class Service:
             # a tick starts at most once per interval; a late one starts at once, after the event loop's other work
             wait = next_tick - time.perf_counter()
             await asyncio.sleep(wait if wait > 0 else 0)
+            self.ingest_heartbeat = time.monotonic()
             started = time.perf_counter()
             next_tick = started + interval
             batch = transport.drain(ingest.max_batch)
@@ -291,7 +431,8 @@ class Service:
                 continue
             result = engine.process(batch)
             if result.new_vehicles:
-                self.db.put_vehicles((v.id, v.profile, v.registered_t_ns) for v in result.new_vehicles)
+                rows = [(v.id, v.profile, v.registered_t_ns) for v in result.new_vehicles]
+                self.store(f"the registration of {len(rows)} vehicles", partial(Storage.put_vehicles, rows=rows))
             if result.alarms:
                 self.commit_alarms(result.alarms)
             if result.estimate_batches:
@@ -315,13 +456,18 @@ class Service:
             if changes:
                 self.commit_alarms(changes)
 
-    def commit_alarms(self, changes: list[AlarmChange]) -> None:
-        """Store alarm changes (one transaction), then publish them."""
-        self.db.record_alarm_changes((c.record.to_dict(), c.event.model_dump()) for c in changes)
+    def commit_alarms(self, changes: list[AlarmChange]) -> Future[None]:
+        """Queue the alarm changes for storage (one transaction) and publish them at once.
+
+        The records are copied now: they change again before the writer stores them. Publication does not wait
+        for the database, so a locked or full database delays no alarm; the future says when they are stored."""
+        rows = [(c.record.to_dict(), c.event.model_dump()) for c in changes]
+        done = self.store(f"{len(rows)} alarm changes", partial(Storage.record_alarm_changes, changes=rows))
         if self.transport is not None:
             for change in changes:
                 self.transport.publish_alarm(change.record.vehicle, change.event.encode())
         self.metrics.alarms_out += len(changes)
+        return done
 
     # ------------------------------------------------------------------ profiles and jobs
 
@@ -329,15 +475,12 @@ class Service:
         """Create or change a profile. A change of the design inputs starts a job; otherwise it applies at once.
 
         A new profile is added to the fleet before it is stored: one that cannot run is never stored (a stored
-        profile is loaded at every start). A profile that failed to load at start-up is replaced."""
+        profile is loaded at every start). A profile that failed to load at start-up is replaced. The writes are
+        queued: the API awaits :meth:`stored` before it answers."""
         bank = self.engine.banks.get(name)
         if bank is None:
             self.engine.add_profile(name, spec)
-            try:
-                self.db.put_profile(name, spec.stored(), time.time_ns())
-            except BaseException:
-                self.engine.remove_profile(name)
-                raise
+            self._store_profile(name, spec)
             if self.failed_profiles.pop(name, None) is not None:
                 log.info("profile %s, which failed to load at start-up, replaced", name)
                 self.engine.release_held(name)
@@ -346,10 +489,13 @@ class Service:
             # the latest request wins: a design still pending for the profile would overwrite this spec
             for job in self.jobs.withdraw(name, "a later request kept the active design and changed only thresholds"):
                 log.info("profile %s: job %s withdrawn by a later request", name, job.id)
-            self.db.put_profile(name, spec.stored(), time.time_ns())
+            self._store_profile(name, spec)
             self.engine.update_profile_spec(name, spec)
             return None
         return self.jobs.submit(name, spec, "update")
+
+    def _store_profile(self, name: str, spec: ProfileSpec) -> None:
+        self.store(f"profile {name}", partial(Storage.put_profile, name=name, spec=spec.stored(), t_ns=time.time_ns()))
 
     def resynthesise(self, name: str, kind: JobKind = "resynthesis") -> Job:
         bank = self.engine._bank(name)
@@ -357,16 +503,19 @@ class Service:
 
     async def _activate_job(self, job: Job, spec: ProfileSpec, gains: ObserverGains) -> None:
         runtime = await asyncio.to_thread(RuntimeGains.from_gains, gains)
-        # persist first: what is active is always in the database
-        self.db.activate_gains(job.profile, spec.stored(), gains.to_dict(), time.time_ns())
+        # persist first: what is active is always in the database (waits, off the loop, while the database fails)
+        write = partial(
+            Storage.activate_gains, name=job.profile, spec=spec.stored(), gains=gains.to_dict(), t_ns=time.time_ns()
+        )
+        await asyncio.wrap_future(self.store(f"gains {gains.version} of profile {job.profile}", write))
         self.engine.update_profile_spec(job.profile, spec)
         self.engine.activate(job.profile, gains, runtime)
         log.info("profile %s: gains %s active (job %s)", job.profile, gains.version, job.id)
 
     def _persist_job(self, job: Job) -> None:
         """Store a job at each change of state; time and report how it ended."""
-        if self.storage is not None:
-            self.storage.put_job(job.to_dict())
+        if self.writer is not None:
+            self.writer.submit(f"job {job.id} ({job.status})", partial(Storage.put_job, record=job.to_dict()))
         if job.status in ("succeeded", "failed") and job.duration_s is not None:
             self.metrics.synthesis_seconds.observe(job.duration_s)
         if job.status != "failed":
@@ -411,11 +560,12 @@ def _same_design(gains: ObserverGains, spec: ProfileSpec) -> bool:
 
 def create_app(settings: Settings) -> FastAPI:
     """The FastAPI application; the lifespan starts and stops the :class:`Service`."""
-    from service.api import build_router
+    from service.api import build_router, install_error_handlers
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         service = Service(settings)
+        service.on_fatal = getattr(app.state, "on_fatal", None)
         app.state.service = service
         try:
             await service.start()
@@ -435,6 +585,7 @@ def create_app(settings: Settings) -> FastAPI:
         lifespan=lifespan,
     )
     app.include_router(build_router(settings))
+    install_error_handlers(app, settings)
     if settings.dashboard.enabled:
         from service.api.routes.ui import install_dashboard
 

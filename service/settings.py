@@ -27,6 +27,15 @@ class _Section(BaseModel):
 class HttpSettings(_Section):
     host: str = Field("127.0.0.1", description="address uvicorn binds to")
     port: Annotated[int, Field(ge=0, le=65535)] = Field(8080, description="HTTP port (0 picks a free one)")
+    max_body_bytes: Annotated[int, Field(ge=1024)] = Field(
+        1_048_576,
+        description="largest request body; a larger one is answered 413 before it is read (by its Content-Length) "
+        "or as soon as the bytes read pass it (a chunked body) [bytes]",
+    )
+    max_calibration_body_bytes: Annotated[int, Field(ge=1024)] = Field(
+        67_108_864,
+        description="largest body of POST /profiles/{name}/calibration, which carries CSV recordings [bytes]",
+    )
 
 
 class AuthSettings(_Section):
@@ -112,6 +121,47 @@ class IngestSettings(_Section):
     )
 
 
+class StorageSettings(_Section):
+    busy_timeout_s: Annotated[float, Field(ge=0, le=60)] = Field(
+        1.0,
+        description="how long one write waits for another process's lock on the database before it counts as "
+        "failed and is retried [s]; writes run on the storage writer's thread, never on the event loop",
+    )
+    retry_initial_s: Annotated[float, Field(gt=0, le=60)] = Field(
+        0.05, description="first wait before a failed write is retried; doubled at each failure in a row [s]"
+    )
+    retry_max_s: Annotated[float, Field(gt=0, le=600)] = Field(2.0, description="longest wait between retries [s]")
+    max_pending_writes: Annotated[int, Field(ge=1, le=10_000_000)] = Field(
+        100_000,
+        description="writes (vehicle registrations, alarm changes, job records...) held in memory while the "
+        "database fails; a write beyond it is lost, counted and logged",
+    )
+    api_write_timeout_s: Annotated[float, Field(gt=0, le=600)] = Field(
+        5.0,
+        description="how long a mutating request waits for its change to be stored before it answers 503 (the "
+        "change then stays applied and queued, stored once the database recovers) [s]",
+    )
+    shutdown_flush_s: Annotated[float, Field(ge=0, le=600)] = Field(
+        3.0, description="how long a shutdown keeps retrying the pending writes before it gives them up [s]"
+    )
+
+
+class HealthSettings(_Section):
+    heartbeat_timeout_s: Annotated[float, Field(gt=0, le=600)] = Field(
+        5.0, description="/ready answers 503 when the ingest loop has not completed an iteration for this long [s]"
+    )
+    task_restarts: Annotated[int, Field(ge=0, le=100)] = Field(
+        3,
+        description="a background task (ingest, housekeeping) that raises is restarted up to this many times in a "
+        "row (the count resets after a minute without failure); one more failure is fatal",
+    )
+    fatal_exit_grace_s: Annotated[float, Field(ge=0, le=600)] = Field(
+        5.0,
+        description="after a fatal background-task failure, /ready answers 503 for this long, then the process "
+        "stops and `agv-fe serve` exits with status 4 so that an orchestrator restarts it [s]",
+    )
+
+
 class ShardSettings(_Section):
     replicas: Annotated[int, Field(ge=1, le=N_BUCKETS)] = Field(1, description="number of replicas sharing the fleet")
     index: Annotated[int, Field(ge=0)] = Field(0, description="this replica's index, 0..replicas-1")
@@ -168,6 +218,8 @@ class Settings(BaseSettings):
     auth: AuthSettings = AuthSettings()
     zenoh: ZenohSettings = ZenohSettings()
     ingest: IngestSettings = IngestSettings()
+    storage: StorageSettings = StorageSettings()
+    health: HealthSettings = HealthSettings()
     shard: ShardSettings = ShardSettings()
     dashboard: DashboardSettings = DashboardSettings()
 

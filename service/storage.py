@@ -2,9 +2,11 @@
 
 Profiles, gain versions with their certificates, the vehicle registry,
 alarms with their event history, and synthesis jobs. Every write is one
-transaction committed before the caller answers or publishes, so nothing the
-service acknowledged is lost on a crash. All calls come from the thread that
-owns the asyncio loop; the connection is not shared.
+transaction. A :class:`Storage` is one connection, used by one thread: the
+service reads on the event loop's connection and writes through
+:class:`service.storage_writer.StorageWriter`, which owns a second
+connection on a thread of its own, so a locked or full database never blocks
+the event loop.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 import json
 import sqlite3
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -83,7 +85,7 @@ class StoredProfile:
 class Storage:
     """The service's SQLite database."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, busy_timeout_s: float = 5.0) -> None:
         self.path = path
         try:
             if path.exists() and path.stat().st_size == 0:
@@ -94,7 +96,7 @@ class Storage:
                     "gains, vehicles or alarms; restore it, or remove it to start with a new database"
                 )
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+            self._db = sqlite3.connect(path, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False)
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
@@ -117,10 +119,13 @@ class Storage:
         self._db.execute("BEGIN IMMEDIATE")
         try:
             yield self._db
+            self._db.execute("COMMIT")
         except BaseException:
-            self._db.execute("ROLLBACK")
+            # a failed COMMIT (disk full, busy) may leave the transaction open: end it, or every later BEGIN fails
+            if self._db.in_transaction:
+                with suppress(sqlite3.Error):
+                    self._db.execute("ROLLBACK")
             raise
-        self._db.execute("COMMIT")
 
     # ------------------------------------------------------------------ profiles and gains
 

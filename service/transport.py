@@ -268,6 +268,15 @@ class Transport:
                 unmatched.add(vehicle_id)
         return len(unmatched)
 
+    def router_connected(self) -> bool:
+        """Whether the session is connected to a router now (a client's link; a router counts itself)."""
+        if self.settings.mode == "router":
+            return self._session is not None
+        try:
+            return any(True for _ in self.session.info.routers_zid())
+        except zenoh.ZError:
+            return False
+
     def publish_alarm(self, vehicle_id: str, payload: bytes) -> None:
         pub = self._alarm_pubs.get(vehicle_id)
         if pub is None:

@@ -7,6 +7,8 @@ from typing import Any
 
 #: How long a shutdown waits for open HTTP responses before it cuts them [s].
 GRACEFUL_SHUTDOWN_S = 5
+#: Exit status when a background task (ingest, housekeeping) could not be kept running.
+EXIT_SERVICE_FAILED = 4
 
 
 def register(sub: Any) -> None:
@@ -108,5 +110,15 @@ def run(args: argparse.Namespace) -> int:
         lifespan="on",
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
     )
-    Server(config).run()
+    server = Server(config)
+
+    def stop_failed_service() -> None:
+        server.should_exit = True  # the same graceful shutdown as SIGTERM
+
+    app.state.on_fatal = stop_failed_service
+    server.run()
+    service = getattr(app.state, "service", None)
+    if service is not None and service.fatal is not None:
+        logging.getLogger("agv_fe.service").critical("exiting with status %d: %s", EXIT_SERVICE_FAILED, service.fatal)
+        return EXIT_SERVICE_FAILED
     return 0

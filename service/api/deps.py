@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import secrets
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.app import Service
 from service.fleet import ProfileBank
+
+#: The OpenAPI answer of a mutating route while the database does not accept writes.
+STORAGE_UNAVAILABLE: dict[int | str, dict[str, Any]] = {
+    503: {
+        "description": "the database does not accept writes (storage degraded): nothing was changed, or, when the "
+        "database failed during the request, the change is applied and queued (the detail says which)"
+    }
+}
 
 _bearer = HTTPBearer(auto_error=False, description="the token of setting auth.token (or DATA_DIR/api-token)")
 
@@ -33,19 +41,21 @@ def profile_bank(service: Service, name: str) -> ProfileBank:
     return bank
 
 
+def token_problem(expected: str, scheme: str | None, token: str | None) -> tuple[str, str] | None:
+    """Why a bearer token is refused, as (detail, WWW-Authenticate value), or None if it is the right one."""
+    if scheme is None or token is None or scheme.lower() != "bearer":
+        return "missing bearer token: send 'Authorization: Bearer TOKEN'", "Bearer"
+    if not secrets.compare_digest(token.encode(), expected.encode()):
+        return "invalid bearer token", 'Bearer error="invalid_token"'
+    return None
+
+
 def _check(service: Service, credentials: HTTPAuthorizationCredentials | None) -> str:
-    if credentials is None or credentials.scheme.lower() != "bearer":
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            detail="missing bearer token: send 'Authorization: Bearer TOKEN'",
-            headers={"WWW-Authenticate": "Bearer"},
-        )
-    if not secrets.compare_digest(credentials.credentials.encode(), service.token.encode()):
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            detail="invalid bearer token",
-            headers={"WWW-Authenticate": 'Bearer error="invalid_token"'},
-        )
+    scheme, token = (None, None) if credentials is None else (credentials.scheme, credentials.credentials)
+    problem = token_problem(service.token, scheme, token)
+    if problem is not None:
+        detail, challenge = problem
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, detail=detail, headers={"WWW-Authenticate": challenge})
     return "operator"
 
 

@@ -32,15 +32,36 @@ _REJECTED_EXAMPLE: dict[str, JsonValue] = {
 }
 
 
+class StorageStatus(BaseModel):
+    """The storage writer: every database write is queued and applied in order on its own thread."""
+
+    state: Literal["ok", "degraded"] = Field(description="'degraded': the latest write failed and is being retried")
+    reason: str | None = Field(None, description="why the latest write failed, while degraded")
+    pending_writes: int = Field(description="writes queued for the database")
+    failures: int = Field(description="failed write attempts since start")
+    lost_writes: int = Field(description="writes given up since start (queue full, or a write that cannot succeed)")
+    degraded_for_s: float | None = Field(None, description="how long the storage has been degraded [s]")
+
+
 class Health(BaseModel):
     model_config = ConfigDict(
         json_schema_extra={"examples": [{"status": "ok", "replica": "replica-0", "buckets": ["b00"], "uptime_s": 12.5}]}
     )
 
-    status: Literal["ok"] = "ok"
+    status: Literal["ok", "failed"] = Field(
+        "ok", description="'failed': a background task cannot be kept running and the process is about to exit (503)"
+    )
     replica: str
     buckets: list[str]
     uptime_s: float
+    storage: StorageStatus | None = Field(None, description="the database writer: healthy or degraded, and why")
+    tasks: dict[str, str] = Field(
+        default_factory=dict, description="background tasks not running now (ingest, housekeeping), and why"
+    )
+    ingest_heartbeat_age_s: float | None = Field(None, description="time since the ingest loop's latest iteration [s]")
+    router_connected: bool | None = Field(
+        None, description="client mode: whether the Zenoh session has a router now (null in router mode)"
+    )
 
 
 class MissingGains(BaseModel):
@@ -76,7 +97,10 @@ class Readiness(BaseModel):
         }
     )
 
-    ready: bool = Field(description="every profile has active gains and Zenoh is up")
+    ready: bool = Field(
+        description="every profile has active gains, Zenoh is up (with a router, in client mode), the ingest loop "
+        "runs, every background task runs and the database accepts writes"
+    )
     transport: bool
     profiles: dict[str, str | None] = Field(description="active gain version per profile (null: none yet)")
     missing_gains: dict[str, MissingGains] = Field(
@@ -87,6 +111,13 @@ class Readiness(BaseModel):
         default_factory=dict,
         description="stored profiles that could not be loaded at start-up, and why: they do not run (the others "
         "do) until a valid PUT /profiles/{name} replaces them",
+    )
+    storage: StorageStatus | None = Field(None, description="the database writer (503 while degraded)")
+    tasks: dict[str, str] = Field(
+        default_factory=dict, description="background tasks not running now, and why (503 while any is down)"
+    )
+    router_connected: bool | None = Field(
+        None, description="client mode: whether the Zenoh session has a router now (503 if not); null in router mode"
     )
 
 

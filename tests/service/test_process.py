@@ -1,5 +1,5 @@
 """`agv-fe serve` as a separate process: killed without warning, then restarted; started with a profile that
-cannot be designed."""
+cannot be designed. (A SIGKILL during a design: tests/faults/test_crash.py.)"""
 
 from __future__ import annotations
 
@@ -121,31 +121,6 @@ def test_a_failed_first_design_is_named_by_ready_logged_and_listed_in_jobs(tmp_p
         assert wait_for(lambda: job_done(srv, fixed.json()["job"]), what="the new job")["status"] == "succeeded"
         ready = srv.get("/ready")
         assert ready.status_code == 200 and ready.json()["missing_gains"] == {} and ready.json()["detail"] is None
-
-
-def test_a_design_accepted_before_a_crash_is_resumed_after_the_restart(tmp_path):
-    """202 means the design will happen: a SIGKILL during it leaves the job interrupted, and the restarted
-    service designs the same request again (a new job that says which one it resumes)."""
-    settings = make_settings(tmp_path, {"default": {"design": FAST_DESIGN}})
-    with service_process(settings, tmp_path / "service.log") as srv:
-        srv.wait_ready()
-        before = srv.get("/profiles/default").json()["active_version"]
-        accepted = srv.http.put(
-            "/profiles/default", json={"design": {**FAST_DESIGN, "fault_order": 2}}, headers=srv.auth
-        )
-        assert accepted.status_code == 202
-        srv.kill()  # the worker needs seconds to start and solve: the job is queued or running now
-    with running(settings) as again:
-        first = again.get(f"/jobs/{accepted.json()['job']}").json()
-        assert first["status"] == "interrupted" and first["error"] == "restart"
-        resumed = wait_for(
-            lambda: [j for j in again.get("/jobs").json() if j.get("resumes") == first["id"]], what="the resumed job"
-        )[0]
-        done = wait_for(lambda: job_done(again, resumed["id"]), what="the resumed design")
-        assert done["status"] == "succeeded" and done["spec"] == first["spec"]
-        profile = again.get("/profiles/default").json()
-        assert profile["active_version"] == done["gain_version"] != before
-        assert profile["spec"]["design"]["fault_order"] == 2
 
 
 def test_the_latest_request_wins_over_a_pending_design(tmp_path):

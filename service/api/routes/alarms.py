@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Body, HTTPException, Query, status
 
-from service.api.deps import Operator, ServiceDep
+from service.api.deps import STORAGE_UNAVAILABLE, Operator, ServiceDep
 from service.api.models import Acknowledgement, AlarmDetail, AlarmInfo
 from service.fleet import UnknownAlarm
 
@@ -55,6 +55,7 @@ async def get_alarm(service: ServiceDep, alarm_id: str) -> AlarmDetail:
     responses={
         401: {"description": "missing or invalid token"},
         404: {"description": "no latched alarm with this id"},
+        **STORAGE_UNAVAILABLE,
     },
     summary="acknowledge a latched alarm (stored before the answer)",
 )
@@ -64,6 +65,7 @@ async def acknowledge(
     _operator: Operator,
     body: Annotated[Acknowledgement | None, Body()] = None,
 ) -> AlarmInfo:
+    service.require_storage()
     try:
         change = service.engine.acknowledge(alarm_id, body.by if body else None)
     except UnknownAlarm as exc:
@@ -72,4 +74,5 @@ async def acknowledge(
             return _info(closed)  # already cleared and acknowledged: idempotent
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail=f"no latched alarm {alarm_id!r}") from exc
     service.commit_alarms([change])
+    await service.stored(f"the acknowledgement of {alarm_id!r}")
     return _info(change.record.to_dict())

@@ -2,61 +2,98 @@
 
 from __future__ import annotations
 
+import time
+
 from fastapi import APIRouter, Response, status
 from fastapi.responses import PlainTextResponse
 
 from service.api.deps import ServiceDep
-from service.api.models import Health, MissingGains, Readiness
+from service.api.models import Health, MissingGains, Readiness, StorageStatus
+from service.app import Service
 from service.fleet.engine import REJECT_REASONS
 from service.metrics import Exposition
 
 router = APIRouter(tags=["health"])
 
 
-@router.get("/health", response_model=Health, summary="the process is up")
-async def health(service: ServiceDep) -> Health:
-    return Health(**service.status())
+def storage_status(service: Service) -> StorageStatus:
+    state = service.storage_state()
+    since = state.degraded_since
+    return StorageStatus(
+        state="degraded" if state.degraded else "ok",
+        reason=state.reason,
+        pending_writes=state.pending,
+        failures=state.failures,
+        lost_writes=state.lost,
+        degraded_for_s=None if since is None else round(time.monotonic() - since, 3),
+    )
+
+
+@router.get(
+    "/health",
+    response_model=Health,
+    summary="the process is up (503 once a background task cannot be kept running)",
+    responses={503: {"model": Health, "description": "a background task failed for good: the process is exiting"}},
+)
+async def health(service: ServiceDep, response: Response) -> Health:
+    answer = Health(
+        **service.status(),
+        status="failed" if service.fatal is not None else "ok",
+        storage=storage_status(service),
+        tasks=dict(service.down_tasks),
+        ingest_heartbeat_age_s=round(service.ingest_heartbeat_age_s(), 3),
+        router_connected=service.router_connected(),
+    )
+    if service.fatal is not None:
+        response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
+    return answer
 
 
 @router.get(
     "/ready",
     response_model=Readiness,
-    summary="every profile has active gains and Zenoh is connected",
+    summary="every profile has active gains, Zenoh is connected, ingest runs and the database accepts writes",
     responses={
         503: {
             "model": Readiness,
-            "description": "not ready: the profiles without active gains and why (designing, or the failed "
-            "design's reason), or Zenoh is down",
+            "description": "not ready, and why in `detail`: the profiles without active gains and why (designing, "
+            "or the failed design's reason), Zenoh down or no router (client mode), the ingest loop stalled, a "
+            "background task down, or the storage degraded",
         }
     },
 )
 async def ready(service: ServiceDep, response: Response) -> Readiness:
     missing = {name: MissingGains.model_validate(why) for name, why in service.missing_gains().items()}
+    causes = service.not_ready_causes()
     answer = Readiness(
-        ready=service.ready,
+        ready=not causes,
         transport=service.transport_up,
         profiles={name: bank.version for name, bank in service.engine.banks.items()},
         missing_gains=missing,
         failed_profiles=dict(service.failed_profiles),
+        storage=storage_status(service),
+        tasks=dict(service.down_tasks),
+        router_connected=service.router_connected(),
     )
     if not answer.ready:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
-        answer.detail = _not_ready_detail(answer)
+        answer.detail = _not_ready_detail(answer, causes)
     return answer
 
 
-def _not_ready_detail(answer: Readiness) -> str:
-    causes = [] if answer.transport else ["the Zenoh transport is down"]
+def _not_ready_detail(answer: Readiness, causes: list[str]) -> str:
+    # the gains are explained profile by profile below
+    out = [c for c in causes if c != "not every profile has active gains"]
     if not answer.profiles:
-        causes.append("no profile is configured")
+        out.append("no profile is configured")
     for name, why in answer.missing_gains.items():
         if why.state == "designing":
-            causes.append(f"profile {name!r} has no active gains: designing (job {why.job})")
+            out.append(f"profile {name!r} has no active gains: designing (job {why.job})")
         elif why.state == "failed":
-            causes.append(f"profile {name!r} has no active gains: its design failed ({why.error}): {why.reason}")
+            out.append(f"profile {name!r} has no active gains: its design failed ({why.error}): {why.reason}")
         else:
-            causes.append(f"profile {name!r} has no active gains: {why.reason or why.state}")
-    return "; ".join(causes)
+            out.append(f"profile {name!r} has no active gains: {why.reason or why.state}")
+    return "; ".join(out)
 
 
 @router.get(
@@ -151,5 +188,44 @@ async def metrics(service: ServiceDep) -> PlainTextResponse:
         "stored profiles that could not be loaded at start-up and do not run (GET /profiles says why)",
         [({}, len(service.failed_profiles))],
     )
-    out.metric("agv_fe_ready", "gauge", "1 when every profile has active gains", [({}, int(service.ready))])
+    storage = service.storage_state()
+    out.metric(
+        "agv_fe_storage_degraded",
+        "gauge",
+        "1 while the database refuses writes (locked, full, failing): they are queued and retried",
+        [({}, int(storage.degraded))],
+    )
+    out.metric("agv_fe_storage_writes_pending", "gauge", "writes queued for the database", [({}, storage.pending)])
+    out.metric(
+        "agv_fe_storage_write_failures_total", "counter", "failed database write attempts", [({}, storage.failures)]
+    )
+    out.metric(
+        "agv_fe_storage_writes_lost_total",
+        "counter",
+        "database writes given up (queue full, a write that cannot succeed, or pending at shutdown)",
+        [({}, storage.lost)],
+    )
+    out.metric(
+        "agv_fe_background_task_failures_total",
+        "counter",
+        "failures of the supervised background tasks, by task",
+        [({"task": name}, n) for name, n in service.task_failures.items()],
+    )
+    out.metric(
+        "agv_fe_ingest_heartbeat_age_seconds",
+        "gauge",
+        "time since the ingest loop's latest iteration",
+        [({}, round(service.ingest_heartbeat_age_s(), 6))],
+    )
+    router = service.router_connected()
+    if router is not None:
+        out.metric(
+            "agv_fe_zenoh_router_connected", "gauge", "client mode: 1 while connected to a router", [({}, int(router))]
+        )
+    out.metric(
+        "agv_fe_ready",
+        "gauge",
+        "1 when /ready answers 200: gains, Zenoh, ingest, background tasks and storage are all fine",
+        [({}, int(service.ready))],
+    )
     return PlainTextResponse(out.text(), media_type="text/plain; version=0.0.4")

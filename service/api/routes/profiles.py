@@ -8,7 +8,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, HTTPException, Path, Query, Response, status
 from pydantic import AfterValidator
 
-from service.api.deps import Operator, ServiceDep, profile_bank
+from service.api.deps import STORAGE_UNAVAILABLE, Operator, ServiceDep, profile_bank
 from service.api.models import CalibrationProposal, CalibrationRequest, GainsInfo, ProfileChange, ProfileInfo
 from service.app import Service
 from service.calibration import run_calibration
@@ -67,7 +67,11 @@ async def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
     "/{name}",
     response_model=ProfileChange,
     status_code=status.HTTP_202_ACCEPTED,
-    responses={**AUTH, 200: {"model": ProfileChange, "description": "only thresholds or limits changed: applied"}},
+    responses={
+        **AUTH,
+        200: {"model": ProfileChange, "description": "only thresholds or limits changed: applied"},
+        **STORAGE_UNAVAILABLE,
+    },
     summary="create or change a profile; new parameters, bounds or design options start a synthesis job",
 )
 async def put_profile(
@@ -79,7 +83,9 @@ async def put_profile(
             detail="effectiveness.enabled: the service does not run the loss-of-effectiveness stage yet "
             "(`agv-fe replay` and the benchmarks do); put the profile with it disabled",
         )
+    service.require_storage()
     job = service.put_profile(name, spec)
+    await service.stored(f"profile {name!r}")
     if job is None:
         response.status_code = status.HTTP_200_OK
         return ProfileChange(profile=name, job=None, applied=True)
@@ -91,14 +97,16 @@ async def put_profile(
     "/{name}/synthesis",
     response_model=ProfileChange,
     status_code=status.HTTP_202_ACCEPTED,
-    responses={**AUTH, 404: {"description": "no such profile"}},
+    responses={**AUTH, 404: {"description": "no such profile"}, **STORAGE_UNAVAILABLE},
     summary="design the profile's gains again (for example after a change of the default design)",
 )
 async def resynthesise(
     service: ServiceDep, name: ProfileName, _operator: Operator, response: Response
 ) -> ProfileChange:
     profile_bank(service, name)
+    service.require_storage()
     job = service.resynthesise(name)
+    await service.stored(f"the design job of profile {name!r}")
     response.headers["Location"] = f"/jobs/{job.id}"
     return ProfileChange(profile=name, job=job.id, applied=False)
 

@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
 import orjson
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
 
-from service.api.deps import Operator, ServiceDep, profile_bank
+from service.api.deps import STORAGE_UNAVAILABLE, Operator, ServiceDep, profile_bank
 from service.api.models import AlarmInfo, EstimateHistory, EstimateRow, VehicleAssignment, VehicleDetail, VehicleStatus
 from service.app import Service
 from service.fleet import UnknownProfile, UnknownVehicle, Vehicle
 from service.protocol import VEHICLE_ID_PATTERN, Level
+from service.storage import Storage
 
 router = APIRouter(prefix="/vehicles", tags=["vehicles"])
 
@@ -138,15 +140,22 @@ async def get_estimates(
 @router.put(
     "/{vehicle_id}",
     response_model=VehicleStatus,
-    responses={401: {"description": "missing or invalid token"}, 404: {"description": "no such profile"}},
+    responses={
+        401: {"description": "missing or invalid token"},
+        404: {"description": "no such profile"},
+        **STORAGE_UNAVAILABLE,
+    },
     summary="register a vehicle or move it to another profile",
 )
 async def assign_vehicle(
     service: ServiceDep, vehicle_id: VehicleId, body: VehicleAssignment, _operator: Operator
 ) -> VehicleStatus:
+    service.require_storage()
     try:
         vehicle = service.engine.register(vehicle_id, body.profile, announced=True)
     except UnknownProfile as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail=str(exc.args[0])) from exc
-    service.db.put_vehicles([(vehicle.id, vehicle.profile, vehicle.registered_t_ns)])
+    rows = [(vehicle.id, vehicle.profile, vehicle.registered_t_ns)]
+    service.store(f"vehicle {vehicle.id}", partial(Storage.put_vehicles, rows=rows))
+    await service.stored(f"the registration of {vehicle.id!r}")
     return VehicleStatus(**service.engine.vehicle_status(vehicle))
