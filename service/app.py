@@ -561,6 +561,7 @@ def _same_design(gains: ObserverGains, spec: ProfileSpec) -> bool:
 def create_app(settings: Settings) -> FastAPI:
     """The FastAPI application; the lifespan starts and stops the :class:`Service`."""
     from service.api import build_router, install_error_handlers
+    from service.api.routes.apidocs import install_api_docs
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -583,8 +584,13 @@ def create_app(settings: Settings) -> FastAPI:
             "`Authorization: Bearer TOKEN`."
         ),
         lifespan=lifespan,
+        # /docs comes from the package (service/api/routes/apidocs.py), not a CDN; /redoc would need one
+        docs_url=None,
+        redoc_url=None,
+        swagger_ui_oauth2_redirect_url=None,
     )
     app.include_router(build_router(settings))
+    install_api_docs(app)
     install_error_handlers(app, settings)
     if settings.dashboard.enabled:
         from service.api.routes.ui import install_dashboard
