@@ -3,7 +3,7 @@
 Every field can be set by an environment variable with the prefix
 ``AGV_FE_``; nested sections use ``__``, for example ``AGV_FE_HTTP__PORT=9000``
 or ``AGV_FE_ZENOH__MODE=client``. The ``agv-fe serve`` flags override them.
-README.md ("Service") lists every setting with its default.
+docs/service.md ("Settings") lists every setting with its default.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ def register(sub: Any) -> None:
         "serve",
         help="run the fleet service: Zenoh ingest, observers, alarms, REST API",
         description="Run the service. Settings come from AGV_FE_* environment variables (nested with '__', "
-        "see README.md, 'Service'); these flags override them.",
+        "see docs/service.md, 'Settings'); these flags override them.",
     )
     parser.add_argument("--http-port", type=int, default=None, metavar="PORT", help="HTTP port (AGV_FE_HTTP__PORT)")
     parser.add_argument("--http-host", default=None, metavar="HOST", help="HTTP bind address (AGV_FE_HTTP__HOST)")
