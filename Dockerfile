@@ -9,7 +9,7 @@ RUN python -m venv /opt/agv-fe
 COPY requirements.lock /tmp/requirements.lock
 RUN /opt/agv-fe/bin/pip install -r /tmp/requirements.lock
 WORKDIR /src
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md LICENSE ./
 COPY synth ./synth
 COPY service ./service
 COPY edge_client ./edge_client
@@ -26,7 +26,8 @@ ENV PATH=/opt/agv-fe/bin:$PATH \
     AGV_FE_DATA_DIR=/data \
     AGV_FE_HTTP__HOST=0.0.0.0 \
     AGV_FE_HTTP__PORT=8000
-USER agv
+# numeric, so that a runtime refusing to run as root (runAsNonRoot) can check it without reading /etc/passwd
+USER 10001:10001
 WORKDIR /home/agv
 VOLUME ["/data"]
 EXPOSE 8000 7447

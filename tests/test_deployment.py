@@ -138,7 +138,7 @@ def test_dockerfile_is_multi_stage_slim_non_root_and_pinned():
     stages = re.findall(r"^FROM (\S+)", DOCKERFILE, re.M)
     assert len(stages) == 2 and all(s.startswith("python:3.11-slim") for s in stages)
     user = re.findall(r"^USER (\S+)", DOCKERFILE, re.M)
-    assert user == ["agv"] and "useradd --system --uid 10001" in DOCKERFILE
+    assert user == ["10001:10001"] and "useradd --system --uid 10001" in DOCKERFILE
     assert 'ENTRYPOINT ["agv-fe"]' in DOCKERFILE and 'CMD ["serve"]' in DOCKERFILE
     assert "pip install -r /tmp/requirements.lock" in DOCKERFILE and "pip install --no-deps ." in DOCKERFILE
 
@@ -226,3 +226,13 @@ def test_compose_topology_as_local_processes(tmp_path):
                     process.wait(timeout=20)
                 except subprocess.TimeoutExpired:
                     process.kill()
+
+
+def test_the_image_builds_from_the_files_the_package_needs_and_runs_as_a_numeric_user():
+    """pyproject names README.md and LICENSE (readme, license-files): the build stage copies both; the image's
+    user is numeric (a runAsNonRoot policy checks it without /etc/passwd) and is the one owning /data."""
+    copies = " ".join(line for line in DOCKERFILE.splitlines() if line.startswith("COPY pyproject.toml"))
+    assert "README.md" in copies and "LICENSE" in copies
+    users = [line.split()[1] for line in DOCKERFILE.splitlines() if line.startswith("USER ")]
+    assert users and users[-1] == "10001:10001"
+    assert "--uid 10001" in DOCKERFILE
