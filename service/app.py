@@ -31,6 +31,7 @@ from typing import Any
 from fastapi import FastAPI
 from pydantic import ValidationError
 
+from service import logs
 from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine, FleetError
 from service.jobs import FINAL_STATES, Job, JobKind, SynthesisJobs
 from service.metrics import ServiceMetrics
@@ -463,6 +464,23 @@ class Service:
         for the database, so a locked or full database delays no alarm; the future says when they are stored."""
         rows = [(c.record.to_dict(), c.event.model_dump()) for c in changes]
         done = self.store(f"{len(rows)} alarm changes", partial(Storage.record_alarm_changes, changes=rows))
+        for change in changes:
+            alarm = change.event
+            raised_high = alarm.state == "raised" and alarm.level in ("FAULT", "STALE")
+            logs.event(
+                "alarm",
+                logging.WARNING if raised_high else logging.INFO,
+                state=alarm.state,
+                vehicle=alarm.vehicle,
+                profile=change.record.profile,
+                kind=alarm.kind,
+                level=alarm.level,
+                id=alarm.id,
+                value=alarm.value,
+                threshold=alarm.threshold,
+                t_ns=alarm.t_ns,
+                detail=alarm.message or None,
+            )
         if self.transport is not None:
             for change in changes:
                 self.transport.publish_alarm(change.record.vehicle, change.event.encode())
@@ -518,6 +536,20 @@ class Service:
             self.writer.submit(f"job {job.id} ({job.status})", partial(Storage.put_job, record=job.to_dict()))
         if job.status in ("succeeded", "failed") and job.duration_s is not None:
             self.metrics.synthesis_seconds.observe(job.duration_s)
+        if job.status in FINAL_STATES:
+            logs.event(
+                "job",
+                logging.WARNING if job.status == "failed" else logging.INFO,
+                status=job.status,
+                id=job.id,
+                profile=job.profile,
+                kind=job.kind,
+                duration_s=None if job.duration_s is None else round(job.duration_s, 3),
+                gain_version=job.gain_version,
+                error=job.error,
+                reason=job.reason,
+                superseded_by=job.superseded_by,
+            )
         if job.status != "failed":
             return
         bank = self.engine.banks.get(job.profile)

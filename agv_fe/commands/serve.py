@@ -38,6 +38,12 @@ def register(sub: Any) -> None:
         help="serve shard INDEX of REPLICAS, e.g. 0/2 (AGV_FE_SHARD__INDEX, AGV_FE_SHARD__REPLICAS)",
     )
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+    parser.add_argument(
+        "--log-format",
+        default="text",
+        choices=("text", "json"),
+        help="json: one JSON object per line for every log record, alarm and job events and the access log included",
+    )
     parser.set_defaults(handler=run)
 
 
@@ -85,13 +91,14 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from agv_fe.common import CommandError, fail
+    from service import logs
     from service.app import create_app
 
     try:
         settings = build_settings(args)
     except CommandError as exc:
         return fail(exc)
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logs.configure(args.log_level, args.log_format)
     app = create_app(settings)
 
     class Server(uvicorn.Server):
@@ -107,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
         host=settings.http.host,
         port=settings.http.port,
         log_level=args.log_level,
+        log_config=None,  # uvicorn's records go to the handler service.logs.configure set up, in its format
         lifespan="on",
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
     )

@@ -5,6 +5,7 @@ Assertions are on counts, order and equality, never on speed: the machine is sha
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -134,7 +135,8 @@ def test_every_bad_input_class_is_rejected_counted_and_leaves_the_state_intact(s
     np.testing.assert_allclose(got, np.array(offline), atol=BATCH_EQUALITY_ATOL)
 
 
-def test_alarm_raised_published_stored_latched_and_acknowledged(server, zprobe):
+def test_alarm_raised_published_stored_latched_and_acknowledged(server, zprobe, caplog):
+    caplog.set_level(logging.INFO, logger="agv_fe.events")
     for row in plant_measurements(["faulty-1"], 900, scenario=paper_1()):  # 30 N m torque bias from 5 s
         zprobe.put(row[0])
     wait_for(lambda: len(zprobe.estimates_of("faulty-1")) >= 900, what="estimates")
@@ -156,6 +158,19 @@ def test_alarm_raised_published_stored_latched_and_acknowledged(server, zprobe):
     wait_for(lambda: any(a.id == alarm_id and a.state == "acknowledged" for a in zprobe.collect().alarms), what="ack")
     events = server.get(f"/alarms/{alarm_id}").json()["events"]
     assert events[0]["state"] == "raised" and events[-1]["state"] == "acknowledged"
+    # every transition is also a log event with its fields: raised (WARN, then FAULT), acknowledged
+    logged = wait_for(
+        lambda: (
+            [
+                (r.fields["state"], r.fields["level"])  # type: ignore[attr-defined]
+                for r in caplog.records
+                if r.name == "agv_fe.events" and getattr(r, "fields", {}).get("id") == alarm_id
+            ]
+            or None
+        ),
+        what="alarm events in the log",
+    )
+    assert logged[0][0] == "raised" and ("raised", "FAULT") in logged and logged[-1][0] == "acknowledged"
     assert server.http.post("/alarms/al-unknown/ack", headers=server.auth).status_code == 404
 
 
