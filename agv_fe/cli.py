@@ -13,6 +13,7 @@ COMMANDS = {
     "simulate": "agv_fe.commands.simulate",
     "replay": "agv_fe.commands.replay",
     "calibrate": "agv_fe.commands.calibrate",
+    "can2csv": "agv_fe.commands.can2csv",
     "compare": "agv_fe.commands.compare",
     "serve": "agv_fe.commands.serve",
     "fleet": "agv_fe.commands.fleet",

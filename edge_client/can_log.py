@@ -1,0 +1,200 @@
+"""A recording from a vehicle's CAN log and its DBC file: the four signals the estimator needs on the 10 ms grid.
+
+A vehicle carries v_x, r, the drive-torque demand and the steering demand as CAN
+signals, in its own units and at its own rates. A mapping file names, for each of
+the recording's columns, the DBC message and signal and the affine map to the
+protocol's unit (docs/protocol.md), value = scale x decoded + offset:
+
+.. code-block:: yaml
+
+    vx:     {message: WHEEL_SPEEDS, signal: VehicleSpeed, scale: 0.2777777778}   # km/h -> m/s
+    r:      {message: IMU_RATES, signal: YawRate, scale: 0.0174532925}          # deg/s -> rad/s
+    torque: {message: DRIVE_DEMAND, signal: WheelTorqueDemand}                  # N m at the driven wheels
+    steer:  {message: STEER_DEMAND, signal: RoadWheelAngleDemand}               # rad
+
+The log is read with python-can (candump ``.log``, Vector ``.asc`` and ``.blf``,
+``.trc``, ``.csv``... by its extension) and decoded with cantools. Resampling:
+the grid starts at the first time stamp at which every column has been received
+and runs every ``sample_period_s``; each grid point takes the latest value
+received at or before it (a zero-order hold, what a controller sampling the bus
+would see). A column whose latest value is older than ``max_age_s`` at a grid
+point ends the recording there with an error naming it and the time (a signal
+that stopped), never a silent hold. Frames of other messages, or that fail to
+decode, are counted and reported, not used.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from edge_client.recording import Recording, RecordingError
+from synth.model import FloatArray
+
+COLUMNS = ("vx", "r", "torque", "steer")
+#: Time stamps this close are the same instant [s]: a candump log's resolution.
+TIME_RESOLUTION_S = 1e-6
+
+
+class CanSignal(BaseModel):
+    """Where one column comes from: a DBC message and signal, and value = scale x decoded + offset."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    message: str = Field(min_length=1, description="DBC message name")
+    signal: str = Field(min_length=1, description="DBC signal name (its DBC factor and offset applied first)")
+    scale: float = Field(1.0, allow_inf_nan=False, description="to the protocol's unit: multiply by this")
+    offset: float = Field(0.0, allow_inf_nan=False, description="then add this")
+
+
+class CanMapping(BaseModel):
+    """The recording's four columns as CAN signals, and the grid they are sampled on."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    vx: CanSignal
+    r: CanSignal
+    torque: CanSignal
+    steer: CanSignal
+    sample_period_s: float = Field(0.01, gt=0, le=1, description="the recording's sample period [s]")
+    max_age_s: float = Field(0.1, gt=0, le=10, description="a value older than this at a grid point is missing [s]")
+
+    def signals(self) -> dict[str, CanSignal]:
+        return {column: getattr(self, column) for column in COLUMNS}
+
+
+@dataclass
+class CanStats:
+    """What the conversion read: frames used per column, frames of other messages, frames that failed to decode."""
+
+    frames: int = 0
+    used: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COLUMNS, 0))
+    other: int = 0
+    undecodable: int = 0
+    first_complete_s: float | None = None
+
+
+def load_mapping(path: str | Path) -> CanMapping:
+    """Read a mapping file (YAML or JSON); a :class:`RecordingError` names the file and the field."""
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise RecordingError(f"{path}: cannot read the mapping: {exc}") from exc
+    try:
+        return CanMapping.model_validate(data)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise RecordingError(f"{path}: invalid mapping: {problems}") from exc
+
+
+def read_can_log(log: str | Path, dbc: str | Path, mapping: CanMapping) -> tuple[Recording, CanStats]:
+    """Decode ``log`` with ``dbc`` and resample the mapped signals onto the grid (module docstring)."""
+    import can
+    import cantools
+    from cantools.database.errors import UnsupportedDatabaseFormatError
+
+    try:
+        database = cantools.database.load_file(str(dbc))
+    except (OSError, UnsupportedDatabaseFormatError) as exc:
+        raise RecordingError(f"{dbc}: cannot read the DBC file: {exc}") from exc
+    wanted = _resolve(database, mapping, dbc)
+    try:
+        messages: Iterable[Any] = can.LogReader(str(log))
+        samples, stats = _decode(messages, database, wanted)
+    except (OSError, ValueError, can.CanError) as exc:
+        raise RecordingError(f"{log}: cannot read the CAN log: {exc}") from exc
+    return _resample(samples, mapping, stats, str(log)), stats
+
+
+def _resolve(database: Any, mapping: CanMapping, dbc: str | Path) -> dict[int, list[tuple[str, CanSignal]]]:
+    """Frame id -> the columns it carries; every mapped message and signal must exist in the DBC."""
+    wanted: dict[int, list[tuple[str, CanSignal]]] = {}
+    for column, signal in mapping.signals().items():
+        try:
+            message = database.get_message_by_name(signal.message)
+        except KeyError as exc:
+            raise RecordingError(f"{dbc}: no message {signal.message!r} (mapped to {column})") from exc
+        if signal.signal not in {s.name for s in message.signals}:
+            raise RecordingError(
+                f"{dbc}: message {signal.message!r} has no signal {signal.signal!r} (mapped to {column})"
+            )
+        wanted.setdefault(message.frame_id, []).append((column, signal))
+    return wanted
+
+
+def _decode(
+    messages: Iterable[Any], database: Any, wanted: dict[int, list[tuple[str, CanSignal]]]
+) -> tuple[dict[str, tuple[list[float], list[float]]], CanStats]:
+    """Per column: (time stamps [s], values in the protocol's unit), in log order."""
+    from cantools.database.errors import DecodeError
+
+    stats = CanStats()
+    samples: dict[str, tuple[list[float], list[float]]] = {column: ([], []) for column in COLUMNS}
+    for frame in messages:
+        stats.frames += 1
+        columns = wanted.get(frame.arbitration_id)
+        if columns is None:
+            stats.other += 1
+            continue
+        try:
+            decoded = database.decode_message(frame.arbitration_id, bytes(frame.data), decode_choices=False)
+        except (DecodeError, ValueError, KeyError, IndexError):  # a frame too short, a bad multiplexer: count it
+            stats.undecodable += 1
+            continue
+        for column, signal in columns:
+            value = decoded.get(signal.signal)
+            if value is None:
+                stats.undecodable += 1
+                continue
+            times, values = samples[column]
+            times.append(float(frame.timestamp))
+            values.append(signal.scale * float(value) + signal.offset)
+            stats.used[column] += 1
+    return samples, stats
+
+
+def _resample(
+    samples: dict[str, tuple[list[float], list[float]]], mapping: CanMapping, stats: CanStats, source: str
+) -> Recording:
+    missing = [column for column in COLUMNS if not samples[column][0]]
+    if missing:
+        raise RecordingError(f"{source}: no frame of {', '.join(missing)} in the log (check the mapping)")
+    series = {c: (np.asarray(samples[c][0]), np.asarray(samples[c][1])) for c in COLUMNS}
+    for column, (times, _) in series.items():
+        if np.any(np.diff(times) < 0):
+            raise RecordingError(f"{source}: the time stamps of {column} go backwards")
+    # from the first time every column is known to the log's last value: a column that stops before the others
+    # is found stale below, not cut off silently
+    start = max(times[0] for times, _ in series.values())
+    end = max(times[-1] for times, _ in series.values())
+    period = mapping.sample_period_s
+    n = int(np.floor((end - start) / period + 1e-9)) + 1
+    if n < 2:
+        raise RecordingError(f"{source}: under two samples in which every column is known")
+    grid = start + period * np.arange(n)
+    out = np.empty((n, 4))
+    for i, column in enumerate(COLUMNS):
+        times, values = series[column]
+        # a frame within a microsecond of a grid point (the resolution of a candump log; an absolute time stamp
+        # of 1.7e9 s carries 0.2 us of rounding) counts as at it
+        latest = np.searchsorted(times, grid + TIME_RESOLUTION_S, side="right") - 1
+        age = grid - times[latest]
+        stale = np.flatnonzero(age > mapping.max_age_s)
+        if stale.size:
+            k = int(stale[0])
+            raise RecordingError(
+                f"{source}: {column} not received for {age[k]:.3f} s at t = {grid[k] - start:.2f} s of the recording "
+                f"(more than max_age_s = {mapping.max_age_s:g} s): the signal stopped or its message is mapped wrong"
+            )
+        out[:, i] = values[latest]
+    if not np.isfinite(out).all():
+        raise RecordingError(f"{source}: a decoded value is not finite")
+    stats.first_complete_s = float(start)
+    t: FloatArray = period * np.arange(n)  # not grid - start: log time stamps are large numbers
+    return Recording(t=t, y=out[:, :2].copy(), u=out[:, 2:].copy())

@@ -1,0 +1,155 @@
+"""A recording from a CAN log and a DBC (edge_client/can_log.py, `agv-fe can2csv`): a simulated drive encoded into
+frames at the vehicle's own rates and units, written as a candump log by python-can, decoded back onto the grid."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+can = pytest.importorskip("can")
+cantools = pytest.importorskip("cantools")
+
+from agv_fe.cli import main  # noqa: E402 - after the optional-dependency check
+from edge_client.can_log import load_mapping, read_can_log  # noqa: E402
+from edge_client.recording import RecordingError, write_recording  # noqa: E402
+from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint  # noqa: E402
+from edge_client.simulation import simulate_plant  # noqa: E402
+
+DBC = """VERSION ""
+
+NS_ :
+
+BS_:
+
+BU_: ECU
+
+BO_ 256 WHEEL_SPEEDS: 8 ECU
+ SG_ VehicleSpeed : 0|16@1+ (0.01,0) [0|655.35] "km/h" Vector__XXX
+
+BO_ 257 IMU_RATES: 8 ECU
+ SG_ YawRate : 0|16@1- (0.01,0) [-327.68|327.67] "deg/s" Vector__XXX
+
+BO_ 258 DRIVE_DEMAND: 8 ECU
+ SG_ WheelTorqueDemand : 0|16@1- (0.5,0) [-16384|16383.5] "Nm" Vector__XXX
+
+BO_ 259 STEER_DEMAND: 8 ECU
+ SG_ RoadWheelAngleDemand : 0|16@1- (0.0001,0) [-3.2768|3.2767] "rad" Vector__XXX
+
+BO_ 2047 BODY_STATUS: 8 ECU
+ SG_ DoorOpen : 0|1@1+ (1,0) [0|1] "" Vector__XXX
+"""
+
+MAPPING = """vx: {message: WHEEL_SPEEDS, signal: VehicleSpeed, scale: 0.2777777777777778}
+r: {message: IMU_RATES, signal: YawRate, scale: 0.017453292519943295}
+torque: {message: DRIVE_DEMAND, signal: WheelTorqueDemand}
+steer: {message: STEER_DEMAND, signal: RoadWheelAngleDemand}
+"""
+T0 = 1_700_000_000.0
+
+
+@pytest.fixture(scope="module")
+def drive():
+    """15 s of the paper's vehicle: speed changes and a lane change, realistic sensor noise."""
+    scenario = Scenario(
+        name="can",
+        duration_s=15.0,
+        initial_speed_mps=10.0,
+        speed_profile=(SpeedPoint(t_s=0.0, speed_mps=10.0), SpeedPoint(t_s=6.0, speed_mps=14.0)),
+        manoeuvres=(Manoeuvre(kind="lane_change", start_s=7.0, duration_s=4.0, amplitude_rad=0.03),),
+        noise=REALISTIC_NOISE,
+        seed=9,
+    )
+    return simulate_plant([scenario])
+
+
+def write_log(path: Path, drive, stop_speed_after_s: float | None = None) -> Path:
+    """The drive as frames: speed and yaw rate at 100 Hz, steering at 100 Hz, torque at 50 Hz, each message
+    at its own phase within the period, a body message at 10 Hz, and one truncated yaw frame."""
+    db = cantools.database.load_string(DBC, "dbc")
+    y, u, t = drive.y[:, 0], drive.u[:, 0], drive.t
+    frames: list[tuple[float, int, bytes]] = []
+    for k, tk in enumerate(t):
+        if stop_speed_after_s is None or tk < stop_speed_after_s:
+            frames.append((tk + 0.0002, 256, db.encode_message(256, {"VehicleSpeed": y[k, 0] * 3.6})))
+        frames.append((tk + 0.0004, 257, db.encode_message(257, {"YawRate": math.degrees(y[k, 1])})))
+        frames.append((tk + 0.0006, 259, db.encode_message(259, {"RoadWheelAngleDemand": u[k, 1]})))
+        if k % 2 == 0:
+            frames.append((tk + 0.0008, 258, db.encode_message(258, {"WheelTorqueDemand": u[k, 0]})))
+        if k % 10 == 0:
+            frames.append((tk + 0.0009, 2047, db.encode_message(2047, {"DoorOpen": 0})))
+    frames.append((t[500] + 0.0005, 257, b"\x01"))  # truncated: does not decode
+    frames.sort()
+    with can.CanutilsLogWriter(str(path), channel="can0") as writer:
+        for ts, frame_id, data in frames:
+            writer.on_message_received(can.Message(timestamp=T0 + ts, arbitration_id=frame_id, data=data))
+    return path
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, drive):
+    root = tmp_path_factory.mktemp("can")
+    (root / "vehicle.dbc").write_text(DBC)
+    (root / "map.yaml").write_text(MAPPING)
+    return root, write_log(root / "drive.log", drive)
+
+
+def test_the_log_decodes_onto_the_grid_as_the_drive_was_sampled(files, drive):
+    root, log = files
+    recording, stats = read_can_log(log, root / "vehicle.dbc", load_mapping(root / "map.yaml"))
+    n = len(recording)
+    # the grid starts once every column is known (the torque frame of sample 0 comes last, 0.8 ms in): sample k of
+    # the drive is grid point k, every 10 ms, up to the last sample whose frames all came before the log ends
+    assert n == len(drive.t) - 1 and np.allclose(np.diff(recording.t), 0.01)
+    y, u = drive.y[:n, 0], drive.u[:n, 0]
+    np.testing.assert_allclose(recording.y[:, 0], y[:, 0], atol=0.01 / 3.6 / 2 + 1e-9)  # the DBC's 0.01 km/h
+    np.testing.assert_allclose(recording.y[:, 1], y[:, 1], atol=math.radians(0.01) / 2 + 1e-9)
+    np.testing.assert_allclose(recording.u[:, 1], u[:, 1], atol=0.0001 / 2 + 1e-9)
+    # torque at 50 Hz: fresh on even samples, held on odd ones
+    np.testing.assert_allclose(recording.u[::2, 0], u[::2, 0], atol=0.25 + 1e-9)
+    np.testing.assert_allclose(recording.u[1::2, 0], u[0:-1:2, 0][: len(recording.u[1::2])], atol=0.25 + 1e-9)
+    samples = len(drive.t)
+    assert stats.used["vx"] == samples and stats.used["torque"] == (samples + 1) // 2
+    assert stats.other == math.ceil(samples / 10) and stats.undecodable == 1
+
+
+def test_can2csv_writes_a_recording_that_replay_reads(tmp_path, files, drive, capsys):
+    root, log = files
+    out = tmp_path / "rec.csv"
+    code = main(["can2csv", str(log), "--dbc", str(root / "vehicle.dbc"), "--map", str(root / "map.yaml"),
+                 "--out", str(out)])  # fmt: skip
+    printed = capsys.readouterr().out
+    assert code == 0 and "1 undecodable" in printed and f"{len(drive.t) - 1} samples" in printed
+    # replayed, the CAN recording gives the estimates of the drive's own CSV to within the DBC's resolution
+    original = tmp_path / "original.csv"
+    n = len(drive.t) - 1
+    write_recording(original, drive.t[:n], drive.y[:n, 0], drive.u[:n, 0])
+    results = {}
+    for name, rec in (("can", out), ("csv", original)):
+        assert main(["replay", str(rec), "--out", str(tmp_path / f"{name}-est.csv")]) == 0
+        with (tmp_path / f"{name}-est.csv").open() as handle:
+            results[name] = np.array(
+                [[float(r["vy_hat"]), float(r["torque_fault_hat"])] for r in csv.DictReader(handle)]
+            )
+    capsys.readouterr()
+    difference = np.abs(results["can"] - results["csv"])[300:]
+    assert difference[:, 0].max() < 0.01 and difference[:, 1].max() < 5.0
+
+
+def test_what_cannot_be_decoded_is_said(tmp_path, files, drive):
+    root, _ = files
+    mapping = load_mapping(root / "map.yaml")
+    bad_map = tmp_path / "bad.yaml"
+    bad_map.write_text(MAPPING.replace("IMU_RATES", "IMU"))
+    with pytest.raises(RecordingError, match="no message 'IMU' \\(mapped to r\\)"):
+        read_can_log(files[1], root / "vehicle.dbc", load_mapping(bad_map))
+    # the speed frames stop at 8 s: the recording is refused at the first grid point they are missing, by name
+    stopped = write_log(tmp_path / "stopped.log", drive, stop_speed_after_s=8.0)
+    with pytest.raises(RecordingError, match=r"vx not received for 0\.1\d+ s at t = 8\.\d+ s"):
+        read_can_log(stopped, root / "vehicle.dbc", mapping)
+    (tmp_path / "typo.yaml").write_text(MAPPING.replace("scale: 0.2777777777777778", "scale: fast"))
+    with pytest.raises(RecordingError, match=r"vx\.scale"):
+        load_mapping(tmp_path / "typo.yaml")
