@@ -46,6 +46,18 @@ class ZenohSettings(_Section):
         "tcp/127.0.0.1:7447", description="where the in-process router listens, or the router a client connects to"
     )
     prefix: str = Field(DEFAULT_PREFIX, description="first chunk of every key expression")
+    config_file: Path | None = Field(
+        None,
+        description="Zenoh JSON5 configuration the session starts from: TLS and mutual TLS, user/password "
+        "authentication, a router's access-control list (deploy/zenoh/secure/, docs/deployment.md). Mode and "
+        "endpoint stay these settings (a file that sets them too must agree); scouting off and the connect "
+        "timeout apply where the file leaves Zenoh's default. Unset: Zenoh's defaults, plain TCP",
+    )
+    password_file: Path | None = Field(
+        None,
+        description="file whose first line is the password of the user the config file names "
+        "(transport.auth.usrpwd.user), so that the password stays out of the config file",
+    )
     connect_timeout_ms: int = Field(
         10_000, ge=-1, description="client mode: how long open() waits for the router (-1: forever)"
     )
