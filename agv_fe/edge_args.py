@@ -45,7 +45,9 @@ def add_transport_arguments(parser: argparse.ArgumentParser) -> None:
         "vehicle.json5, docs/deployment.md); endpoints and mode stay these flags",
     )
     group.add_argument(
-        "--zenoh-password-file", metavar="FILE", help="password of the user named in the --zenoh-config file"
+        "--zenoh-credentials",
+        metavar="FILE",
+        help="USER:PASSWORD for Zenoh's user/password authentication (make certs writes one per identity)",
     )
 
 
@@ -63,8 +65,8 @@ def transport_options(args: argparse.Namespace) -> Any:
         raise CommandError(f"--connect-timeout: expected seconds >= 0 or -1, got {args.connect_timeout}")
     if not args.prefix or "/" in args.prefix or "*" in args.prefix:
         raise CommandError(f"--prefix: expected one key chunk without '/' or '*', got {args.prefix!r}")
-    if args.zenoh_password_file and not args.zenoh_config:
-        raise CommandError("--zenoh-password-file needs --zenoh-config (the file names the user)")
+    if args.zenoh_credentials and not args.zenoh_config:
+        raise CommandError("--zenoh-credentials needs --zenoh-config (user/password goes over TLS)")
     return TransportOptions(
         mode=args.mode,
         connect=connect,
@@ -72,7 +74,7 @@ def transport_options(args: argparse.Namespace) -> Any:
         connect_timeout_s=args.connect_timeout,
         prefix=args.prefix,
         config_file=Path(args.zenoh_config) if args.zenoh_config else None,
-        password_file=Path(args.zenoh_password_file) if args.zenoh_password_file else None,
+        credentials_file=Path(args.zenoh_credentials) if args.zenoh_credentials else None,
     )
 
 

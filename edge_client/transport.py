@@ -10,7 +10,7 @@ Choices (see /work/shared/NOTES-zenoh.md for the measurements behind them):
 * security: ``TransportOptions.config_file`` names a Zenoh JSON5 file with
   TLS, mutual TLS and user/password (deploy/zenoh/secure/vehicle.json5), read
   and merged as the service does (:func:`service.transport.session_config`):
-  mode and endpoints stay these options, the password may come from a file;
+  mode and endpoints stay these options, user and password come from a file;
 * ``connect/timeout_ms``: how long ``open`` waits for the first router (-1 =
   for ever); once open, a client reconnects by itself after a router restart,
   with retries every 250 ms growing to 1 s;
@@ -58,7 +58,7 @@ class TransportOptions:
     'tcp/127.0.0.1:7447'; connect_timeout_s : how long opening waits for a connect
     endpoint, -1 = wait for ever; prefix : key-expression prefix of the protocol;
     config_file : a Zenoh JSON5 configuration to start from (TLS, user/password), None
-    for Zenoh's defaults; password_file : the password of the user it names.
+    for Zenoh's defaults; credentials_file : a USER:PASSWORD file for user/password authentication.
     """
 
     mode: Literal["client", "peer"] = "client"
@@ -67,7 +67,7 @@ class TransportOptions:
     connect_timeout_s: float = 10.0
     prefix: str = DEFAULT_PREFIX
     config_file: Path | None = None
-    password_file: Path | None = None
+    credentials_file: Path | None = None
 
     def describe(self) -> str:
         parts: list[str] = [self.mode]
@@ -96,7 +96,7 @@ def zenoh_config(options: TransportOptions) -> zenoh.Config:
         ConfigValue("connect/retry", {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}),
     ]
     try:
-        return session_config(values, options.config_file, options.password_file)
+        return session_config(values, options.config_file, options.credentials_file)
     except _ConfigError as exc:
         raise TransportError(str(exc)) from exc
 

@@ -53,10 +53,10 @@ class ZenohSettings(_Section):
         "endpoint stay these settings (a file that sets them too must agree); scouting off and the connect "
         "timeout apply where the file leaves Zenoh's default. Unset: Zenoh's defaults, plain TCP",
     )
-    password_file: Path | None = Field(
+    credentials_file: Path | None = Field(
         None,
-        description="file whose first line is the password of the user the config file names "
-        "(transport.auth.usrpwd.user), so that the password stays out of the config file",
+        description="file whose first line is USER:PASSWORD, Zenoh's user/password authentication "
+        "(transport.auth.usrpwd; make certs writes one per identity), kept out of the config file",
     )
     connect_timeout_ms: int = Field(
         10_000, ge=-1, description="client mode: how long open() waits for the router (-1: forever)"

@@ -25,8 +25,9 @@ user/password authentication and, on a router, an access-control list.
 mode and endpoints come from the settings as without a file (a file that sets
 them too must agree, or the session is refused naming both), multicast and
 gossip scouting off, the connect timeout and retry apply only where the file
-leaves Zenoh's default, and the password may come from a separate file
-(``zenoh.password_file``) so that it never sits in a configuration file.
+leaves Zenoh's default, and the user and password come from a separate
+file (``zenoh.credentials_file``) so that no secret sits in a configuration
+file.
 """
 
 from __future__ import annotations
@@ -83,27 +84,29 @@ class ConfigValue:
     required: bool = False
 
 
-def read_config_file(config_file: str | Path, password_file: str | Path | None = None) -> zenoh.Config:
-    """A Zenoh configuration from a JSON5 file (Zenoh checks every key name), with the password of its
-    ``transport/auth/usrpwd/user`` read from ``password_file`` (first line, surrounding blanks stripped)."""
+def read_credentials(credentials_file: str | Path) -> tuple[str, str]:
+    """(user, password) from a file whose first line is ``USER:PASSWORD`` (a line of a Zenoh router's
+    dictionary file); the error never shows the file's content."""
+    try:
+        lines = Path(credentials_file).read_text().splitlines()
+    except OSError as exc:
+        raise TransportError(f"zenoh credentials file {credentials_file}: cannot read: {exc.strerror}") from exc
+    user, _, password = (lines[0].strip() if lines else "").partition(":")
+    if not user or not password:
+        raise TransportError(f"zenoh credentials file {credentials_file}: expected one line USER:PASSWORD")
+    return user, password
+
+
+def read_config_file(config_file: str | Path, credentials_file: str | Path | None = None) -> zenoh.Config:
+    """A Zenoh configuration from a JSON5 file (Zenoh checks every key name), with the user and password of
+    ``transport/auth/usrpwd`` from ``credentials_file`` when given (:func:`read_credentials`)."""
     try:
         config = zenoh.Config.from_file(str(config_file))
     except zenoh.ZError as exc:
         raise TransportError(f"zenoh configuration {config_file}: {_first_line(exc)}") from exc
-    if password_file is not None:
-        if json.loads(config.get_json("transport/auth/usrpwd/user")) is None:
-            raise TransportError(
-                f"zenoh configuration {config_file}: a password file ({password_file}) is given but the "
-                "configuration names no user (transport.auth.usrpwd.user)"
-            )
-        try:
-            lines = Path(password_file).read_text().splitlines()
-        except OSError as exc:
-            raise TransportError(f"zenoh password file {password_file}: cannot read: {exc.strerror}") from exc
-        password = lines[0].strip() if lines else ""
-        if not password:
-            raise TransportError(f"zenoh password file {password_file} is empty")
-        config.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    if credentials_file is not None:
+        user, password = read_credentials(credentials_file)
+        config.insert_json5("transport/auth/usrpwd", json.dumps({"user": user, "password": password}))
     return config
 
 
@@ -127,15 +130,15 @@ def apply_config_values(config: zenoh.Config, values: Sequence[ConfigValue], sou
 
 
 def session_config(
-    values: Sequence[ConfigValue], config_file: str | Path | None = None, password_file: str | Path | None = None
+    values: Sequence[ConfigValue], config_file: str | Path | None = None, credentials_file: str | Path | None = None
 ) -> zenoh.Config:
     """Zenoh's defaults (no file) or ``config_file``, with ``values`` applied (:func:`apply_config_values`)."""
     if config_file is None:
-        if password_file is not None:
-            raise TransportError("a zenoh password file needs a configuration file naming the user")
+        if credentials_file is not None:
+            raise TransportError("zenoh credentials need a configuration file (user/password goes over TLS)")
         config = zenoh.Config()
     else:
-        config = read_config_file(config_file, password_file)
+        config = read_config_file(config_file, credentials_file)
     return apply_config_values(config, values, f"zenoh configuration {config_file}")
 
 
@@ -150,7 +153,7 @@ def zenoh_config(
     connect_timeout_ms: int = 10_000,
     *,
     config_file: str | Path | None = None,
-    password_file: str | Path | None = None,
+    credentials_file: str | Path | None = None,
 ) -> zenoh.Config:
     """A session config on one explicit endpoint: routers listen on it, clients and peers connect to it.
 
@@ -169,7 +172,7 @@ def zenoh_config(
             ConfigValue("connect/endpoints", [endpoint], required=True),
             ConfigValue("connect/timeout_ms", connect_timeout_ms),
         ]
-    return session_config(values, config_file, password_file)
+    return session_config(values, config_file, credentials_file)
 
 
 def open_session(
@@ -178,10 +181,12 @@ def open_session(
     connect_timeout_ms: int = 10_000,
     *,
     config_file: str | Path | None = None,
-    password_file: str | Path | None = None,
+    credentials_file: str | Path | None = None,
 ) -> zenoh.Session:
     """Open a session (see :func:`zenoh_config`); raise :class:`TransportError` naming the endpoint."""
-    config = zenoh_config(mode, endpoint, connect_timeout_ms, config_file=config_file, password_file=password_file)
+    config = zenoh_config(
+        mode, endpoint, connect_timeout_ms, config_file=config_file, credentials_file=credentials_file
+    )
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
@@ -231,7 +236,7 @@ class Transport:
     def open(self) -> None:
         s = self.settings
         self._session = open_session(
-            s.mode, s.endpoint, s.connect_timeout_ms, config_file=s.config_file, password_file=s.password_file
+            s.mode, s.endpoint, s.connect_timeout_ms, config_file=s.config_file, credentials_file=s.credentials_file
         )
         try:
             session = self._session

@@ -35,10 +35,10 @@ def register(sub: Any) -> None:
         "docs/deployment.md)",
     )
     parser.add_argument(
-        "--zenoh-password-file",
+        "--zenoh-credentials",
         default=None,
         metavar="FILE",
-        help="password of the user named in the Zenoh configuration file (AGV_FE_ZENOH__PASSWORD_FILE)",
+        help="USER:PASSWORD for Zenoh's user/password authentication (AGV_FE_ZENOH__CREDENTIALS_FILE)",
     )
     parser.add_argument("--data-dir", default=None, metavar="DIR", help="database directory (AGV_FE_DATA_DIR)")
     parser.add_argument("--profiles", default=None, metavar="FILE", help="initial profiles (AGV_FE_PROFILES_FILE)")
@@ -66,7 +66,7 @@ def build_settings(args: argparse.Namespace) -> Any:
         ("endpoint", args.zenoh_endpoint),
         ("mode", args.zenoh_mode),
         ("config_file", args.zenoh_config),
-        ("password_file", args.zenoh_password_file),
+        ("credentials_file", args.zenoh_credentials),
     )
     zenoh = {k: v for k, v in zenoh_flags if v is not None}
     if zenoh:
@@ -103,10 +103,12 @@ def check_zenoh_config(settings: Any) -> None:
     from service.transport import TransportError, zenoh_config
 
     z = settings.zenoh
-    if z.config_file is None and z.password_file is None:
+    if z.config_file is None and z.credentials_file is None:
         return
     try:
-        zenoh_config(z.mode, z.endpoint, z.connect_timeout_ms, config_file=z.config_file, password_file=z.password_file)
+        zenoh_config(
+            z.mode, z.endpoint, z.connect_timeout_ms, config_file=z.config_file, credentials_file=z.credentials_file
+        )
     except TransportError as exc:
         raise CommandError(str(exc)) from exc
 
