@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 from agv_fe.common import CommandError
@@ -37,6 +38,17 @@ def add_transport_arguments(parser: argparse.ArgumentParser) -> None:
         "after that, lost connections are retried for ever",
     )
     group.add_argument("--prefix", default="agv", help="key-expression prefix of the protocol (default agv)")
+    group.add_argument(
+        "--zenoh-config",
+        metavar="FILE.json5",
+        help="Zenoh configuration file to start from: TLS, mutual TLS, user/password (deploy/zenoh/secure/"
+        "vehicle.json5, docs/deployment.md); endpoints and mode stay these flags",
+    )
+    group.add_argument(
+        "--zenoh-credentials",
+        metavar="FILE",
+        help="USER:PASSWORD for Zenoh's user/password authentication (make certs writes one per identity)",
+    )
 
 
 def transport_options(args: argparse.Namespace) -> Any:
@@ -53,8 +65,16 @@ def transport_options(args: argparse.Namespace) -> Any:
         raise CommandError(f"--connect-timeout: expected seconds >= 0 or -1, got {args.connect_timeout}")
     if not args.prefix or "/" in args.prefix or "*" in args.prefix:
         raise CommandError(f"--prefix: expected one key chunk without '/' or '*', got {args.prefix!r}")
+    if args.zenoh_credentials and not args.zenoh_config:
+        raise CommandError("--zenoh-credentials needs --zenoh-config (user/password goes over TLS)")
     return TransportOptions(
-        mode=args.mode, connect=connect, listen=listen, connect_timeout_s=args.connect_timeout, prefix=args.prefix
+        mode=args.mode,
+        connect=connect,
+        listen=listen,
+        connect_timeout_s=args.connect_timeout,
+        prefix=args.prefix,
+        config_file=Path(args.zenoh_config) if args.zenoh_config else None,
+        credentials_file=Path(args.zenoh_credentials) if args.zenoh_credentials else None,
     )
 
 

@@ -7,6 +7,10 @@ scenarios and the statistics stay transport-free.
 Choices (see /work/shared/NOTES-zenoh.md for the measurements behind them):
 
 * explicit endpoints, multicast scouting off, client mode by default;
+* security: ``TransportOptions.config_file`` names a Zenoh JSON5 file with
+  TLS, mutual TLS and user/password (deploy/zenoh/secure/vehicle.json5), read
+  and merged as the service does (:func:`service.transport.session_config`):
+  mode and endpoints stay these options, user and password come from a file;
 * ``connect/timeout_ms``: how long ``open`` waits for the first router (-1 =
   for ever); once open, a client reconnects by itself after a router restart,
   with retries every 250 ms growing to 1 s;
@@ -25,17 +29,19 @@ Choices (see /work/shared/NOTES-zenoh.md for the measurements behind them):
 from __future__ import annotations
 
 import contextlib
-import json
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import zenoh
 
 from service.protocol import DEFAULT_PREFIX, vehicle_key
+from service.transport import ConfigValue, session_config
+from service.transport import TransportError as _ConfigError
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -50,7 +56,9 @@ class TransportOptions:
 
     mode : 'client' (through a router) or 'peer'; connect / listen : endpoints such as
     'tcp/127.0.0.1:7447'; connect_timeout_s : how long opening waits for a connect
-    endpoint, -1 = wait for ever; prefix : key-expression prefix of the protocol.
+    endpoint, -1 = wait for ever; prefix : key-expression prefix of the protocol;
+    config_file : a Zenoh JSON5 configuration to start from (TLS, user/password), None
+    for Zenoh's defaults; credentials_file : a USER:PASSWORD file for user/password authentication.
     """
 
     mode: Literal["client", "peer"] = "client"
@@ -58,6 +66,8 @@ class TransportOptions:
     listen: tuple[str, ...] = ()
     connect_timeout_s: float = 10.0
     prefix: str = DEFAULT_PREFIX
+    config_file: Path | None = None
+    credentials_file: Path | None = None
 
     def describe(self) -> str:
         parts: list[str] = [self.mode]
@@ -65,6 +75,8 @@ class TransportOptions:
             parts.append("connect " + ", ".join(self.connect))
         if self.listen:
             parts.append("listen " + ", ".join(self.listen))
+        if self.config_file is not None:
+            parts.append(f"config {self.config_file}")
         return "; ".join(parts)
 
 
@@ -75,21 +87,18 @@ def zenoh_config(options: TransportOptions) -> zenoh.Config:
     if options.mode == "peer" and not (options.connect or options.listen):
         raise TransportError("peer mode needs a connect or a listen endpoint (multicast scouting is off)")
     timeout_ms = -1 if options.connect_timeout_s < 0 else round(options.connect_timeout_s * 1000)
-    config = zenoh.Config()
-    settings: list[tuple[str, Any]] = [
-        ("mode", options.mode),
-        ("connect/endpoints", list(options.connect)),
-        ("listen/endpoints", list(options.listen)),
-        ("scouting/multicast/enabled", False),
-        ("connect/timeout_ms", timeout_ms),
-        ("connect/retry", {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}),
+    values = [
+        ConfigValue("mode", options.mode, required=True),
+        ConfigValue("connect/endpoints", list(options.connect), required=True),
+        ConfigValue("listen/endpoints", list(options.listen), required=True),
+        ConfigValue("scouting/multicast/enabled", False),
+        ConfigValue("connect/timeout_ms", timeout_ms),
+        ConfigValue("connect/retry", {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}),
     ]
-    for path, value in settings:
-        try:
-            config.insert_json5(path, json.dumps(value))
-        except zenoh.ZError as exc:
-            raise TransportError(f"invalid zenoh setting {path} = {value!r}: {_first_line(exc)}") from exc
-    return config
+    try:
+        return session_config(values, options.config_file, options.credentials_file)
+    except _ConfigError as exc:
+        raise TransportError(str(exc)) from exc
 
 
 def open_session(options: TransportOptions) -> zenoh.Session:
@@ -99,7 +108,12 @@ def open_session(options: TransportOptions) -> zenoh.Session:
         return zenoh.open(config)
     except zenoh.ZError as exc:
         hint = ""
-        if options.mode == "client":
+        if options.mode == "client" and options.config_file is not None:
+            hint = (
+                "; is a zenoh router listening there, and does it accept this configuration's certificate and "
+                "user? (a refused TLS handshake or password shows as a timeout)"
+            )
+        elif options.mode == "client":
             hint = (
                 "; is a zenoh router listening there? (for example: docker run -p 7447:7447 eclipse/zenoh, "
                 "or a longer --connect-timeout)"

@@ -55,6 +55,18 @@ class ZenohSettings(_Section):
         "tcp/127.0.0.1:7447", description="where the in-process router listens, or the router a client connects to"
     )
     prefix: str = Field(DEFAULT_PREFIX, description="first chunk of every key expression")
+    config_file: Path | None = Field(
+        None,
+        description="Zenoh JSON5 configuration the session starts from: TLS and mutual TLS, user/password "
+        "authentication, a router's access-control list (deploy/zenoh/secure/, docs/deployment.md). Mode and "
+        "endpoint stay these settings (a file that sets them too must agree); scouting off and the connect "
+        "timeout apply where the file leaves Zenoh's default. Unset: Zenoh's defaults, plain TCP",
+    )
+    credentials_file: Path | None = Field(
+        None,
+        description="file whose first line is USER:PASSWORD, Zenoh's user/password authentication "
+        "(transport.auth.usrpwd; make certs writes one per identity), kept out of the config file",
+    )
     connect_timeout_ms: int = Field(
         10_000, ge=-1, description="client mode: how long open() waits for the router (-1: forever)"
     )

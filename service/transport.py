@@ -17,6 +17,17 @@ Congestion control, chosen per stream: alarms ``BLOCK`` at
 ``INTERACTIVE_HIGH`` priority (they must not be lost); estimates ``DROP`` by
 default so that a slow estimate subscriber can never stall ingest (setting
 ``zenoh.estimate_congestion``).
+
+Security (docs/deployment.md): a session may start from a Zenoh JSON5
+configuration file (setting ``zenoh.config_file``) carrying TLS, mutual TLS,
+user/password authentication and, on a router, an access-control list.
+:func:`session_config` reads it and lays the project's own choices on top:
+mode and endpoints come from the settings as without a file (a file that sets
+them too must agree, or the session is refused naming both), multicast and
+gossip scouting off, the connect timeout and retry apply only where the file
+leaves Zenoh's default, and the user and password come from a separate
+file (``zenoh.credentials_file``) so that no secret sits in a configuration
+file.
 """
 
 from __future__ import annotations
@@ -26,6 +37,8 @@ import contextlib
 import json
 import time
 from collections.abc import Collection, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import zenoh
@@ -57,28 +70,129 @@ class TransportError(Exception):
     """The Zenoh session could not be opened or used; the text names the endpoint."""
 
 
-def zenoh_config(mode: str, endpoint: str, connect_timeout_ms: int = 10_000) -> zenoh.Config:
-    """A session config on one explicit endpoint: routers listen on it, clients and peers connect to it."""
-    config = zenoh.Config()
-    config.insert_json5("mode", json.dumps(mode))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    config.insert_json5("scouting/gossip/enabled", "false")
-    if mode == "router":
-        config.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    else:
-        config.insert_json5("listen/endpoints", "[]")
-        config.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        config.insert_json5("connect/timeout_ms", json.dumps(connect_timeout_ms))
+@dataclass(frozen=True)
+class ConfigValue:
+    """A value the project sets in a session's Zenoh configuration.
+
+    path : Zenoh's configuration path, such as 'connect/endpoints'; value : its JSON value; required : True
+    when the value is the project's own (mode, endpoints): a configuration file may repeat it but not change
+    it. False when it is only a default: a file that sets the path keeps its own value.
+    """
+
+    path: str
+    value: Any
+    required: bool = False
+
+
+def read_credentials(credentials_file: str | Path) -> tuple[str, str]:
+    """(user, password) from a file whose first line is ``USER:PASSWORD`` (a line of a Zenoh router's
+    dictionary file); the error never shows the file's content."""
+    try:
+        lines = Path(credentials_file).read_text().splitlines()
+    except OSError as exc:
+        raise TransportError(f"zenoh credentials file {credentials_file}: cannot read: {exc.strerror}") from exc
+    user, _, password = (lines[0].strip() if lines else "").partition(":")
+    if not user or not password:
+        raise TransportError(f"zenoh credentials file {credentials_file}: expected one line USER:PASSWORD")
+    return user, password
+
+
+def read_config_file(config_file: str | Path, credentials_file: str | Path | None = None) -> zenoh.Config:
+    """A Zenoh configuration from a JSON5 file (Zenoh checks every key name), with the user and password of
+    ``transport/auth/usrpwd`` from ``credentials_file`` when given (:func:`read_credentials`)."""
+    try:
+        config = zenoh.Config.from_file(str(config_file))
+    except zenoh.ZError as exc:
+        raise TransportError(f"zenoh configuration {config_file}: {_first_line(exc)}") from exc
+    if credentials_file is not None:
+        user, password = read_credentials(credentials_file)
+        config.insert_json5("transport/auth/usrpwd", json.dumps({"user": user, "password": password}))
     return config
 
 
-def open_session(mode: str, endpoint: str, connect_timeout_ms: int = 10_000) -> zenoh.Session:
+def apply_config_values(config: zenoh.Config, values: Sequence[ConfigValue], source: str) -> zenoh.Config:
+    """Set each of ``values`` where ``config`` holds Zenoh's default; where it holds something else, keep
+    it, unless the value is ``required`` and differs: then raise :class:`TransportError` naming both."""
+    default = zenoh.Config()
+    for item in values:
+        current = json.loads(config.get_json(item.path))
+        if current == json.loads(default.get_json(item.path)):
+            try:
+                config.insert_json5(item.path, json.dumps(item.value))
+            except zenoh.ZError as exc:
+                raise TransportError(f"invalid zenoh setting {item.path} = {item.value!r}: {_first_line(exc)}") from exc
+        elif item.required and current != item.value:
+            raise TransportError(
+                f"{source} sets {item.path} = {json.dumps(current)}, but the settings say {json.dumps(item.value)}: "
+                "set it in one place (mode and endpoints are settings; leave them out of the file)"
+            )
+    return config
+
+
+def session_config(
+    values: Sequence[ConfigValue], config_file: str | Path | None = None, credentials_file: str | Path | None = None
+) -> zenoh.Config:
+    """Zenoh's defaults (no file) or ``config_file``, with ``values`` applied (:func:`apply_config_values`)."""
+    if config_file is None:
+        if credentials_file is not None:
+            raise TransportError("zenoh credentials need a configuration file (user/password goes over TLS)")
+        config = zenoh.Config()
+    else:
+        config = read_config_file(config_file, credentials_file)
+    return apply_config_values(config, values, f"zenoh configuration {config_file}")
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc)
+    return text.split(" at /", 1)[0].splitlines()[0] if text else type(exc).__name__
+
+
+def zenoh_config(
+    mode: str,
+    endpoint: str,
+    connect_timeout_ms: int = 10_000,
+    *,
+    config_file: str | Path | None = None,
+    credentials_file: str | Path | None = None,
+) -> zenoh.Config:
+    """A session config on one explicit endpoint: routers listen on it, clients and peers connect to it.
+
+    Without ``config_file`` this is Zenoh's default configuration with only these values set; with one, see
+    :func:`session_config`.
+    """
+    router = mode == "router"
+    values = [
+        ConfigValue("mode", mode, required=True),
+        ConfigValue("listen/endpoints", [endpoint] if router else [], required=True),
+        ConfigValue("scouting/multicast/enabled", False),
+        ConfigValue("scouting/gossip/enabled", False),
+    ]
+    if not router:
+        values += [
+            ConfigValue("connect/endpoints", [endpoint], required=True),
+            ConfigValue("connect/timeout_ms", connect_timeout_ms),
+        ]
+    return session_config(values, config_file, credentials_file)
+
+
+def open_session(
+    mode: str,
+    endpoint: str,
+    connect_timeout_ms: int = 10_000,
+    *,
+    config_file: str | Path | None = None,
+    credentials_file: str | Path | None = None,
+) -> zenoh.Session:
     """Open a session (see :func:`zenoh_config`); raise :class:`TransportError` naming the endpoint."""
+    config = zenoh_config(
+        mode, endpoint, connect_timeout_ms, config_file=config_file, credentials_file=credentials_file
+    )
     try:
-        return zenoh.open(zenoh_config(mode, endpoint, connect_timeout_ms))
+        return zenoh.open(config)
     except zenoh.ZError as exc:
         verb = "listen on" if mode == "router" else "connect to"
-        raise TransportError(f"zenoh {mode}: cannot {verb} {endpoint}: {exc}") from exc
+        secured = f" with {config_file}" if config_file else ""
+        raise TransportError(f"zenoh {mode}: cannot {verb} {endpoint}{secured}: {exc}") from exc
 
 
 class Transport:
@@ -121,7 +235,9 @@ class Transport:
 
     def open(self) -> None:
         s = self.settings
-        self._session = open_session(s.mode, s.endpoint, s.connect_timeout_ms)
+        self._session = open_session(
+            s.mode, s.endpoint, s.connect_timeout_ms, config_file=s.config_file, credentials_file=s.credentials_file
+        )
         try:
             session = self._session
             meas = self.selectors("meas")

@@ -236,3 +236,105 @@ def test_the_image_builds_from_the_files_the_package_needs_and_runs_as_a_numeric
     users = [line.split()[1] for line in DOCKERFILE.splitlines() if line.startswith("USER ")]
     assert users and users[-1] == "10001:10001"
     assert "--uid 10001" in DOCKERFILE
+
+
+# ---------------------------------------------------------------- docker-compose.secure.yml (Zenoh's security)
+
+SECURE_COMPOSE = yaml.safe_load((ROOT / "docker-compose.secure.yml").read_text())
+SECURE_SERVICES = SECURE_COMPOSE["services"]
+SECURE_DIR = ROOT / "deploy" / "zenoh" / "secure"
+
+
+def mounts(name: str) -> dict[str, Path]:
+    """Container path -> host path of a secure compose service's bind mounts (read-only, all of them)."""
+    out = {}
+    for volume in SECURE_SERVICES[name].get("volumes", []):
+        host, container, *mode = volume.split(":")
+        if host.startswith("./"):
+            assert mode == ["ro"], f"{name}: {volume} must be read-only"
+            out[container] = ROOT / host
+    return out
+
+
+def certs_dir() -> Path:
+    """Where `make certs` writes (the Makefile's CERTS_DIR)."""
+    return ROOT / re.search(r"^CERTS_DIR \?= (\S+)$", (ROOT / "Makefile").read_text(), re.M).group(1)
+
+
+def identities_issued() -> set[str]:
+    """The identities `make certs` issues a directory to: the service, the dashboard and the vehicle list's."""
+    from service.zenoh_acl import MONITOR_IDENTITY, SERVICE_IDENTITY, read_vehicle_list
+
+    grants = read_vehicle_list((SECURE_DIR / "vehicles.txt").read_text())
+    return {SERVICE_IDENTITY, MONITOR_IDENTITY, *(g.identity for g in grants)}
+
+
+def mounted_file(name: str, container_path: str) -> Path:
+    """The host file behind ``container_path`` in service ``name`` (a file mount, or a file in a dir mount)."""
+    for container, host in mounts(name).items():
+        if container_path == container:
+            return host
+        if container_path.startswith(container + "/"):
+            return host / container_path.removeprefix(container + "/")
+    raise AssertionError(f"{name}: nothing mounted at {container_path}")
+
+
+def test_secure_compose_has_the_same_roles_and_a_tls_router_with_the_secure_config():
+    assert set(SECURE_SERVICES) == set(SERVICES) and SECURE_COMPOSE["volumes"] == COMPOSE["volumes"]
+    router = SECURE_SERVICES["router"]
+    assert router["image"] == SERVICES["router"]["image"] and router["command"] == ["-c", "/etc/zenoh/router.json5"]
+    assert mounts("router") == {
+        "/etc/zenoh/router.json5": SECURE_DIR / "router.json5",
+        "/etc/zenoh/certs": certs_dir() / "router",
+    }
+    config = (SECURE_DIR / "router.json5").read_text()
+    (port,) = re.findall(r'"tls/0\.0\.0\.0:(\d+)"', config)
+    assert router["ports"] == [f"{port}:{port}"]
+    # every file the router config names is in the certificate mount (make certs writes them there)
+    for path in re.findall(r'"(/etc/zenoh/certs/[^"]+)"', config):
+        assert Path(path).name in {"ca.pem", "router.pem", "router.key", "users.txt"}
+
+
+def test_secure_service_connects_over_tls_with_its_own_identity():
+    env = {k: str(v) for k, v in SECURE_SERVICES["service"]["environment"].items()}
+    for variable in env:
+        setting_field(variable)  # KeyError if the variable sets nothing
+    settings = Settings(**_nested(env))
+    assert settings.zenoh.mode == "client" and settings.zenoh.endpoint.startswith("tls/router:")
+    port = settings.zenoh.endpoint.rsplit(":", 1)[1]
+    assert f"{port}:{port}" in SECURE_SERVICES["router"]["ports"]
+    assert mounted_file("service", str(settings.zenoh.config_file)) == SECURE_DIR / "client.json5"
+    assert mounted_file("service", str(settings.zenoh.credentials_file)) == certs_dir() / "agv-service" / "credentials"
+    # the rest is the plain compose's service
+    plain = environment_of("service")
+    assert {k: v for k, v in env.items() if "ZENOH" not in k} == {k: v for k, v in plain.items() if "ZENOH" not in k}
+
+
+@pytest.mark.parametrize(("name", "identity"), [("fleet", "agv-fleet-sim"), ("dashboard", "agv-dashboard")])
+def test_secure_edge_commands_parse_and_use_the_client_config_with_their_identity(name: str, identity: str):
+    command = [interpolate(str(part)) for part in SECURE_SERVICES[name]["command"]]
+    args = build_parser().parse_args(command)
+    assert args.command == name
+    assert args.connect == [SECURE_SERVICES["service"]["environment"]["AGV_FE_ZENOH__ENDPOINT"]]
+    assert args.connect_timeout == -1
+    assert mounted_file(name, args.zenoh_config) == SECURE_DIR / "client.json5"
+    assert mounted_file(name, args.zenoh_credentials) == certs_dir() / identity / "credentials"
+    assert identity in identities_issued()
+    if name == "fleet":
+        from service.zenoh_acl import read_vehicle_list
+
+        # the fleet's vehicles (PREFIX-000 ...) are the ones the ACL lets its identity publish for, and it
+        # sends no ground truth, which no vehicle may put
+        allowed = {
+            g.vehicle_id for g in read_vehicle_list((SECURE_DIR / "vehicles.txt").read_text()) if g.identity == identity
+        }
+        assert {f"{args.id_prefix}-{i:03d}" for i in range(args.vehicles)} <= allowed
+        assert args.truth_hz == 0
+
+
+def test_secure_compose_mounts_only_what_make_certs_issues():
+    for name in SECURE_SERVICES:
+        for host in mounts(name).values():
+            if certs_dir() in host.parents:
+                assert host.parent == certs_dir() and host.name in identities_issued() | {"router"}
+    assert "/secrets/" in (ROOT / ".gitignore").read_text().splitlines()

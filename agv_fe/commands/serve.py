@@ -29,6 +29,19 @@ def register(sub: Any) -> None:
     parser.add_argument(
         "--zenoh-mode", choices=("router", "client"), default=None, help="Zenoh mode (AGV_FE_ZENOH__MODE)"
     )
+    parser.add_argument(
+        "--zenoh-config",
+        default=None,
+        metavar="FILE.json5",
+        help="Zenoh configuration file: TLS, user/password, access control (AGV_FE_ZENOH__CONFIG_FILE; "
+        "docs/deployment.md)",
+    )
+    parser.add_argument(
+        "--zenoh-credentials",
+        default=None,
+        metavar="FILE",
+        help="USER:PASSWORD for Zenoh's user/password authentication (AGV_FE_ZENOH__CREDENTIALS_FILE)",
+    )
     parser.add_argument("--data-dir", default=None, metavar="DIR", help="database directory (AGV_FE_DATA_DIR)")
     parser.add_argument("--profiles", default=None, metavar="FILE", help="initial profiles (AGV_FE_PROFILES_FILE)")
     parser.add_argument(
@@ -57,7 +70,13 @@ def build_settings(args: argparse.Namespace) -> Any:
     overrides: dict[str, Any] = {}
     if args.http_port is not None or args.http_host is not None:
         overrides["http"] = {k: v for k, v in (("port", args.http_port), ("host", args.http_host)) if v is not None}
-    zenoh = {k: v for k, v in (("endpoint", args.zenoh_endpoint), ("mode", args.zenoh_mode)) if v is not None}
+    zenoh_flags = (
+        ("endpoint", args.zenoh_endpoint),
+        ("mode", args.zenoh_mode),
+        ("config_file", args.zenoh_config),
+        ("credentials_file", args.zenoh_credentials),
+    )
+    zenoh = {k: v for k, v in zenoh_flags if v is not None}
     if zenoh:
         overrides["zenoh"] = zenoh
     if args.data_dir is not None:
@@ -85,6 +104,23 @@ def build_settings(args: argparse.Namespace) -> Any:
         raise CommandError(f"invalid settings:\n{validation_message(exc, '')}") from exc
 
 
+def check_zenoh_config(settings: Any) -> None:
+    """Read the Zenoh configuration file (if any) before starting, so that a wrong key, a missing file or a
+    conflict with the mode or endpoint is a one-line error instead of a failed start-up."""
+    from agv_fe.common import CommandError
+    from service.transport import TransportError, zenoh_config
+
+    z = settings.zenoh
+    if z.config_file is None and z.credentials_file is None:
+        return
+    try:
+        zenoh_config(
+            z.mode, z.endpoint, z.connect_timeout_ms, config_file=z.config_file, credentials_file=z.credentials_file
+        )
+    except TransportError as exc:
+        raise CommandError(str(exc)) from exc
+
+
 def run(args: argparse.Namespace) -> int:
     import logging
 
@@ -96,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         settings = build_settings(args)
+        check_zenoh_config(settings)
     except CommandError as exc:
         return fail(exc)
     logs.configure(args.log_level, args.log_format)
