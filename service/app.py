@@ -34,7 +34,7 @@ from pydantic import ValidationError
 from service import logs
 from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine, FleetError
 from service.jobs import FINAL_STATES, Job, JobKind, SynthesisJobs
-from service.metrics import ServiceMetrics
+from service.metrics import ServiceMetrics, service_registry
 from service.profiles import (
     DEFAULT_PROFILE_NAME,
     PROFILE_NAME_RULE,
@@ -146,6 +146,8 @@ class Service:
         self.ingest_heartbeat = time.monotonic()
         self._running = False
         self.transport_up = False
+        #: what /metrics exposes: this service's series and the process's (a registry per service instance)
+        self.registry = service_registry(self)
 
     # ------------------------------------------------------------------ life cycle
 
@@ -438,6 +440,7 @@ class Service:
                 self.commit_alarms(result.alarms)
             if result.estimate_batches:
                 sent, in_fleet = transport.publish_estimates(result.estimate_batches)
+                metrics.observe_end_to_end([b.t_ns for b in result.estimate_batches], time.time_ns())
                 metrics.estimates_out += sent
                 metrics.fleet_estimates_out += in_fleet
             metrics.tick_seconds.observe(time.perf_counter() - started)

@@ -67,11 +67,15 @@ def dockerfile_env() -> dict[str, str]:
     return env
 
 
-def test_compose_has_the_four_roles_on_one_image():
-    assert set(SERVICES) == {"router", "service", "fleet", "dashboard"}
+def test_compose_has_the_four_roles_on_one_image_and_monitoring_behind_a_profile():
+    default = {name for name, spec in SERVICES.items() if "profiles" not in spec}
+    assert default == {"router", "service", "fleet", "dashboard"}
     for name in ("service", "fleet", "dashboard"):
         assert SERVICES[name]["image"] == "agv-fe:latest" and SERVICES[name]["build"] == "."
-    assert COMPOSE["volumes"] == {"agv-data": None}
+    # docker compose --profile monitoring up adds Prometheus and Grafana (tests/test_monitoring.py checks them)
+    assert {name for name in SERVICES if name not in default} == {"prometheus", "grafana"}
+    assert all(SERVICES[name]["profiles"] == ["monitoring"] for name in ("prometheus", "grafana"))
+    assert COMPOSE["volumes"] == {"agv-data": None, "prometheus-data": None, "grafana-data": None}
 
 
 def test_router_image_is_pinned_to_the_python_binding_and_its_config_is_mounted():
