@@ -132,7 +132,8 @@ async def validation_error(request: Request, exc: Exception) -> JSONResponse:
 
 
 def document_413(app: FastAPI, http: HttpSettings) -> None:
-    """Add the 413 answer to every operation with a request body in the OpenAPI document."""
+    """Add the 413 and 400 answers to every operation with a request body in the OpenAPI document, and document a
+    422's detail as what it is: the list of field errors, or one sentence."""
     build = app.openapi
 
     def openapi() -> dict[str, Any]:
@@ -143,10 +144,31 @@ def document_413(app: FastAPI, http: HttpSettings) -> None:
             for operation in operations.values():
                 if isinstance(operation, dict) and "requestBody" in operation:
                     limit = http.max_calibration_body_bytes if CALIBRATION_PATH.match(path) else http.max_body_bytes
-                    operation.setdefault("responses", {})["413"] = {
+                    responses = operation.setdefault("responses", {})
+                    responses["413"] = {
                         "description": f"the body is larger than {limit} bytes (settings http.max_body_bytes, "
                         "http.max_calibration_body_bytes); refused before it is read"
                     }
+                    responses["400"] = {
+                        "description": "the body is not valid JSON (the detail says so)",
+                        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/HTTPError"}}},
+                    }
+        components = schema.setdefault("components", {}).setdefault("schemas", {})
+        components["HTTPError"] = {
+            "title": "HTTPError",
+            "type": "object",
+            "properties": {"detail": {"type": "string", "title": "Detail"}},
+            "required": ["detail"],
+        }
+        # a 422 names the fields at fault (a list, FastAPI's validation errors) or says in a sentence what a
+        # valid request needs that no field's type can say (a refused calibration, an unknown level filter...)
+        validation = components.get("HTTPValidationError")
+        if validation is not None:
+            detail = validation["properties"]["detail"]
+            validation["properties"]["detail"] = {
+                "title": "Detail",
+                "anyOf": [{k: v for k, v in detail.items() if k != "title"}, {"type": "string"}],
+            }
         app.openapi_schema = schema
         return schema
 
