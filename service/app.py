@@ -53,6 +53,11 @@ from synth.observer import RuntimeGains
 
 log = logging.getLogger("agv_fe.service")
 
+
+class TooManyProfiles(Exception):
+    """A new profile beyond the setting max_profiles (the API answers 409 with this message)."""
+
+
 #: A background task that ran this long without failing has its restart count reset [s].
 TASK_RESTART_RESET_S = 60.0
 #: Longest wait before a failed background task is restarted [s].
@@ -122,7 +127,9 @@ class Service:
         self.storage: Storage | None = None
         self.writer: StorageWriter | None = None
         self.transport: Transport | None = None
-        self.jobs = SynthesisJobs(settings.synthesis_workers, self._activate_job, self._persist_job)
+        self.jobs = SynthesisJobs(
+            settings.synthesis_workers, self._activate_job, self._persist_job, kept=settings.jobs_kept
+        )
         #: stored profiles that could not be loaded at start-up, and why; they do not run
         self.failed_profiles: dict[str, str] = {}
         self.token = ""
@@ -500,6 +507,12 @@ class Service:
         queued: the API awaits :meth:`stored` before it answers."""
         bank = self.engine.banks.get(name)
         if bank is None:
+            running = len(self.engine.banks) + len(self.failed_profiles.keys() - {name})
+            if running >= self.settings.max_profiles:
+                raise TooManyProfiles(
+                    f"the service runs {running} profiles, its limit (setting max_profiles = "
+                    f"{self.settings.max_profiles}): change an existing profile, or raise the limit"
+                )
             self.engine.add_profile(name, spec)
             self._store_profile(name, spec)
             if self.failed_profiles.pop(name, None) is not None:
@@ -537,6 +550,8 @@ class Service:
         """Store a job at each change of state; time and report how it ended."""
         if self.writer is not None:
             self.writer.submit(f"job {job.id} ({job.status})", partial(Storage.put_job, record=job.to_dict()))
+            if job.status in FINAL_STATES:  # the newest jobs_kept stay in the database
+                self.writer.submit("pruning old jobs", partial(Storage.prune_jobs, keep=self.settings.jobs_kept))
         if job.status in ("succeeded", "failed") and job.duration_s is not None:
             self.metrics.synthesis_seconds.observe(job.duration_s)
         if job.status in FINAL_STATES:

@@ -129,8 +129,10 @@ Persist = Callable[[Job], None]
 class SynthesisJobs:
     """The job queue: one running job and at most one queued job per profile."""
 
-    def __init__(self, workers: int, activate: Activate, persist: Persist) -> None:
+    def __init__(self, workers: int, activate: Activate, persist: Persist, kept: int = 500) -> None:
         self._workers = workers
+        #: finished jobs kept in memory; the oldest beyond are forgotten (running and queued ones never)
+        self._kept = kept
         self._activate = activate
         self._persist = persist
         self._executor: ProcessPoolExecutor | None = None
@@ -163,6 +165,15 @@ class SynthesisJobs:
 
     def get(self, job_id: str) -> Job | None:
         return self._jobs.get(job_id)
+
+    def __len__(self) -> int:
+        return len(self._jobs)
+
+    def _forget_oldest(self) -> None:
+        """Keep at most ``kept`` finished jobs in memory (the database keeps its own, pruned by the service)."""
+        finished = [job_id for job_id, job in self._jobs.items() if job.status in FINAL_STATES]
+        for job_id in finished[: max(0, len(finished) - self._kept)]:
+            del self._jobs[job_id]
 
     def pending_for(self, profile: str) -> Job | None:
         """The newest job of ``profile`` that has not finished."""
@@ -198,6 +209,7 @@ class SynthesisJobs:
         """Queue a design of ``spec`` for ``profile``; a queued, not yet started job of the profile is superseded."""
         job = Job(id=f"job-{uuid.uuid4().hex[:12]}", profile=profile, kind=kind, spec=spec.stored(), resumes=resumes)
         self._jobs[job.id] = job
+        self._forget_oldest()
         previous = self._queued.pop(profile, None)
         if previous is not None:
             old = previous[0]
@@ -252,6 +264,7 @@ class SynthesisJobs:
                 self.finished[job.status] += 1
             self._persist(job)
             self._running.pop(job.profile, None)
+            self._forget_oldest()
             nxt = self._queued.pop(job.profile, None)
             if nxt is not None and job.error != "shutdown":
                 self._start(*nxt)

@@ -226,6 +226,12 @@ class Settings(BaseSettings):
         None, description="JSON or YAML file of initial profiles, used when the database has none"
     )
     synthesis_workers: Annotated[int, Field(ge=1, le=8)] = Field(1, description="processes running LMI designs")
+    max_profiles: Annotated[int, Field(ge=1, le=10_000)] = Field(
+        64, description="profiles the service runs at most: a PUT of one more is refused (409), not a new bank"
+    )
+    jobs_kept: Annotated[int, Field(ge=10, le=1_000_000)] = Field(
+        500, description="finished design jobs kept (memory and database); the oldest beyond go"
+    )
     http: HttpSettings = HttpSettings()
     auth: AuthSettings = AuthSettings()
     zenoh: ZenohSettings = ZenohSettings()

@@ -268,6 +268,13 @@ class Storage:
         row = self._db.execute("SELECT record FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return None if row is None else dict(json.loads(row[0]))
 
+    def prune_jobs(self, keep: int) -> None:
+        """Delete all but the newest ``keep`` jobs."""
+        with self.transaction():
+            self._db.execute(
+                "DELETE FROM jobs WHERE id NOT IN (SELECT id FROM jobs ORDER BY created_t_ns DESC LIMIT ?)", (keep,)
+            )
+
     def jobs(self, limit: int = 100) -> list[dict[str, Any]]:
         rows = self._db.execute("SELECT record FROM jobs ORDER BY created_t_ns DESC LIMIT ?", (limit,)).fetchall()
         return [dict(json.loads(r[0])) for r in rows]

@@ -437,3 +437,9 @@ class CalibrationProposal(BaseModel):
     report: dict[str, JsonValue] = Field(
         description="parameters with 95 % intervals, sensor noise, fit residuals, thresholds, warnings"
     )
+
+
+class HTTPError(BaseModel):
+    """An error answered in one sentence."""
+
+    detail: str

@@ -199,3 +199,28 @@ def test_a_stored_profile_that_cannot_be_loaded_is_reported_and_the_others_run(t
         assert srv.get("/profiles/poison").json()["state"] == "running"
         assert set(srv.get("/ready").json()["failed_profiles"]) == {"garbled"}
         assert srv.vehicle("held-1")["profile"] == "poison"
+
+
+def test_profiles_and_jobs_are_bounded(tmp_path):
+    """The hardening issue: 124 profiles and 500 jobs in 240 s, kept for ever. A profile beyond max_profiles is
+    a 409 that says so (changing an existing one still works); finished jobs beyond jobs_kept are forgotten,
+    in memory and in the database."""
+    settings = make_settings(tmp_path).model_copy(update={"max_profiles": 3, "jobs_kept": 10})
+    with running(settings) as srv:
+        fast = {"design": FAST_DESIGN}
+        for name in ("p1", "p2"):  # with 'default': three
+            assert srv.http.put(f"/profiles/{name}", json=fast, headers=srv.auth).status_code == 202
+        refused = srv.http.put("/profiles/p3", json=fast, headers=srv.auth)
+        assert refused.status_code == 409 and "max_profiles = 3" in refused.json()["detail"]
+        assert srv.get("/profiles/p3").status_code == 404
+        # a change of an existing profile is not a new one; twelve designs in a row leave ten jobs
+        ids = []
+        for k in range(12):
+            body = {"design": FAST_DESIGN, "params": {"mass_kg": 1400.0 + k}}
+            answer = srv.http.put("/profiles/p1", json=body, headers=srv.auth)
+            assert answer.status_code == 202, answer.text
+            ids.append(answer.json()["job"])
+            wait_for(lambda job=ids[-1]: job_done(srv, job), what=f"job {ids[-1]}")
+        wait_for(lambda: len(srv.service.jobs) <= 10, what="old jobs forgotten")
+        assert srv.get(f"/jobs/{ids[-1]}").status_code == 200
+        wait_for(lambda: len(srv.service.db.jobs(limit=1000)) <= 10, what="old jobs pruned from the database")

@@ -9,8 +9,15 @@ from fastapi import APIRouter, HTTPException, Path, Query, Response, status
 from pydantic import AfterValidator
 
 from service.api.deps import STORAGE_UNAVAILABLE, Operator, ServiceDep, profile_bank
-from service.api.models import CalibrationProposal, CalibrationRequest, GainsInfo, ProfileChange, ProfileInfo
-from service.app import Service
+from service.api.models import (
+    CalibrationProposal,
+    CalibrationRequest,
+    GainsInfo,
+    HTTPError,
+    ProfileChange,
+    ProfileInfo,
+)
+from service.app import Service, TooManyProfiles
 from service.calibration import run_calibration
 from service.fleet import ProfileBank
 from service.profiles import PROFILE_NAME_PATTERN, ProfileSpec, check_profile_name
@@ -70,6 +77,7 @@ async def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
     responses={
         **AUTH,
         200: {"model": ProfileChange, "description": "only thresholds or limits changed: applied"},
+        409: {"model": HTTPError, "description": "a new profile beyond the setting max_profiles"},
         **STORAGE_UNAVAILABLE,
     },
     summary="create or change a profile; new parameters, bounds or design options start a synthesis job",
@@ -84,7 +92,10 @@ async def put_profile(
             "(`agv-fe replay` and the benchmarks do); put the profile with it disabled",
         )
     service.require_storage()
-    job = service.put_profile(name, spec)
+    try:
+        job = service.put_profile(name, spec)
+    except TooManyProfiles as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from exc
     await service.stored(f"profile {name!r}")
     if job is None:
         response.status_code = status.HTTP_200_OK
