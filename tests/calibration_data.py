@@ -10,27 +10,14 @@ import tempfile
 from functools import lru_cache
 from pathlib import Path
 
+from agv_fe.benchmarks import REFERENCE_CAR
 from edge_client.recording import write_recording
 from edge_client.scenario import Manoeuvre, Scenario, SensorNoise, SpeedPoint
 from edge_client.simulation import simulate_plant
 from synth.calibration import Drive
-from synth.params import VehicleParams
 
 #: A physical car with everything calibration identifies switched on.
-CAR = VehicleParams(
-    mass_kg=1230.0,
-    effective_mass_kg=1290.0,
-    wheel_radius_m=0.33,
-    yaw_inertia_kgm2=1540.0,
-    front_axle_distance_m=0.9,
-    rear_axle_distance_m=1.5,
-    front_cornering_stiffness_npr=80000.0,
-    rear_cornering_stiffness_npr=50000.0,
-    longitudinal_drag_coeff=0.4,
-    rolling_resistance_n=150.0,
-    cornering_drag=True,
-    steer_time_constant_s=0.04,
-)
+CAR = REFERENCE_CAR
 #: What the car's data sheet gives.
 BASE = {
     name: getattr(CAR, name)

@@ -8,6 +8,25 @@ import subprocess
 from datetime import UTC, datetime
 from importlib import metadata
 
+from synth.params import VehicleParams
+
+#: The reference physical car of the benchmarks and the calibration tests: everything calibration identifies
+#: switched on (wheel torque, effective mass, drag, rolling resistance, cornering drag, a 40 ms steering lag).
+REFERENCE_CAR = VehicleParams(
+    mass_kg=1230.0,
+    effective_mass_kg=1290.0,
+    wheel_radius_m=0.33,
+    yaw_inertia_kgm2=1540.0,
+    front_axle_distance_m=0.9,
+    rear_axle_distance_m=1.5,
+    front_cornering_stiffness_npr=80000.0,
+    rear_cornering_stiffness_npr=50000.0,
+    longitudinal_drag_coeff=0.4,
+    rolling_resistance_n=150.0,
+    cornering_drag=True,
+    steer_time_constant_s=0.04,
+)
+
 
 def machine_description() -> str:
     """One line about where the figures were measured."""

@@ -48,8 +48,8 @@ import numpy as np
 import scipy.stats
 from numpy.typing import NDArray
 
+from agv_fe.benchmarks import REFERENCE_CAR, report_header
 from agv_fe.benchmarks import real_vehicle as rv
-from agv_fe.benchmarks import report_header
 from edge_client import multibody as mb
 from edge_client.faults import BiasFault, Channel, Fault, LossOfEffectivenessFault, SinusoidalFault
 from edge_client.fleet_mix import random_gusts
@@ -78,20 +78,7 @@ from synth.params import OperatingBounds, VehicleParams
 
 #: The physical car (the calibration tests' car, tests/calibration_data.py): everything calibration identifies
 #: switched on, a steering actuator with a lag.
-CAR = VehicleParams(
-    mass_kg=1230.0,
-    effective_mass_kg=1290.0,
-    wheel_radius_m=0.33,
-    yaw_inertia_kgm2=1540.0,
-    front_axle_distance_m=0.9,
-    rear_axle_distance_m=1.5,
-    front_cornering_stiffness_npr=80000.0,
-    rear_cornering_stiffness_npr=50000.0,
-    longitudinal_drag_coeff=0.4,
-    rolling_resistance_n=150.0,
-    cornering_drag=True,
-    steer_time_constant_s=0.04,
-)
+CAR = REFERENCE_CAR
 #: What the car's data sheet gives calibration.
 BASE_FIELDS = ("mass_kg", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m", "yaw_inertia_kgm2")
 #: Realistic sensor noise: sigma v_x [m/s], r [rad/s].

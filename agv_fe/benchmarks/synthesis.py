@@ -6,7 +6,7 @@ import statistics
 import time
 from pathlib import Path
 
-from agv_fe.benchmarks import report_header
+from agv_fe.benchmarks import REFERENCE_CAR, report_header
 from synth.design import synthesize
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
@@ -16,20 +16,7 @@ REPEATS = 5
 #: A physical car as calibration makes it: wheel torque, effective mass, rolling resistance, cornering drag (two
 #: more DMVT scalars), a steering lag; the box and design calibration chooses for such a car.
 CALIBRATED_CAR = (
-    VehicleParams(
-        mass_kg=1230.0,
-        effective_mass_kg=1290.0,
-        wheel_radius_m=0.33,
-        yaw_inertia_kgm2=1540.0,
-        front_axle_distance_m=0.9,
-        rear_axle_distance_m=1.5,
-        front_cornering_stiffness_npr=80000.0,
-        rear_cornering_stiffness_npr=50000.0,
-        longitudinal_drag_coeff=0.4,
-        rolling_resistance_n=150.0,
-        cornering_drag=True,
-        steer_time_constant_s=0.04,
-    ),
+    REFERENCE_CAR,
     OperatingBounds(vy_min_mps=-0.5, vy_max_mps=0.5, steer_max_rad=0.15, front_lateral_force_max_n=9000.0),
 )
 
