@@ -45,7 +45,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import numpy as np
 
@@ -90,18 +90,7 @@ RejectReason = Literal[
     "out_of_range",
     "no_gains",
 ]
-REJECT_REASONS: tuple[RejectReason, ...] = (
-    "malformed",
-    "id_mismatch",
-    "unknown_vehicle",
-    "duplicate",
-    "out_of_order",
-    "implausible_seq",
-    "reserved_bits",
-    "non_finite",
-    "out_of_range",
-    "no_gains",
-)
+REJECT_REASONS: tuple[RejectReason, ...] = get_args(RejectReason)
 #: Rejects that count towards a vehicle's rejected-input burst alarm (duplicates and late samples do not).
 BURST_REASONS = frozenset({"malformed", "id_mismatch", "reserved_bits", "non_finite", "out_of_range"})
 #: Rejects of samples whose sequence number is not believed; enough in a row raise ``sequence_rejected``.
