@@ -17,6 +17,7 @@ from agv_fe.benchmarks import detection as bench
 from agv_fe.commands.bench import BENCHMARKS
 from service.fleet.alarms import FAULT, OK, WARN
 from service.profiles import AlarmThresholds
+from tests.agv_fe.markdown import assert_rows_match_headers
 
 SET = 1
 CHANNELS = ("torque", "steer")
@@ -70,21 +71,7 @@ def test_registered_and_writes_report_json_and_figure(outcome):
 def test_every_table_row_has_the_header_s_columns(outcome):
     """A stray '|' in a cell (|a_y|, |estimate|) would shift a markdown table's columns."""
     _, text, _ = outcome
-    tables: list[list[str]] = []
-    previous = ""
-    for line in text.splitlines():
-        if line.startswith("|"):
-            if not previous.startswith("|"):
-                tables.append([])
-            tables[-1].append(line)
-        previous = line
-    assert len(tables) >= 7
-    for table in tables:
-        header, rule, *rows = table
-        assert set(rule.replace("|", "")) == {"-"}, table[:2]
-        assert rows, header
-        for row in rows:
-            assert row.count("|") == header.count("|"), (header, row)
+    assert_rows_match_headers(text, at_least=7, rows_required=True)
 
 
 def test_healthy_counts_are_counts_consistent_with_the_vehicle_hours(outcome):

@@ -18,6 +18,7 @@ from agv_fe.benchmarks import real_vehicle as bench
 from agv_fe.commands.bench import BENCHMARKS
 from edge_client import multibody as mb
 from service.calibration import DECAY_RATE_CANDIDATES
+from tests.agv_fe.markdown import assert_rows_match_headers
 
 SET = 1
 LEVELS = ("OK", "WARN", "FAULT")
@@ -68,20 +69,7 @@ def test_registered_and_writes_report_and_json_beside_it(outcome):
 def test_every_table_row_has_the_header_s_columns(outcome):
     """A stray '|' in a cell (|a_y|, |estimate|) would shift a markdown table's columns."""
     _, text, _ = outcome
-    tables: list[list[str]] = []
-    previous = ""
-    for line in text.splitlines():
-        if line.startswith("|"):
-            if not previous.startswith("|"):
-                tables.append([])
-            tables[-1].append(line)
-        previous = line
-    assert len(tables) >= 5
-    for table in tables:
-        header, rule, *rows = table
-        assert set(rule.replace("|", "")) == {"-"}, table[:2]
-        for row in rows:
-            assert row.count("|") == header.count("|"), (header, row)
+    assert_rows_match_headers(text, at_least=5)
 
 
 def test_must_show_has_a_line_per_target_matching_the_json(outcome, figures):
