@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue
 
 from service.calibration import GUST_N
 from service.profiles import ProfileSpec
-from service.protocol import AlarmKind, Estimate, Level
+from service.protocol import AlarmKind, Estimate, EstimateRow, Level
 
 _COUNTERS_EXAMPLE: dict[str, JsonValue] = {
     "accepted": 12000,
@@ -218,17 +218,6 @@ class AlarmDetail(AlarmInfo):
 class VehicleDetail(VehicleStatus):
     latest_estimate: Estimate | None
     alarms: list[AlarmInfo] = Field(description="latched alarms of the vehicle")
-
-
-class EstimateRow(BaseModel):
-    seq: int
-    t_ns: int
-    vx: float
-    vy: float
-    r: float
-    torque_fault: float
-    steer_fault: float
-    in_domain: bool
 
 
 class EstimateHistory(BaseModel):

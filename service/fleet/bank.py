@@ -17,13 +17,17 @@ import numpy as np
 
 from service.fleet.alarms import Detector, FaultLevels, LevelDetector, seconds_to_ns
 from service.profiles import ProfileSpec
+from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS
 from synth.gains import ObserverGains
 from synth.model import FloatArray
 from synth.observer import RuntimeGains, initial_observer_state, observer_step, switched_step
 
-#: Columns of the estimate rows kept per sample: v_x, v_y, r [m/s, m/s, rad/s], T_f [N m], delta_f [rad].
-ESTIMATE_COLUMNS = ("vx", "vy", "r", "torque_fault", "steer_fault")
+#: The estimate rows kept per sample have the record's float columns (service.protocol.ESTIMATE_COLUMNS);
+#: the first _N_STATE are the observer's state and total faults, v_x, v_y, r, T_f, delta_f.
 _N_EST = len(ESTIMATE_COLUMNS)
+_N_STATE = len(STATE_COLUMNS)
+#: The total faults' columns, T_f and delta_f, among the state columns.
+FAULTS = slice(STATE_COLUMNS.index("torque_fault"), STATE_COLUMNS.index("steer_fault") + 1)
 _INITIAL_CAPACITY = 64
 
 
@@ -31,12 +35,12 @@ _INITIAL_CAPACITY = 64
 class StepOutput:
     """Result of one batched step, rows in the order of the call.
 
-    x5 : (k, 5) estimates; in_domain, vy_in_bounds, finite : (k,) bool;
+    values : (k, len(ESTIMATE_COLUMNS)) estimates; in_domain, vy_in_bounds, finite : (k,) bool;
     restarted : (k,) bool, the row's observer was (re)initialised at this sample.
     fast : (k,) bool, the row ran the fast gain set of a switched design (None: the design has one set).
     """
 
-    x5: FloatArray
+    values: FloatArray
     in_domain: np.ndarray
     vy_in_bounds: np.ndarray
     finite: np.ndarray
@@ -63,12 +67,12 @@ class ProfileBank:
         self.fast_left = np.zeros(cap, dtype=np.int64)
         self.last_fast = np.zeros(cap, dtype=bool)
         self.needs_init = np.ones(cap, dtype=bool)
-        self.warm = np.full((cap, _N_EST), np.nan)
-        self.last_x5 = np.full((cap, _N_EST), np.nan)
+        self.warm = np.full((cap, _N_STATE), np.nan)
+        self.last_values = np.full((cap, _N_EST), np.nan)
         self.last_in_domain = np.zeros(cap, dtype=bool)
         self.last_seq = np.full(cap, -1, dtype=np.int64)
         self.last_t_ns = np.zeros(cap, dtype=np.int64)
-        self.hist_x5 = np.zeros((cap, history_samples, _N_EST))
+        self.hist_values = np.zeros((cap, history_samples, _N_EST))
         self.hist_in_domain = np.zeros((cap, history_samples), dtype=bool)
         self.hist_seq = np.zeros((cap, history_samples), dtype=np.int64)
         self.hist_t_ns = np.zeros((cap, history_samples), dtype=np.int64)
@@ -108,6 +112,16 @@ class ProfileBank:
         return None if self.gains is None else self.gains.version
 
     @property
+    def columns(self) -> tuple[str, ...]:
+        """The float columns of this profile's estimates (the first of :data:`ESTIMATE_COLUMNS`)."""
+        return STATE_COLUMNS
+
+    def named_values(self, row: np.ndarray | list[float]) -> dict[str, float]:
+        """A row of :attr:`last_values` or :meth:`history` by column name, the profile's columns only."""
+        values = row.tolist() if isinstance(row, np.ndarray) else row
+        return dict(zip(self.columns, values[: len(self.columns)], strict=True))
+
+    @property
     def ready(self) -> bool:
         return self.runtime is not None
 
@@ -128,7 +142,7 @@ class ProfileBank:
         runtime = runtime or RuntimeGains.from_gains(gains)
         self.gains, self.runtime = gains, runtime
         self.z = np.zeros((self.capacity, runtime.state_size))
-        self.warm = self.last_x5.copy()
+        self.warm = self.last_values[:, :_N_STATE].copy()
         self.needs_init[:] = True
 
     # ------------------------------------------------------------------ slots
@@ -154,7 +168,7 @@ class ProfileBank:
     def _clear_row(self, slot: int) -> None:
         self.needs_init[slot] = True
         self.warm[slot] = np.nan
-        self.last_x5[slot] = np.nan
+        self.last_values[slot] = np.nan
         self.last_in_domain[slot] = False
         self.last_fast[slot] = False
         self.last_seq[slot] = -1
@@ -179,11 +193,11 @@ class ProfileBank:
         self.last_fast = pad(self.last_fast, False)
         self.needs_init = pad(self.needs_init, True)
         self.warm = pad(self.warm, np.nan)
-        self.last_x5 = pad(self.last_x5, np.nan)
+        self.last_values = pad(self.last_values, np.nan)
         self.last_in_domain = pad(self.last_in_domain, False)
         self.last_seq = pad(self.last_seq, -1)
         self.last_t_ns = pad(self.last_t_ns, 0)
-        self.hist_x5 = pad(self.hist_x5, 0.0)
+        self.hist_values = pad(self.hist_values, 0.0)
         self.hist_in_domain = pad(self.hist_in_domain, False)
         self.hist_seq = pad(self.hist_seq, 0)
         self.hist_t_ns = pad(self.hist_t_ns, 0)
@@ -248,28 +262,28 @@ class ProfileBank:
                 self.last_fast[slots] = res.fast
             else:  # one gain set: no switching state to gather or scatter on the hot path
                 z_next, res = observer_step(rt, self.z[slots], y, u)
-        x5 = res.x_hat[:, :_N_EST]
-        finite: np.ndarray = np.asarray(np.isfinite(x5).all(axis=1) & np.isfinite(z_next).all(axis=1))
+        values = res.x_hat[:, :_N_STATE]
+        finite: np.ndarray = np.asarray(np.isfinite(values).all(axis=1) & np.isfinite(z_next).all(axis=1))
         self.z[slots] = z_next
-        good, x5_good, in_domain, seq_good, t_good = slots, x5, res.in_domain, seq, t_ns
+        good, values_good, in_domain, seq_good, t_good = slots, values, res.in_domain, seq, t_ns
         if not finite.all():
             bad = slots[~finite]
             self.needs_init[bad] = True
             self.warm[bad] = np.nan
-            good, x5_good, in_domain = slots[finite], x5[finite], in_domain[finite]
+            good, values_good, in_domain = slots[finite], values[finite], in_domain[finite]
             seq_good, t_good = seq[finite], t_ns[finite]
-        self.last_x5[good] = x5_good
+        self.last_values[good] = values_good
         self.last_in_domain[good] = in_domain
         self.last_seq[good] = seq_good
         self.last_t_ns[good] = t_good
         pos = self.hist_count[good] % self.history_samples
-        self.hist_x5[good, pos] = x5_good
+        self.hist_values[good, pos] = values_good
         self.hist_in_domain[good, pos] = in_domain
         self.hist_seq[good, pos] = seq_good
         self.hist_t_ns[good, pos] = t_good
         self.hist_count[good] += 1
         return StepOutput(
-            x5=x5,
+            values=values,
             in_domain=res.in_domain,
             vy_in_bounds=res.vy_in_bounds,
             finite=finite,
@@ -278,7 +292,7 @@ class ProfileBank:
         )
 
     def history(self, slot: int, limit: int) -> list[tuple[int, int, bool, list[float]]]:
-        """The last ``limit`` estimates of a row, oldest first: (seq, t_ns, in_domain, x5)."""
+        """The last ``limit`` estimates of a row, oldest first: (seq, t_ns, in_domain, values)."""
         count = int(self.hist_count[slot])
         n = min(count, self.history_samples, limit)
         out = []
@@ -289,7 +303,7 @@ class ProfileBank:
                     int(self.hist_seq[slot, pos]),
                     int(self.hist_t_ns[slot, pos]),
                     bool(self.hist_in_domain[slot, pos]),
-                    self.hist_x5[slot, pos].tolist(),
+                    self.hist_values[slot, pos].tolist(),
                 )
             )
         return out

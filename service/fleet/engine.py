@@ -50,7 +50,7 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange, seconds_to_ns
-from service.fleet.bank import ProfileBank, StepOutput
+from service.fleet.bank import FAULTS, ProfileBank, StepOutput
 from service.fleet.events import EventBus, FleetEvent
 from service.profiles import ProfileSpec
 from service.protocol import (
@@ -63,6 +63,7 @@ from service.protocol import (
     AlarmKind,
     Estimate,
     EstimateBatch,
+    EstimateRow,
     Level,
     Measurement,
     ProtocolError,
@@ -693,14 +694,14 @@ class FleetEngine:
         values: np.ndarray,
         result: TickResult,
     ) -> None:
-        x5, in_domain, vy_in_bounds, finite = out.x5, out.in_domain, out.vy_in_bounds, out.finite
+        est, in_domain, vy_in_bounds, finite = out.values, out.in_domain, out.vy_in_bounds, out.finite
         t = t_ns[idx]
         all_finite = bool(finite.all())  # the common case: no row needs picking out
         if not all_finite:
             self.stats["numerical_restarts"] += int((~finite).sum())
         # alarms: fault channels after the warm-up (FaultLevels, as `agv-fe replay` runs them), domain always
         usable = None if self._shortcuts and all_finite else finite
-        changed: set[int] = set(bank.faults.update(slots, x5[:, 3:5], t, usable).tolist())
+        changed: set[int] = set(bank.faults.update(slots, est[:, FAULTS], t, usable).tolist())
         if self._shortcuts and all_finite:
             changed.update(bank.domain.update(slots, (~in_domain | ~vy_in_bounds).astype(float), t).tolist())
         else:
@@ -708,7 +709,7 @@ class FleetEngine:
             outside = (~in_domain[f] | ~vy_in_bounds[f]).astype(float)
             changed.update(f[bank.domain.update(slots[f], outside, t[f])].tolist())
         for j in sorted(changed):
-            self._alarm_transitions(bank, rows.vehicles[idx[j]], int(t[j]), x5[j], result)
+            self._alarm_transitions(bank, rows.vehicles[idx[j]], int(t[j]), est[j], result)
         # counts, and which estimates to publish: every n-th finite estimate of each vehicle
         bank.accepted[slots] += 1
         every_n = self.config.estimate_every_n
@@ -716,7 +717,7 @@ class FleetEngine:
             bank.estimates[slots] += 1
             bank.published[slots] += 1
             self.stats["estimates"] += len(slots)
-            pub_slots, pub_idx, pub_t, pub_x5, pub_in_domain, fast = slots, idx, t, x5, in_domain, out.fast
+            pub_slots, pub_idx, pub_t, pub_est, pub_in_domain, fast = slots, idx, t, est, in_domain, out.fast
         else:
             done = slots[finite]
             bank.estimates[done] += 1
@@ -727,7 +728,7 @@ class FleetEngine:
             self.stats["estimates"] += len(done)
             if not len(pub):
                 return
-            pub_slots, pub_idx, pub_t, pub_x5, pub_in_domain = slots[pub], idx[pub], t[pub], x5[pub], in_domain[pub]
+            pub_slots, pub_idx, pub_t, pub_est, pub_in_domain = slots[pub], idx[pub], t[pub], est[pub], in_domain[pub]
             fast = None if out.fast is None else out.fast[pub]
         level = bank.levels(pub_slots)
         at = pub_idx.tolist()
@@ -735,7 +736,9 @@ class FleetEngine:
         ids = [vehicles[i].id for i in at]
         # every vehicle of the tick had its STALE state cleared before it was stepped (process, pass 2)
         names = [LEVEL_NAMES[lvl] for lvl in level.tolist()]
-        batch = EstimateBatch(ids, seq[pub_idx], pub_t, pub_x5, pub_in_domain, names, bank.version or "", fast)
+        batch = EstimateBatch(
+            ids, seq[pub_idx], pub_t, pub_est, pub_in_domain, names, bank.version or "", fast, bank.columns
+        )
         result.estimate_batches.append(batch)
         if not self.events.wants("estimate"):
             return
@@ -743,26 +746,11 @@ class FleetEngine:
         for j, vehicle_id in enumerate(ids):
             if audience is not None and vehicle_id not in audience:
                 continue
-            vx, vy, r, tf, df = batch.x5[j].tolist()
             self.events.publish(
                 FleetEvent(
                     "estimate",
                     vehicle_id,
-                    Estimate.model_construct(
-                        vehicle=vehicle_id,
-                        seq=int(batch.seq[j]),
-                        t_ns=int(batch.t_ns[j]),
-                        vx=vx,
-                        vy=vy,
-                        r=r,
-                        torque_fault=tf,
-                        steer_fault=df,
-                        in_domain=bool(batch.in_domain[j]),
-                        gain_version=batch.gain_version,
-                        level=names[j],
-                        gain_set=None if batch.fast is None else ("fast" if batch.fast[j] else "quiet"),
-                        v=1,
-                    ),
+                    batch.estimate(j),
                     tuple(values[at[j]].tolist()),
                 )
             )
@@ -970,34 +958,21 @@ class FleetEngine:
         bank, slot = vehicle.bank, vehicle.slot
         if bank.last_seq[slot] < 0:
             return None
-        x = bank.last_x5[slot].tolist()
         return Estimate(
             vehicle=vehicle.id,
             seq=int(bank.last_seq[slot]),
             t_ns=int(bank.last_t_ns[slot]),
-            vx=x[0],
-            vy=x[1],
-            r=x[2],
-            torque_fault=x[3],
-            steer_fault=x[4],
             in_domain=bool(bank.last_in_domain[slot]),
             gain_version=bank.version or "",
             # the estimate's own level, as its document carried it: STALE is the vehicle's state, not an estimate's
             level=LEVEL_NAMES[int(bank.levels(slot))],
             gain_set=bank.gain_set(slot),
+            **bank.named_values(bank.last_values[slot]),
         )
 
-    def estimate_history(self, vehicle: Vehicle, limit: int) -> list[dict[str, Any]]:
+    def estimate_history(self, vehicle: Vehicle, limit: int) -> list[EstimateRow]:
+        bank = vehicle.bank
         return [
-            {
-                "seq": seq,
-                "t_ns": t_ns,
-                "vx": x[0],
-                "vy": x[1],
-                "r": x[2],
-                "torque_fault": x[3],
-                "steer_fault": x[4],
-                "in_domain": dom,
-            }
-            for seq, t_ns, dom, x in vehicle.bank.history(vehicle.slot, limit)
+            EstimateRow(seq=seq, t_ns=t_ns, in_domain=dom, **bank.named_values(values))
+            for seq, t_ns, dom, values in bank.history(vehicle.slot, limit)
         ]

@@ -38,7 +38,7 @@ from collections.abc import AsyncIterator, Collection, Iterable
 from typing import Any, Literal, Protocol
 
 from service.fleet import FleetEngine, Subscription, UnknownVehicle, Vehicle
-from service.protocol import Alarm, Estimate, GroundTruth
+from service.protocol import COLUMN_UNITS, ESTIMATE_COLUMNS, STATE_COLUMNS, Alarm, Estimate, EstimateRow, GroundTruth
 from service.settings import DashboardSettings
 
 log = logging.getLogger("agv_fe.service.web")
@@ -50,10 +50,12 @@ VIEWS: tuple[View, ...] = ("fleet", "vehicle", "profiles")
 #: torque_fault [N m]; steer_fault [rad]; alive: liveliness token present (null: the vehicle declares none).
 FLEET_COLUMNS = ("id", "profile", "level", "last_seen_s", "vx", "torque_fault", "steer_fault", "alive")
 #: Columns of a plot point: t [s, vehicle clock], measured v_x [m/s] and r [rad/s] (null when not known),
-#: estimated v_x, v_y [m/s], r [rad/s], T_f [N m], delta_f [rad].
-POINT_COLUMNS = ("t", "vx_meas", "r_meas", "vx", "vy", "r", "torque_fault", "steer_fault")
-#: Columns of a ground-truth point: t [s, simulator clock], v_x, v_y, r, T_f, delta_f.
-TRUTH_COLUMNS = ("t", "vx", "vy", "r", "torque_fault", "steer_fault")
+#: then the estimate's float columns (service.protocol.ESTIMATE_COLUMNS; null when the profile has none).
+POINT_COLUMNS = ("t", "vx_meas", "r_meas", *ESTIMATE_COLUMNS)
+#: Columns of a ground-truth point: t [s, simulator clock], then the state columns (v_x, v_y, r, T_f, delta_f).
+TRUTH_COLUMNS = ("t", *STATE_COLUMNS)
+#: Decimal places a plot point keeps, by the column's unit.
+_DIGITS_BY_UNIT = {"m/s": 4, "rad/s": 5, "N m": 2, "rad": 5, "1": 4}
 #: Frames waiting for one browser; a browser that falls this far behind is disconnected.
 CLIENT_QUEUE_FRAMES = 256
 #: A comment line is sent after this long without a frame, so proxies keep the stream open [s].
@@ -62,7 +64,6 @@ KEEPALIVE_S = 15.0
 _FAULT_KINDS = frozenset({"torque_fault", "steer_fault", "out_of_domain"})
 
 Measured = tuple[float, float, float, float]
-X5 = tuple[float, float, float, float, float]
 FleetRow = tuple[str, str, str, int | None, float | None, float | None, float | None, bool | None]
 
 
@@ -77,6 +78,15 @@ class TruthSource(Protocol):
 def sse(event: str, data: Any) -> bytes:
     """One server-sent event with a JSON payload."""
     return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'), allow_nan=False)}\n\n".encode()
+
+
+def _rounded_columns(record: EstimateRow | GroundTruth, columns: tuple[str, ...]) -> list[float | None]:
+    """The record's values of ``columns``, rounded for a plot point by each column's unit (None: absent)."""
+    values = (getattr(record, name, None) for name in columns)
+    return [
+        None if v is None else _rounded(v, _DIGITS_BY_UNIT[COLUMN_UNITS[name]])
+        for name, v in zip(columns, values, strict=True)
+    ]
 
 
 def _rounded(value: float, digits: int) -> float | None:
@@ -158,25 +168,20 @@ class Trace:
             return None
         return t_ns - t_ns % self.period_ns + self.period_ns
 
-    def add_estimate(self, t_ns: int, x5: X5, measured: Measured | None) -> None:
-        """One estimate [v_x, v_y, r, T_f, delta_f] and the measurement (v_x, r, T_d, delta_d) it answers."""
+    def add_estimate(self, t_ns: int, estimate: EstimateRow, measured: Measured | None) -> None:
+        """One estimate and the measurement (v_x, r, T_d, delta_d) it answers."""
         if self._backfilled_from_ns <= t_ns <= self._backfilled_until_ns:
             return
         following = self._take(t_ns, self._next_point_ns, self._last_point_ns)
         if following is None:
             return
         self._next_point_ns, self._last_point_ns = following, t_ns
-        vx, vy, r, tf, df = x5
         meas_vx, meas_r = (None, None) if measured is None else (measured[0], measured[1])
         point = [
             round(t_ns / 1e9, 3),
             None if meas_vx is None else _rounded(meas_vx, 4),
             None if meas_r is None else _rounded(meas_r, 5),
-            _rounded(vx, 4),
-            _rounded(vy, 4),
-            _rounded(r, 5),
-            _rounded(tf, 2),
-            _rounded(df, 5),
+            *_rounded_columns(estimate, ESTIMATE_COLUMNS),
         ]
         self.points.append(point)
         self.new_points.append(point)
@@ -187,14 +192,7 @@ class Trace:
         if following is None:
             return
         self._next_truth_ns, self._last_truth_ns = following, truth.t_ns
-        point = [
-            round(truth.t_ns / 1e9, 3),
-            _rounded(truth.vx, 4),
-            _rounded(truth.vy, 4),
-            _rounded(truth.r, 5),
-            _rounded(truth.torque_fault, 2),
-            _rounded(truth.steer_fault, 5),
-        ]
+        point = [round(truth.t_ns / 1e9, 3), *_rounded_columns(truth, STATE_COLUMNS)]
         self.truth.append(point)
         self.new_truth.append(point)
 
@@ -384,8 +382,7 @@ class DashboardHub:
             estimate = event.data
             if trace is None or not isinstance(estimate, Estimate):
                 continue
-            x5 = (estimate.vx, estimate.vy, estimate.r, estimate.torque_fault, estimate.steer_fault)
-            trace.add_estimate(estimate.t_ns, x5, event.measured)
+            trace.add_estimate(estimate.t_ns, estimate, event.measured)
 
     def _drain_truth(self) -> None:
         if self._truth is None:
@@ -448,7 +445,7 @@ class DashboardHub:
         engine = self.engine
         rows: dict[str, FleetRow] = {}
         for vehicle in vehicles:
-            vx, _, _, tf, df = vehicle.bank.last_x5[vehicle.slot].tolist()
+            vx, _, _, tf, df = vehicle.bank.last_values[vehicle.slot, : len(STATE_COLUMNS)].tolist()
             seen = None if vehicle.last_seen_ns is None else vehicle.last_seen_ns // 1_000_000_000
             rows[vehicle.id] = (
                 vehicle.id,
@@ -498,10 +495,9 @@ class DashboardHub:
         first_ns = round(trace.points[0][0] * 1e9) if trace.points and trace.points[0][0] is not None else None
         older = Trace(vehicle.id, self._period_ns, self._maxlen)
         for row in self.engine.estimate_history(vehicle, vehicle.bank.history_samples):
-            if first_ns is not None and row["t_ns"] >= first_ns - self._period_ns // 2:
+            if first_ns is not None and row.t_ns >= first_ns - self._period_ns // 2:
                 break
-            x5 = (row["vx"], row["vy"], row["r"], row["torque_fault"], row["steer_fault"])
-            older.add_estimate(row["t_ns"], x5, None)
+            older.add_estimate(row.t_ns, row, None)
         trace.prepend(older)
 
     def _refresh_follow(self) -> None:

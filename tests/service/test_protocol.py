@@ -1,6 +1,7 @@
 import math
 
 import numpy as np
+import orjson
 import pytest
 
 from service.protocol import (
@@ -11,11 +12,13 @@ from service.protocol import (
     Alarm,
     Estimate,
     EstimateBatch,
+    FleetEstimates,
     Measurement,
     ProtocolError,
     all_buckets,
     bucket_of,
     check_vehicle_id,
+    encode_fleet_estimates,
     parse_vehicle_key,
     shard_buckets,
     unpack_measurement_sequence,
@@ -131,11 +134,7 @@ def test_the_fast_estimate_encoder_writes_the_estimate_model_exactly():
         got = [e.vx, e.vy, e.r, e.torque_fault, e.steer_fault]
         assert got == states[k]
         assert [math.copysign(1.0, a) for a in got] == [math.copysign(1.0, b) for b in states[k]]  # -0.0 kept
-        one = encode_estimate(
-            batch.vehicle_ids[k], 1042 + k, 1_700_000_010_420_000_000 + k, *states[k], k % 2 == 0,
-            "3f9a1c0b7d2e", batch.levels[k],  # type: ignore[arg-type]
-        )  # fmt: skip
-        assert one == payload
+        assert encode_estimate(e) == payload
     assert batch.documents([5, 2]) == [payloads[5], payloads[2]]  # a subset, in the order asked
     assert batch.documents([]) == []
 
@@ -219,3 +218,25 @@ def zenoh_intersects(selector: str, key: str) -> bool:
     import zenoh
 
     return bool(zenoh.KeyExpr(selector).intersects(zenoh.KeyExpr(key)))
+
+
+def test_every_encoding_of_the_estimate_takes_its_fields_from_the_one_record():
+    """The per-vehicle document, the fleet stream's group, the REST row, the ground truth and the dashboard's plot
+    columns all carry exactly the fields of the record (service.protocol's Estimate and its bases): a field added
+    there reaches every encoding, and none of them can spell out a field of its own."""
+    from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS, EstimateRow, FleetEstimateGroup, GroundTruth
+    from service.web.hub import POINT_COLUMNS, TRUTH_COLUMNS
+
+    batch = _batch([[1.0, 2.0, 3.0, 4.0, 5.0]] * 3)
+    batch.fast = np.array([True, False, True])
+    document = orjson.loads(batch.documents()[0])
+    assert list(document) == list(Estimate.model_fields)  # every field, in the record's order
+    group = FleetEstimates.decode(encode_fleet_estimates("r0", [batch])).groups[0]
+    assert set(group.model_dump(exclude_none=True)) == set(FleetEstimateGroup.model_fields)
+    assert set(FleetEstimateGroup.model_fields) == set(Estimate.model_fields) - {"v"}
+    assert set(EstimateRow.model_fields) < set(Estimate.model_fields)
+    assert [e.model_dump() for e in group.estimates()] == [Estimate.decode(d).model_dump() for d in batch.documents()]
+    assert batch.estimate(1) == Estimate.decode(batch.documents()[1])
+    assert ESTIMATE_COLUMNS[: len(STATE_COLUMNS)] == STATE_COLUMNS
+    assert set(GroundTruth.model_fields) - set(STATE_COLUMNS) == {"v", "vehicle", "seq", "t_ns"}
+    assert POINT_COLUMNS[3:] == ESTIMATE_COLUMNS and TRUTH_COLUMNS[1:] == STATE_COLUMNS

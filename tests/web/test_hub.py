@@ -12,7 +12,7 @@ import pytest
 from edge_client.library import paper_1
 from service.fleet import EngineConfig, FleetEngine, FleetEvent, UnknownVehicle
 from service.profiles import ProfileSpec
-from service.protocol import Measurement, vehicle_key
+from service.protocol import EstimateRow, Measurement, vehicle_key
 from service.settings import DashboardSettings
 from service.web.hub import CLIENT_QUEUE_FRAMES, FLEET_COLUMNS, POINT_COLUMNS, Client, DashboardHub
 from tests.service.helpers import FAST_DESIGN, constant_measurement, plant_measurements
@@ -219,19 +219,19 @@ def test_live_estimates_already_in_a_backfill_do_not_restart_the_plot():
     from service.web.hub import Trace
 
     period = 50_000_000  # 20 points a second
-    x5 = (10.0, 0.0, 0.0, 0.0, 0.0)
+    estimate = EstimateRow(seq=0, t_ns=0, vx=10.0, vy=0.0, r=0.0, torque_fault=0.0, steer_fault=0.0, in_domain=True)
     older = Trace("v", period, 1200)
     for k in range(100):
-        older.add_estimate(1_000_000_000 + k * 10_000_000, x5, None)
+        older.add_estimate(1_000_000_000 + k * 10_000_000, estimate, None)
     trace = Trace("v", period, 1200)
     trace.prepend(older)
     assert trace.take_new() is None and len(trace.points) == 20
-    trace.add_estimate(1_000_000_000 + 95 * 10_000_000, x5, (10.0, 0.0))  # queued before the backfill ran
+    trace.add_estimate(1_000_000_000 + 95 * 10_000_000, estimate, (10.0, 0.0))  # queued before the backfill ran
     assert not trace.reset and len(trace.points) == 20
-    trace.add_estimate(1_000_000_000 + 100 * 10_000_000, x5, (10.0, 0.0))  # the next live sample
+    trace.add_estimate(1_000_000_000 + 100 * 10_000_000, estimate, (10.0, 0.0))  # the next live sample
     frame = trace.take_new()
     assert frame is not None and not frame["history"] and len(frame["points"]) == 1
-    trace.add_estimate(500_000_000, x5, (10.0, 0.0))  # the vehicle's clock went back: start again
+    trace.add_estimate(500_000_000, estimate, (10.0, 0.0))  # the vehicle's clock went back: start again
     assert trace.reset and len(trace.points) == 1
 
 

@@ -10,7 +10,7 @@ import orjson
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
 
 from service.api.deps import STORAGE_UNAVAILABLE, Operator, ServiceDep, profile_bank
-from service.api.models import AlarmInfo, EstimateHistory, EstimateRow, VehicleAssignment, VehicleDetail, VehicleStatus
+from service.api.models import AlarmInfo, EstimateHistory, VehicleAssignment, VehicleDetail, VehicleStatus
 from service.app import Service
 from service.fleet import UnknownProfile, UnknownVehicle, Vehicle
 from service.protocol import VEHICLE_ID_PATTERN, Level
@@ -133,7 +133,7 @@ async def get_estimates(
     limit: Annotated[int, Query(ge=1, le=100_000, description="at most this many (newest)")] = 100,
 ) -> EstimateHistory:
     vehicle = _vehicle(service, vehicle_id)
-    rows = [EstimateRow(**row) for row in service.engine.estimate_history(vehicle, limit)]
+    rows = service.engine.estimate_history(vehicle, limit)
     return EstimateHistory(vehicle=vehicle.id, gain_version=vehicle.bank.version, estimates=rows)
 
 
