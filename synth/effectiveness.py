@@ -73,9 +73,11 @@ class EffectivenessResult:
 
 
 class EffectivenessEstimator:
-    """The second stage for a fixed batch of vehicles sharing one design (module docstring).
+    """The second stage for a batch of vehicles sharing one design (module docstring), one row each.
 
-    Call :meth:`step` after each observer step with that step's result and the same y, u.
+    Call :meth:`step` after each observer step of the whole batch with that step's result and the same y, u;
+    or :meth:`step_rows` for any subset of rows (the service steps the vehicles of a tick). Each row keeps its
+    own state, start delay and previous sample; :meth:`reset` starts rows afresh, :meth:`grow` adds rows.
     """
 
     def __init__(
@@ -103,6 +105,7 @@ class EffectivenessEstimator:
         self.steer_lag = gains.params.steer_lag_factor
         self.steer_lag_mean = gains.params.steer_lag_mean_factor
         sigma = np.array([options.torque_sigma_nm, options.steer_sigma_rad])
+        self.sigma = sigma
         self.R = sigma**2
         self.Q = np.stack(
             [
@@ -112,41 +115,78 @@ class EffectivenessEstimator:
         )
         self.start_samples = round(options.start_after_s / s)
         self.theta_low, self.theta_high = options.alpha_bounds[0] - 1.0, options.alpha_bounds[1] - 1.0
-        u0 = np.zeros((nv, 2)) if u0 is None else np.atleast_2d(np.asarray(u0, dtype=float))
-        self.steer_state = u0[:, 1].copy()
+        self.steer_state = np.zeros(nv)
         self.eps = np.zeros((nv, n, 2))
-        self.N_prev: FloatArray | None = None
-        self.report_prev: FloatArray | None = None
-        self.u_prev: FloatArray | None = None
+        #: each row's previous transition and regressor; primed: the row has a previous sample
+        self.N_prev = np.zeros((nv, n, n))
+        self.u_prev = np.zeros((nv, 2))
+        self.primed = np.zeros(nv, dtype=bool)
         #: per vehicle and channel: [b, theta] and their covariance
         self.par = np.zeros((nv, 2, 2))
         self.P = np.zeros((nv, 2, 2, 2))
-        self.P[:, :, 0, 0] = (10.0 * sigma) ** 2
-        self.P[:, :, 1, 1] = options.initial_alpha_sigma**2
-        self.samples = 0
+        self.samples = np.zeros(nv, dtype=np.int64)
+        self.reset(np.arange(nv), u0)
 
-    def regressor(self, u: FloatArray) -> FloatArray:
-        """The demand each fault is a share of, (nv, 2): T_d, and the actuator model's angle over the sample."""
+    @property
+    def n_rows(self) -> int:
+        return len(self.samples)
+
+    def reset(self, rows: np.ndarray, u0: ArrayLike | None = None) -> None:
+        """Start ``rows`` afresh (alpha 1, no bias, the start delay again), their steering actuator at u0's angle."""
+        u = np.zeros((len(rows), 2)) if u0 is None else np.atleast_2d(np.asarray(u0, dtype=float))
+        self.steer_state[rows] = u[:, 1]
+        self.eps[rows] = 0.0
+        self.primed[rows] = False
+        self.par[rows] = 0.0
+        self.P[rows] = 0.0
+        self.P[rows, :, 0, 0] = (10.0 * self.sigma) ** 2
+        self.P[rows, :, 1, 1] = self.options.initial_alpha_sigma**2
+        self.samples[rows] = 0
+
+    def grow(self, nv: int) -> None:
+        """Room for ``nv`` rows; the new ones start afresh."""
+        extra = nv - self.n_rows
+        if extra <= 0:
+            return
+        old = self.n_rows
+        for name in ("steer_state", "eps", "N_prev", "u_prev", "primed", "par", "P", "samples"):
+            a = getattr(self, name)
+            setattr(self, name, np.concatenate([a, np.zeros((extra, *a.shape[1:]), dtype=a.dtype)]))
+        self.reset(np.arange(old, nv))
+
+    def regressor(self, rows: np.ndarray, u: FloatArray) -> FloatArray:
+        """The demand each fault is a share of, (k, 2): T_d, and the actuator model's angle over the sample."""
         out = u.copy()
         if self.steer_lag != 0.0:
-            out[:, 1] = self.steer_state + self.steer_lag_mean * (u[:, 1] - self.steer_state)
-            self.steer_state = self.steer_lag * self.steer_state + (1.0 - self.steer_lag) * u[:, 1]
+            state = self.steer_state[rows]
+            out[:, 1] = state + self.steer_lag_mean * (u[:, 1] - state)
+            self.steer_state[rows] = self.steer_lag * state + (1.0 - self.steer_lag) * u[:, 1]
         return out
 
     def step(self, result: StepResult, y: ArrayLike, u: ArrayLike) -> EffectivenessResult:
         """The estimates at k from the observer's result at k and the sample's y_k, u_k (nv, 2) each."""
+        return self.step_rows(np.arange(self.n_rows), result.faults, result.fast, y, u)
+
+    def step_rows(
+        self, rows: np.ndarray, f_hat: FloatArray, fast: np.ndarray | None, y: ArrayLike, u: ArrayLike
+    ) -> EffectivenessResult:
+        """The estimates at k of ``rows`` (distinct) from the observer's reported faults f_hat (k, 2) at k, the
+        gain set each row ran (``fast``; None for one set) and the sample's y_k, u_k (k, 2) each."""
         y = np.atleast_2d(np.asarray(y, dtype=float))
-        u_d = self.regressor(np.atleast_2d(np.asarray(u, dtype=float)))
-        f_hat = result.faults
-        if self.N_prev is not None and self.u_prev is not None:
+        u_d = self.regressor(rows, np.atleast_2d(np.asarray(u, dtype=float)))
+        eps = self.eps[rows]
+        primed = self.primed[rows]
+        if primed.any():
             # eps_k = N_{k-1} eps_{k-1} + D (u_k - u_{k-1})
-            self.eps = np.einsum("vjk,vkc->vjc", self.N_prev, self.eps)
-            self.eps[:, N_STATES, 0] += u_d[:, 0] - self.u_prev[:, 0]
-            self.eps[:, N_STATES + 1, 1] += u_d[:, 1] - self.u_prev[:, 1]
+            p = np.flatnonzero(primed)
+            e = np.einsum("vjk,vkc->vjc", self.N_prev[rows[p]], eps[p])
+            du = u_d[p] - self.u_prev[rows[p]]
+            e[:, N_STATES, 0] += du[:, 0]
+            e[:, N_STATES + 1, 1] += du[:, 1]
+            eps[p] = e
         # this sample's transition and reported-fault map: the gain set the observer ran
         xi = self.nts.clip_premise(self.nts.premise(y[:, 0], y[:, 1]))
         h = self.nts.memberships(xi)
-        fast = result.fast
         if len(self.sets) == 1 or fast is None:
             N, report = np.einsum("vi,ijk->vjk", h, self.N[0]), np.broadcast_to(self.report[0], (h.shape[0], 2, self.n))
         else:
@@ -154,29 +194,37 @@ class EffectivenessEstimator:
             N = np.where(pick, np.einsum("vi,ijk->vjk", h, self.N[0]), np.einsum("vi,ijk->vjk", h, self.N[1]))
             report = np.where(pick, self.report[0][None], self.report[1][None])
         # H[u]_k = u_k - (I_f - K_f C) eps_k, per channel (its own column)
-        response = np.einsum("vfj,vjc->vfc", report, self.eps)
+        response = np.einsum("vfj,vjc->vfc", report, eps)
         H = u_d - np.stack([response[:, 0, 0], response[:, 1, 1]], axis=1)
-        if self.samples >= self.start_samples:
-            self._update(f_hat, H)
-        self.samples += 1
-        self.N_prev, self.u_prev = N, u_d
-        theta = self.par[:, :, 1]
+        started = self.samples[rows] >= self.start_samples
+        if started.all():
+            self._update(rows, f_hat, H)
+        elif started.any():
+            self._update(rows[started], f_hat[started], H[started])
+        self.samples[rows] += 1
+        self.eps[rows] = eps
+        self.N_prev[rows] = N
+        self.u_prev[rows] = u_d
+        self.primed[rows] = True
+        theta = self.par[rows, :, 1]
         bias = f_hat - theta * H
         total = f_hat + theta * (u_d - H)
         return EffectivenessResult(alpha=1.0 + theta, total=total, bias=bias)
 
-    def _update(self, f_hat: FloatArray, H: FloatArray) -> None:
+    def _update(self, rows: np.ndarray, f_hat: FloatArray, H: FloatArray) -> None:
         """One Kalman step per channel of [b, theta] with the measurement f_hat = b + theta H."""
-        phi = np.stack([np.ones_like(H), H], axis=2)  # (nv, 2 channels, 2)
-        P = self.P + self.Q[None]
+        phi = np.stack([np.ones_like(H), H], axis=2)  # (k, 2 channels, 2)
+        P = self.P[rows] + self.Q[None]
         P_phi = np.einsum("vcij,vcj->vci", P, phi)
         S = np.einsum("vci,vci->vc", phi, P_phi) + self.R[None]
         G = P_phi / S[:, :, None]
-        innovation = f_hat - np.einsum("vci,vci->vc", phi, self.par)
-        self.par = self.par + G * innovation[:, :, None]
+        par = self.par[rows]
+        innovation = f_hat - np.einsum("vci,vci->vc", phi, par)
+        par = par + G * innovation[:, :, None]
         P = P - G[:, :, :, None] * P_phi[:, :, None, :]
-        self.P = 0.5 * (P + np.swapaxes(P, 2, 3))
-        self.par[:, :, 1] = np.clip(self.par[:, :, 1], self.theta_low, self.theta_high)
+        self.P[rows] = 0.5 * (P + np.swapaxes(P, 2, 3))
+        par[:, :, 1] = np.clip(par[:, :, 1], self.theta_low, self.theta_high)
+        self.par[rows] = par
 
 
 @dataclass(slots=True)

@@ -95,3 +95,35 @@ def test_the_stage_refuses_designs_it_cannot_read(paper_gains, robust_gains_defa
     with pytest.raises(ValueError, match="alpha_bounds"):
         EffectivenessOptions(alpha_bounds=(1.0, 1.2))
     assert EffectivenessEstimator(robust_gains_default, OPTIONS, 3).par.shape == (3, 2, 2)
+
+
+def test_rows_stepped_apart_and_restarted_match_a_batch_stepped_together(robust_gains_default, loss_drive):
+    """The service steps the vehicles of each tick (step_rows on a subset) and restarts single rows: three rows
+    fed the same drive, one stepped with the others, one on its own in alternating ticks and one grown in later
+    and reset, give the batch's estimates exactly (the reset one from its restart on, as a fresh batch)."""
+    y, u = loss_drive.y[:, 0], loss_drive.u[:, 0]
+    observer = FuzzyObserver(robust_gains_default, np.repeat(y[:1], 2, axis=0), None, np.repeat(u[:1], 2, axis=0))
+    batch = EffectivenessEstimator(robust_gains_default, OPTIONS, 1, u[:1])
+    rows = EffectivenessEstimator(robust_gains_default, OPTIONS, 1, u[:1])
+    rows.grow(2)
+    rows.reset(np.array([1]), u[:1])
+    steps = 600
+    fresh = EffectivenessEstimator(robust_gains_default, OPTIONS, 1, u[300:301])
+    for k in range(steps):
+        result = observer.step(np.repeat(y[k : k + 1], 2, axis=0), np.repeat(u[k : k + 1], 2, axis=0))
+        f_hat, yk, uk = result.faults, y[k : k + 1], u[k : k + 1]
+        want = batch.step_rows(np.array([0]), f_hat[:1], None, yk, uk)
+        if k <= 300 and k % 2:  # both rows in one call, in reverse order
+            got = rows.step_rows(np.array([1, 0]), f_hat[::-1], None, np.repeat(yk, 2, 0), np.repeat(uk, 2, 0))
+            np.testing.assert_array_equal(got.total[1], want.total[0])
+        else:
+            got = rows.step_rows(np.array([0]), f_hat[:1], None, yk, uk)
+            np.testing.assert_array_equal(got.total[0], want.total[0])
+            again = rows.step_rows(np.array([1]), f_hat[1:], None, yk, uk)
+            if k > 300:
+                alone = fresh.step_rows(np.array([0]), f_hat[1:], None, yk, uk)
+                np.testing.assert_array_equal(again.alpha, alone.alpha)
+                np.testing.assert_array_equal(again.total, alone.total)
+        if k == 300:
+            rows.reset(np.array([1]), uk)
+    assert not np.array_equal(batch.par[0], fresh.par[0])  # the restart did start row 1 afresh
