@@ -67,10 +67,6 @@ class Comparison:
         present = [float(v) for v in values if v is not None]
         return statistics.median(present) if present else None
 
-    def detected_fraction(self, estimator: str, channel: str) -> float:
-        values = [s.detection_delay_s[channel] for s in self.scores[estimator]]
-        return sum(v is not None for v in values) / len(values)
-
 
 def fault_onsets(scenario: Scenario) -> dict[str, float | None]:
     """Earliest onset per channel of the scenario's faults (None: no fault on that channel)."""

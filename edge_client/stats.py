@@ -31,11 +31,6 @@ class LatencyHistogram:
         self.total += 1
         self.max_ns = max(self.max_ns, duration_ns)
 
-    def merge(self, other: LatencyHistogram) -> None:
-        self.counts += other.counts
-        self.total += other.total
-        self.max_ns = max(self.max_ns, other.max_ns)
-
     def quantile_ms(self, q: float) -> float:
         """The q-quantile [ms] (bin centre, geometric), NaN when empty."""
         if not 0.0 <= q <= 1.0:

@@ -272,9 +272,6 @@ class VehicleLinks:
 
         return on_change
 
-    def put_measurement(self, i: int, payload: bytes) -> None:
-        self._meas[i].put(payload)
-
     def measurement_putters(self) -> list[Callable[[bytes], None]]:
         """``put`` of each vehicle's measurement publisher, for a hot loop that calls them directly."""
         return [publisher.put for publisher in self._meas]
