@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Self
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -174,9 +174,20 @@ class ProfileSpec(BaseModel):
     limits: InputLimits = Field(default_factory=InputLimits)
     effectiveness: EffectivenessOptions = Field(
         default_factory=EffectivenessOptions,
-        description="the loss-of-effectiveness stage (alpha beside the bias); `agv-fe replay` and the benchmarks "
-        "run it, the service does not yet (a profile with it enabled is refused)",
+        description="the loss-of-effectiveness stage (alpha beside the bias, docs/math.md section 14): when "
+        "enabled, estimates carry torque/steer bias and alpha, torque_fault/steer_fault are the total faults, and "
+        "alarms fire on alpha too; needs the 'robust' design with fault_order 1",
     )
+
+    @model_validator(mode="after")
+    def _stage_fits_the_design(self) -> Self:
+        d = self.design
+        if self.effectiveness.enabled and (d.design != "robust" or d.fault_order != 1):
+            raise ValueError(
+                f"effectiveness.enabled needs design 'robust' with fault_order 1 (the stage reads the observer's "
+                f"random-walk fault estimate), got design {d.design!r} with fault_order {d.fault_order}"
+            )
+        return self
 
     def stored(self) -> dict[str, Any]:
         """The JSON kept in the database: only what was set, so defaults keep propagating."""

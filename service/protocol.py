@@ -220,11 +220,6 @@ class Measurement:
         return all(math.isfinite(v) for v in (self.vx_mps, self.r_radps, self.torque_nm, self.steer_rad))
 
 
-#: The raw header fields of a measurement, (magic, version, flags, id length, seq, t_ns, v_x, r, T_d,
-#: delta_d, reserved), with no validation beyond the size, which the caller checks
-#: (``len(payload) >= MEASUREMENT_HEADER_SIZE``); use :meth:`Measurement.decode` for a checked decode
-#: with a readable error.
-unpack_measurement_header = _HEADER.unpack_from
 #: Only (magic, version, flags, seq): what the service's per-sample loop needs; the numbers are
 #: decoded for a whole tick at once with :data:`MEASUREMENT_HEADER_DTYPE`.
 unpack_measurement_sequence = struct.Struct("<4sBBxxQ").unpack_from
@@ -285,7 +280,25 @@ class _State(BaseModel):
     steer_fault: Annotated[float, Column("state", "rad")] = Field(description="estimated delta_f [rad]")
 
 
-class EstimateRow(_State, _Sample):
+class _Effectiveness(BaseModel):
+    """The loss-of-effectiveness stage's estimates (docs/math.md section 14): present when the vehicle's profile
+    runs the stage, and then the state's torque_fault and steer_fault are the total faults b + (alpha - 1) u."""
+
+    torque_bias: Annotated[float | None, Column("effectiveness", "N m")] = Field(
+        None, description="estimated bias b of the drive-torque fault [N m]"
+    )
+    steer_bias: Annotated[float | None, Column("effectiveness", "rad")] = Field(
+        None, description="estimated bias b of the steering fault [rad]"
+    )
+    torque_alpha: Annotated[float | None, Column("effectiveness", "1")] = Field(
+        None, description="estimated effectiveness alpha of the drive torque [-] (1: healthy)"
+    )
+    steer_alpha: Annotated[float | None, Column("effectiveness", "1")] = Field(
+        None, description="estimated effectiveness alpha of the steering actuator [-] (1: healthy)"
+    )
+
+
+class EstimateRow(_Effectiveness, _State, _Sample):
     """One estimate of one vehicle: the measurement it answers and its values (the REST history's row)."""
 
     in_domain: bool = Field(description="the measured premise lies in the design box")
@@ -301,8 +314,10 @@ def _columns(model: type[BaseModel], group: str) -> tuple[str, ...]:
 
 #: The float columns every estimate carries, in the order of the service's arrays and the documents.
 STATE_COLUMNS = _columns(EstimateRow, "state")
+#: The float columns of a profile that runs the loss-of-effectiveness stage, after the state columns.
+EFFECTIVENESS_COLUMNS = _columns(EstimateRow, "effectiveness")
 #: Every float column of the record, in the order of the service's arrays (:class:`EstimateBatch` ``values``).
-ESTIMATE_COLUMNS = STATE_COLUMNS
+ESTIMATE_COLUMNS = STATE_COLUMNS + EFFECTIVENESS_COLUMNS
 #: The unit of each float column.
 COLUMN_UNITS = {
     name: m.unit for name, info in EstimateRow.model_fields.items() for m in info.metadata if isinstance(m, Column)
@@ -630,7 +645,16 @@ class FleetEstimates(_Json):
         return [e for g in self.groups for e in g.estimates()]
 
 
-AlarmKind = Literal["torque_fault", "steer_fault", "out_of_domain", "stale", "rejected_inputs", "sequence_rejected"]
+AlarmKind = Literal[
+    "torque_fault",
+    "steer_fault",
+    "torque_effectiveness",
+    "steer_effectiveness",
+    "out_of_domain",
+    "stale",
+    "rejected_inputs",
+    "sequence_rejected",
+]
 AlarmState = Literal["raised", "cleared", "acknowledged"]
 
 

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.fleet.alarms import Detector, FaultLevels, LevelDetector, seconds_to_ns
+from service.fleet.alarms import Detector, EffectivenessLevels, FaultLevels, LevelDetector, seconds_to_ns
 from service.profiles import ProfileSpec
-from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS
+from service.protocol import EFFECTIVENESS_COLUMNS, ESTIMATE_COLUMNS, STATE_COLUMNS
+from synth.effectiveness import EffectivenessEstimator
 from synth.gains import ObserverGains
 from synth.model import FloatArray
 from synth.observer import RuntimeGains, initial_observer_state, observer_step, switched_step
@@ -28,6 +29,9 @@ _N_EST = len(ESTIMATE_COLUMNS)
 _N_STATE = len(STATE_COLUMNS)
 #: The total faults' columns, T_f and delta_f, among the state columns.
 FAULTS = slice(STATE_COLUMNS.index("torque_fault"), STATE_COLUMNS.index("steer_fault") + 1)
+#: The effectiveness stage's columns: biases [T, delta] and effectiveness [T, delta].
+BIASES = slice(ESTIMATE_COLUMNS.index("torque_bias"), ESTIMATE_COLUMNS.index("steer_bias") + 1)
+ALPHAS = slice(ESTIMATE_COLUMNS.index("torque_alpha"), ESTIMATE_COLUMNS.index("steer_alpha") + 1)
 _INITIAL_CAPACITY = 64
 
 
@@ -89,6 +93,9 @@ class ProfileBank:
         self.domain = LevelDetector(
             cap, 0.5, np.inf, 1.0, seconds_to_ns(a.out_of_domain_after_s), seconds_to_ns(a.clear_after_s)
         )
+        # the loss-of-effectiveness stage (spec.effectiveness.enabled; built with the gains) and its alarms
+        self.stage: EffectivenessEstimator | None = None
+        self.effectiveness = EffectivenessLevels(cap, a)
 
     # ------------------------------------------------------------------ configuration
 
@@ -114,7 +121,7 @@ class ProfileBank:
     @property
     def columns(self) -> tuple[str, ...]:
         """The float columns of this profile's estimates (the first of :data:`ESTIMATE_COLUMNS`)."""
-        return STATE_COLUMNS
+        return STATE_COLUMNS if self.stage is None else STATE_COLUMNS + EFFECTIVENESS_COLUMNS
 
     def named_values(self, row: np.ndarray | list[float]) -> dict[str, float]:
         """A row of :attr:`last_values` or :meth:`history` by column name, the profile's columns only."""
@@ -126,10 +133,15 @@ class ProfileBank:
         return self.runtime is not None
 
     def set_spec(self, spec: ProfileSpec) -> None:
-        """New thresholds and limits (the gains are set by :meth:`activate`)."""
+        """New thresholds, limits and effectiveness stage (the gains are set by :meth:`activate`); a stage whose
+        options changed starts every row afresh."""
+        stage_changed = spec.effectiveness != self.spec.effectiveness
         self.spec = spec
         a = spec.alarms
         self.faults.configure(a)
+        self.effectiveness.configure(a)
+        if stage_changed and self.gains is not None:
+            self._build_stage(self.gains)
         self.domain.configure(0.5, np.inf, 1.0, seconds_to_ns(a.out_of_domain_after_s), seconds_to_ns(a.clear_after_s))
 
     def activate(self, gains: ObserverGains, runtime: RuntimeGains | None = None) -> None:
@@ -140,10 +152,20 @@ class ProfileBank:
         is continuous across the swap even when the fault order changes.
         """
         runtime = runtime or RuntimeGains.from_gains(gains)
+        self._build_stage(gains)
         self.gains, self.runtime = gains, runtime
         self.z = np.zeros((self.capacity, runtime.state_size))
         self.warm = self.last_values[:, :_N_STATE].copy()
         self.needs_init[:] = True
+
+    def _build_stage(self, gains: ObserverGains) -> None:
+        """The effectiveness stage for these gains when the spec enables it (every row starts it afresh).
+
+        Raises synth.errors.BadParameters for a design the stage cannot run on (the profile checks refuse
+        those before they are stored)."""
+        options = self.spec.effectiveness
+        self.stage = EffectivenessEstimator(gains, options, self.capacity) if options.enabled else None
+        self.effectiveness.reset(np.arange(self.capacity))
 
     # ------------------------------------------------------------------ slots
 
@@ -178,6 +200,9 @@ class ProfileBank:
         rows = np.array([slot])
         self.faults.reset(rows)
         self.domain.reset(rows)
+        self.effectiveness.reset(rows)
+        if self.stage is not None:
+            self.stage.reset(rows)
 
     def _grow(self, capacity: int) -> None:
         extra = capacity - self.capacity
@@ -208,12 +233,21 @@ class ProfileBank:
         self.phase = pad(self.phase, 0)
         self.faults.grow(capacity)
         self.domain.grow(capacity)
+        self.effectiveness.grow(capacity)
+        if self.stage is not None:
+            self.stage.grow(capacity)
         self.free.extend(range(capacity - 1, self.capacity - 1, -1))
         self.capacity = capacity
 
     def levels(self, slots: np.ndarray | int) -> np.ndarray:
-        """Each row's level rank (alarms.LEVEL_NAMES): the highest of its torque, steering and domain detectors."""
-        return np.maximum(np.maximum(self.torque.level[slots], self.steer.level[slots]), self.domain.level[slots])
+        """Each row's level rank (alarms.LEVEL_NAMES): the highest of its torque, steering and domain detectors
+        (and its effectiveness detectors when the stage runs)."""
+        level = np.maximum(np.maximum(self.torque.level[slots], self.steer.level[slots]), self.domain.level[slots])
+        if self.stage is None:
+            return level
+        return np.maximum(
+            level, np.maximum(self.effectiveness.torque.level[slots], self.effectiveness.steer.level[slots])
+        )
 
     def gain_set(self, slot: int) -> str | None:
         """'fast' or 'quiet': the set of the row's latest estimate (switched designs); None otherwise."""
@@ -252,6 +286,9 @@ class ProfileBank:
             self.warm[rows] = np.nan
             self.faults.restart(rows, t_ns[restarted])
             self.domain.reset(rows, keep_level=True)
+            self.effectiveness.reset(rows, keep_level=True)
+            if self.stage is not None:
+                self.stage.reset(rows, u[restarted])
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             if rt.switched:
                 z_next, stat, left, res = switched_step(
@@ -264,6 +301,8 @@ class ProfileBank:
                 z_next, res = observer_step(rt, self.z[slots], y, u)
         values = res.x_hat[:, :_N_STATE]
         finite: np.ndarray = np.asarray(np.isfinite(values).all(axis=1) & np.isfinite(z_next).all(axis=1))
+        if self.stage is not None:
+            values = self._second_stage(self.stage, slots, values, finite, res.fast if rt.switched else None, y, u)
         self.z[slots] = z_next
         good, values_good, in_domain, seq_good, t_good = slots, values, res.in_domain, seq, t_ns
         if not finite.all():
@@ -272,12 +311,13 @@ class ProfileBank:
             self.warm[bad] = np.nan
             good, values_good, in_domain = slots[finite], values[finite], in_domain[finite]
             seq_good, t_good = seq[finite], t_ns[finite]
-        self.last_values[good] = values_good
+        width = values.shape[1]
+        self.last_values[good, :width] = values_good
         self.last_in_domain[good] = in_domain
         self.last_seq[good] = seq_good
         self.last_t_ns[good] = t_good
         pos = self.hist_count[good] % self.history_samples
-        self.hist_values[good, pos] = values_good
+        self.hist_values[good, pos, :width] = values_good
         self.hist_in_domain[good, pos] = in_domain
         self.hist_seq[good, pos] = seq_good
         self.hist_t_ns[good, pos] = t_good
@@ -290,6 +330,30 @@ class ProfileBank:
             restarted=restarted,
             fast=res.fast if rt.switched else None,
         )
+
+    def _second_stage(
+        self,
+        stage: EffectivenessEstimator,
+        slots: np.ndarray,
+        state: FloatArray,
+        finite: np.ndarray,
+        fast: np.ndarray | None,
+        y: FloatArray,
+        u: FloatArray,
+    ) -> FloatArray:
+        """The estimates with the effectiveness stage's columns: total faults in place of the observer's, then
+        biases and effectiveness. Rows the observer lost (non-finite) restart the stage and stay NaN."""
+        values = np.full((len(slots), len(STATE_COLUMNS) + len(EFFECTIVENESS_COLUMNS)), np.nan)
+        values[:, :_N_STATE] = state
+        ok = finite if not finite.all() else slice(None)
+        rows = slots[ok]
+        second = stage.step_rows(rows, state[ok, FAULTS], None if fast is None else fast[ok], y[ok], u[ok])
+        values[ok, FAULTS] = second.total
+        values[ok, BIASES] = second.bias
+        values[ok, ALPHAS] = second.alpha
+        if not finite.all():
+            stage.reset(slots[~finite])
+        return values
 
     def history(self, slot: int, limit: int) -> list[tuple[int, int, bool, list[float]]]:
         """The last ``limit`` estimates of a row, oldest first: (seq, t_ns, in_domain, values)."""

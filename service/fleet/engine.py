@@ -50,7 +50,7 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange, seconds_to_ns
-from service.fleet.bank import FAULTS, ProfileBank, StepOutput
+from service.fleet.bank import ALPHAS, FAULTS, ProfileBank, StepOutput
 from service.fleet.events import EventBus, FleetEvent
 from service.profiles import ProfileSpec
 from service.protocol import (
@@ -708,6 +708,9 @@ class FleetEngine:
             f = np.flatnonzero(finite)
             outside = (~in_domain[f] | ~vy_in_bounds[f]).astype(float)
             changed.update(f[bank.domain.update(slots[f], outside, t[f])].tolist())
+        if bank.stage is not None:  # the effectiveness alarms, on alpha_hat (finite rows)
+            f = np.flatnonzero(finite)
+            changed.update(f[bank.effectiveness.update(slots[f], est[f, ALPHAS], t[f])].tolist())
         for j in sorted(changed):
             self._alarm_transitions(bank, rows.vehicles[idx[j]], int(t[j]), est[j], result)
         # counts, and which estimates to publish: every n-th finite estimate of each vehicle
@@ -761,12 +764,25 @@ class FleetEngine:
         """Bring the vehicle's alarm records in line with its detector levels."""
         a = bank.spec.alarms
         slot = vehicle.slot
+        held = f"for {a.raise_after_s:g} s"
         channels: list[tuple[AlarmKind, int, float, float, float, str]] = [
-            ("torque_fault", int(bank.torque.level[slot]), float(x5[3]), a.torque_warn_nm, a.torque_fault_nm, "N m"),
-            ("steer_fault", int(bank.steer.level[slot]), float(x5[4]), a.steer_warn_rad, a.steer_fault_rad, "rad"),
-        ]
-        for kind, level, value, warn, fault, unit in channels:
-            self._sync_alarm(vehicle, kind, level, value, warn, fault, unit, t_ns, result)
+            ("torque_fault", int(bank.torque.level[slot]), float(x5[3]), a.torque_warn_nm, a.torque_fault_nm,
+             "|T_f| >= {threshold:g} N m " + held),
+            ("steer_fault", int(bank.steer.level[slot]), float(x5[4]), a.steer_warn_rad, a.steer_fault_rad,
+             "|delta_f| >= {threshold:g} rad " + held),
+        ]  # fmt: skip
+        if bank.stage is not None:
+            held = f"for {a.effectiveness_after_s:g} s"
+            alpha = x5[ALPHAS].tolist()
+            w, f = a.effectiveness_warn, a.effectiveness_fault
+            channels += [
+                ("torque_effectiveness", int(bank.effectiveness.torque.level[slot]), alpha[0], w, f,
+                 "drive-torque effectiveness alpha <= {threshold:g} " + held),
+                ("steer_effectiveness", int(bank.effectiveness.steer.level[slot]), alpha[1], w, f,
+                 "steering effectiveness alpha <= {threshold:g} " + held),
+            ]  # fmt: skip
+        for kind, level, value, warn, fault, message in channels:
+            self._sync_alarm(vehicle, kind, level, value, warn, fault, message, t_ns, result)
         domain_level = int(bank.domain.level[slot])
         current = self.alarms.current(vehicle.id, "out_of_domain")
         if domain_level >= WARN and (current is None or current.state != "raised"):
@@ -793,12 +809,12 @@ class FleetEngine:
         value: float,
         warn: float,
         fault: float,
-        unit: str,
+        message: str,
         t_ns: int,
         result: TickResult,
     ) -> None:
+        """Raise, re-level or clear the vehicle's alarm of ``kind``; ``message`` is formatted with the threshold."""
         current = self.alarms.current(vehicle.id, kind)
-        a = vehicle.bank.spec.alarms
         if level == OK:
             if current is not None:
                 self._emit(self.alarms.clear(vehicle.id, kind, t_ns), result)
@@ -813,7 +829,7 @@ class FleetEngine:
             t_ns,
             value,
             threshold,
-            f"|{'T_f' if kind == 'torque_fault' else 'delta_f'}| >= {threshold:g} {unit} for {a.raise_after_s:g} s",
+            message.format(threshold=threshold),
         )
         self._emit(change, result)
 

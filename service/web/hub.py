@@ -61,7 +61,9 @@ CLIENT_QUEUE_FRAMES = 256
 #: A comment line is sent after this long without a frame, so proxies keep the stream open [s].
 KEEPALIVE_S = 15.0
 #: Alarm kinds that make a vehicle worth following first (faults before staleness or rejected inputs).
-_FAULT_KINDS = frozenset({"torque_fault", "steer_fault", "out_of_domain"})
+_FAULT_KINDS = frozenset(
+    {"torque_fault", "steer_fault", "torque_effectiveness", "steer_effectiveness", "out_of_domain"}
+)
 
 Measured = tuple[float, float, float, float]
 FleetRow = tuple[str, str, str, int | None, float | None, float | None, float | None, bool | None]
@@ -472,7 +474,10 @@ class DashboardHub:
                 "torque_fault_nm": alarms.torque_fault_nm,
                 "steer_warn_rad": alarms.steer_warn_rad,
                 "steer_fault_rad": alarms.steer_fault_rad,
+                "effectiveness_warn": alarms.effectiveness_warn,
+                "effectiveness_fault": alarms.effectiveness_fault,
             },
+            "effectiveness": vehicle.bank.stage is not None,
             "truth": trace is not None and trace.has_truth,
         }
 

@@ -148,9 +148,10 @@ def test_a_bad_profile_body_is_refused_before_anything_is_stored(tmp_path):
         for name in ("..", "."):  # path segments, not names (sent encoded: a client would resolve them)
             r = srv.http.put(f"/profiles/{name.replace('.', '%2E')}", json={}, headers=srv.auth)
             assert r.status_code == 422 and "invalid profile name" in r.text, (name, r.text)
-        # the loss-of-effectiveness stage runs in replay and the benchmarks, not yet in the service: refused, said
-        r = srv.http.put("/profiles/poison", json={"effectiveness": {"enabled": True}}, headers=srv.auth)
-        assert r.status_code == 422 and "does not run the loss-of-effectiveness stage yet" in r.text, r.text
+        # the loss-of-effectiveness stage on a design it cannot read (the paper's triple-integrator fault model)
+        body = {"effectiveness": {"enabled": True}, "design": {"design": "paper"}}
+        r = srv.http.put("/profiles/poison", json=body, headers=srv.auth)
+        assert r.status_code == 422 and "effectiveness.enabled needs design 'robust' with fault_order 1" in r.text
         assert srv.get("/profiles/poison").status_code == 404
         assert [p["name"] for p in srv.get("/profiles").json()] == ["default"]
         assert [p.name for p in srv.service.db.profiles()] == ["default"]

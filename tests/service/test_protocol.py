@@ -224,13 +224,26 @@ def test_every_encoding_of_the_estimate_takes_its_fields_from_the_one_record():
     """The per-vehicle document, the fleet stream's group, the REST row, the ground truth and the dashboard's plot
     columns all carry exactly the fields of the record (service.protocol's Estimate and its bases): a field added
     there reaches every encoding, and none of them can spell out a field of its own."""
-    from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS, EstimateRow, FleetEstimateGroup, GroundTruth
+    from service.protocol import (
+        EFFECTIVENESS_COLUMNS,
+        ESTIMATE_COLUMNS,
+        STATE_COLUMNS,
+        EstimateRow,
+        FleetEstimateGroup,
+        GroundTruth,
+    )
     from service.web.hub import POINT_COLUMNS, TRUTH_COLUMNS
 
+    state_only = _batch([[1.0, 2.0, 3.0, 4.0, 5.0]] * 3)
+    document = orjson.loads(state_only.documents()[0])  # a profile without the effectiveness stage
+    assert list(document) == [f for f in Estimate.model_fields if f not in {*EFFECTIVENESS_COLUMNS, "gain_set"}]
     batch = _batch([[1.0, 2.0, 3.0, 4.0, 5.0]] * 3)
+    batch.values = np.tile(np.arange(1.0, len(ESTIMATE_COLUMNS) + 1.0), (3, 1))
+    batch.columns = ESTIMATE_COLUMNS
     batch.fast = np.array([True, False, True])
     document = orjson.loads(batch.documents()[0])
     assert list(document) == list(Estimate.model_fields)  # every field, in the record's order
+    assert [document[c] for c in ESTIMATE_COLUMNS] == list(range(1, len(ESTIMATE_COLUMNS) + 1))
     group = FleetEstimates.decode(encode_fleet_estimates("r0", [batch])).groups[0]
     assert set(group.model_dump(exclude_none=True)) == set(FleetEstimateGroup.model_fields)
     assert set(FleetEstimateGroup.model_fields) == set(Estimate.model_fields) - {"v"}

@@ -21,8 +21,7 @@ RAMP_END_S = ONSET_S + (1.0 - ALPHA_MIN) / RATE_PER_S
 OPTIONS = EffectivenessOptions(enabled=True, torque_sigma_nm=6.0, steer_sigma_rad=0.0005)
 
 
-@pytest.fixture(scope="module")
-def loss_drive() -> PlantRecord:
+def torque_loss_scenario() -> Scenario:
     """40 s of the paper's vehicle accelerating and braking at about 2 m/s^2 between 10 and 20 m/s (the drive
     torque swings between about +900 and -900 N m), realistic sensor noise, the torque's effectiveness
     ramped from 1 to 0.6 over 10 s from t = 8 s."""
@@ -32,7 +31,7 @@ def loss_drive() -> PlantRecord:
         points.append(SpeedPoint(t_s=t, speed_mps=speed))
         speed = 30.0 - speed
         t += 5.0
-    scenario = Scenario(
+    return Scenario(
         name="torque-loss",
         duration_s=40.0,
         initial_speed_mps=10.0,
@@ -43,7 +42,12 @@ def loss_drive() -> PlantRecord:
         noise=REALISTIC_NOISE,
         seed=4,
     )
-    return simulate_plant([scenario])
+
+
+@pytest.fixture(scope="module")
+def loss_drive() -> PlantRecord:
+    """The drive of :func:`torque_loss_scenario`, simulated."""
+    return simulate_plant([torque_loss_scenario()])
 
 
 def run(gains: ObserverGains, record: PlantRecord) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -127,9 +127,10 @@ def test_a_vehicle_view_plots_live_estimates_with_thresholds_and_ground_truth(se
     expect(page.locator("#vehicle-level")).to_have_text("FAULT", timeout=UI_TIMEOUT_MS)
     expect(page.locator('#vehicle-facts [data-fact="truth"] dd')).to_have_text("shown", timeout=UI_TIMEOUT_MS)
     figures = page.locator("figure.plot")
-    expect(figures).to_have_count(5)
+    expect(figures).to_have_count(6)
     for key in ("vx", "r", "vy", "tf", "sf"):
         expect(page.locator(f'figure[data-plot="{key}"] canvas')).to_have_count(1)
+    expect(page.locator('figure[data-plot="alpha"]')).to_be_hidden()  # the profile runs no effectiveness stage
     wait_for(lambda: plot_state(page, "tf")["truth"] > 20, UI_TIMEOUT_MS / 1000, "ground truth in the plot")
     before = plot_state(page, "tf")
     time.sleep(1.5)

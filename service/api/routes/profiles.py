@@ -85,12 +85,6 @@ async def get_profile(service: ServiceDep, name: ProfileName) -> ProfileInfo:
 async def put_profile(
     service: ServiceDep, name: ProfileName, spec: ProfileSpec, _operator: Operator, response: Response
 ) -> ProfileChange:
-    if spec.effectiveness.enabled:
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            detail="effectiveness.enabled: the service does not run the loss-of-effectiveness stage yet "
-            "(`agv-fe replay` and the benchmarks do); put the profile with it disabled",
-        )
     service.require_storage()
     try:
         job = service.put_profile(name, spec)
@@ -160,6 +154,7 @@ async def calibrate(
         "false_alarms_per_1000_h": body.false_alarms_per_1000_h,
         "nominal_torque_nm": body.nominal_torque_nm,
         "gust_n": body.gust_n,
+        "effectiveness": body.effectiveness,
     }
     try:
         outcome = await service.jobs.run_in_worker(run_calibration, request)

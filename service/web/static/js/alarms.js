@@ -57,7 +57,7 @@ export class AlarmStore {
 
 function describeValue(alarm) {
   if (alarm.value === null || alarm.value === undefined) return null;
-  const digits = alarm.kind === 'steer_fault' ? 4 : alarm.kind === 'torque_fault' ? 1 : 2;
+  const digits = alarm.kind === 'steer_fault' ? 4 : alarm.kind === 'torque_fault' ? 1 : alarm.kind.endsWith('_effectiveness') ? 3 : 2;
   const unit = alarm.kind === 'steer_fault' ? ' rad' : alarm.kind === 'torque_fault' ? ' N m' : '';
   const threshold = alarm.threshold === null ? '' : ` (threshold ${Number(alarm.threshold).toFixed(digits)}${unit})`;
   return `value ${Number(alarm.value).toFixed(digits)}${unit}${threshold}`;

@@ -23,6 +23,8 @@ export const LEVELS = ['FAULT', 'WARN', 'STALE', 'OK'];
 export const ALARM_KINDS = {
   torque_fault: 'Torque fault',
   steer_fault: 'Steering fault',
+  torque_effectiveness: 'Drive-torque effectiveness lost',
+  steer_effectiveness: 'Steering effectiveness lost',
   out_of_domain: 'Outside the design domain',
   stale: 'No data (stale)',
   rejected_inputs: 'Rejected measurements',

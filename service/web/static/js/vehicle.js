@@ -11,6 +11,7 @@ const COLOURS = {
   truth: '#bc4c00',
   warn: '#bf8700',
   fault: '#cf222e',
+  steering: '#8250df',
 };
 const PLOT_HEIGHT = 210;
 const MIN_REDRAW_MS = 150;
@@ -37,6 +38,20 @@ const PLOTS = [
     warn: 'steer_warn_rad',
     fault: 'steer_fault_rad',
     digits: 4,
+  },
+  // Shown only for a profile that runs the loss-of-effectiveness stage (status.effectiveness); alarms below WARN.
+  {
+    key: 'alpha',
+    title: 'Actuator effectiveness α [-] (1: healthy)',
+    lines: [
+      ['torque_alpha', 'drive torque', COLOURS.estimated],
+      ['steer_alpha', 'steering', COLOURS.steering],
+    ],
+    warn: 'effectiveness_warn',
+    fault: 'effectiveness_fault',
+    oneSided: true,
+    optional: 'effectiveness',
+    digits: 3,
   },
 ];
 
@@ -138,16 +153,21 @@ export class VehicleView {
       this.container.append(figure);
       const series = [{ label: 'time' }];
       const fmt = (u, v) => (v === null || v === undefined ? '–' : v.toFixed(spec.digits));
-      if (spec.measured) series.push({ label: 'measured', stroke: COLOURS.measured, width: 1, spanGaps: true, value: fmt });
-      series.push({ label: 'estimated', stroke: COLOURS.estimated, width: 2, spanGaps: true, value: fmt });
-      series.push({ label: 'true', stroke: COLOURS.truth, width: 1.5, dash: [6, 4], spanGaps: true, value: fmt });
+      if (spec.lines) {
+        for (const [, label, stroke] of spec.lines) series.push({ label, stroke, width: 2, spanGaps: true, value: fmt });
+      } else {
+        if (spec.measured) series.push({ label: 'measured', stroke: COLOURS.measured, width: 1, spanGaps: true, value: fmt });
+        series.push({ label: 'estimated', stroke: COLOURS.estimated, width: 2, spanGaps: true, value: fmt });
+        series.push({ label: 'true', stroke: COLOURS.truth, width: 1.5, dash: [6, 4], spanGaps: true, value: fmt });
+      }
       if (spec.warn) {
         for (const [name, colour] of [
           ['WARN', COLOURS.warn],
           ['FAULT', COLOURS.fault],
         ]) {
           const line = { label: name, stroke: colour, width: 1, dash: [3, 3], points: { show: false }, value: fmt };
-          series.push(line, { ...line, label: `−${name}`, class: 'mirror' }); // the negative side, not in the legend
+          series.push(line);
+          if (!spec.oneSided) series.push({ ...line, label: `−${name}`, class: 'mirror' }); // the negative side, not in the legend
         }
       }
       const options = {
@@ -203,6 +223,9 @@ export class VehicleView {
       ['torque', 'Torque thresholds', `WARN ${t.torque_warn_nm} / FAULT ${t.torque_fault_nm} N m`],
       ['steer', 'Steering thresholds', `WARN ${t.steer_warn_rad} / FAULT ${t.steer_fault_rad} rad`],
     ];
+    if (status.effectiveness) {
+      facts.push(['effectiveness', 'Effectiveness thresholds', `WARN below ${t.effectiveness_warn} / FAULT below ${t.effectiveness_fault}`]);
+    }
     this.facts.replaceChildren(
       ...facts.map(([key, name, value]) => el('div', { 'data-fact': key }, el('dt', {}, name), el('dd', {}, value))),
     );
@@ -254,16 +277,20 @@ export class VehicleView {
     const fromTruth = (name) => ib.map((j) => (j < 0 ? null : this.truth[j][T[name]]));
     const thresholds = this.status ? this.status.thresholds : null;
     for (const { spec, chart, figure } of this.plots) {
+      figure.hidden = Boolean(spec.optional) && !(this.status && this.status[spec.optional]);
       const data = [x];
-      if (spec.measured) data.push(fromPoints(spec.measured));
-      data.push(fromPoints(spec.estimated));
-      data.push(fromTruth(spec.truth));
+      if (spec.lines) {
+        for (const [name] of spec.lines) data.push(fromPoints(name));
+      } else {
+        if (spec.measured) data.push(fromPoints(spec.measured));
+        data.push(fromPoints(spec.estimated));
+        data.push(fromTruth(spec.truth));
+      }
       if (spec.warn) {
         const warn = thresholds ? thresholds[spec.warn] : null;
         const fault = thresholds ? thresholds[spec.fault] : null;
-        for (const value of [warn, warn === null ? null : -warn, fault, fault === null ? null : -fault]) {
-          data.push(x.map(() => value));
-        }
+        const levels = spec.oneSided ? [warn, fault] : [warn, warn === null ? null : -warn, fault, fault === null ? null : -fault];
+        for (const value of levels) data.push(x.map(() => value));
       }
       chart.setData(data);
       figure.dataset.points = String(x.length);
@@ -271,7 +298,7 @@ export class VehicleView {
       figure.dataset.truth = String(this.truth.length);
       figure.dataset.lastT = x.length ? String(x[x.length - 1]) : '';
       const latest = this.points.at(-1);
-      figure.dataset.latest = latest ? fixed(latest[P[spec.estimated]], spec.digits) : '';
+      figure.dataset.latest = latest ? fixed(latest[P[spec.lines ? spec.lines[0][0] : spec.estimated]], spec.digits) : '';
     }
     performance.measure('vehicle-draw', { start: started, end: performance.now() });
   }
