@@ -36,6 +36,7 @@ import scipy.stats
 from service.profiles import AlarmThresholds, ProfileSpec
 from synth.calibration import CalibrationOptions, CalibrationResult, Drive, calibrate
 from synth.design import synthesize
+from synth.effectiveness import EffectivenessObserver
 from synth.gains import ObserverGains
 from synth.model import FloatArray, rk4_step
 from synth.observer import FuzzyObserver
@@ -172,6 +173,7 @@ def calibrate_profile(
     nominal_torque_nm: float | None = None,
     false_alarms_per_1000_h: float = 1.0,
     gust_n: float = GUST_N,
+    effectiveness: bool = False,
     description: str = "",
     options: CalibrationOptions | None = None,
 ) -> CalibrationReport:
@@ -182,6 +184,8 @@ def calibrate_profile(
     alarms : alarm settings to keep (persistence, warm-up...; the four fault thresholds are set here);
     nominal_torque_nm : the drive torque a 10 % fault is measured against (default: m_eff R_w 2 m/s^2);
     gust_n : the lateral wind gust [N] (held GUST_S) the vehicle must ride through without an alarm; 0: none.
+    effectiveness : enable the loss-of-effectiveness stage in the profile, and set the fault thresholds from the
+    stage's total faults on the same drives and gusts (they vary more than the observer's own estimates).
     """
     if not (false_alarms_per_1000_h > 0 and math.isfinite(false_alarms_per_1000_h)):
         raise ValueError(f"false_alarms_per_1000_h must be positive, got {false_alarms_per_1000_h}")
@@ -202,23 +206,22 @@ def calibrate_profile(
         gains = synthesize(params, result.bounds, design_options)
         estimates = healthy_fault_estimates(gains, drives, alarm_base.warmup_s)
         gust = held_peaks(observer_stepper(gains), gusts, alarm_base.raise_after_s)
-        thresholds = {
-            channel: fault_thresholds(
-                estimates[:, i],
-                certified_rms(gains, i),
-                sample_period_s=params.sample_period_s,
-                persistence_s=alarm_base.raise_after_s,
-                false_alarms_per_1000_h=false_alarms_per_1000_h,
-                required_bias=nominal * REQUIRED_TORQUE_SHARE if channel == "torque" else REQUIRED_STEER_RAD,
-                gust_peak=float(gust[i]),
-            )
-            for i, channel in enumerate(CHANNELS)
-        }
+        thresholds = channel_thresholds(gains, estimates, gust, alarm_base, false_alarms_per_1000_h, nominal)
         # the smallest faults the channels then detect, each relative to the fault it must see
         score = sum(t.smallest_fault_bias / t.required_bias for t in thresholds.values())
         candidates.append((score, gains, thresholds, estimates))
     _, gains, thresholds, estimates = min(candidates, key=lambda candidate: candidate[0])
     design_options = gains.options
+    # the effectiveness stage's measurement noise: the observer's healthy RMS (the stage stays off unless asked)
+    stage = EffectivenessOptions(
+        enabled=effectiveness,
+        torque_sigma_nm=_round_up(max(thresholds["torque"].sigma, 1e-6)),
+        steer_sigma_rad=_round_up(max(thresholds["steer"].sigma, 1e-9)),
+    )
+    if effectiveness:  # the alarms then watch the stage's totals: thresholds from those
+        estimates = healthy_fault_estimates(gains, drives, alarm_base.warmup_s, stage)
+        gust = held_peaks(effectiveness_stepper(gains, stage), gusts, alarm_base.raise_after_s)
+        thresholds = channel_thresholds(gains, estimates, gust, alarm_base, false_alarms_per_1000_h, nominal)
     warnings = [_hiding(channel, t, nominal) for channel, t in thresholds.items() if t.hides_required_fault]
     block_n = max(1, round(alarm_base.cusum_block_s / params.sample_period_s))
     alarm_settings = alarm_base.model_copy(
@@ -238,11 +241,7 @@ def calibrate_profile(
         bounds=result.bounds,
         design=design_options,
         alarms=AlarmThresholds.model_validate(alarm_settings.model_dump()),
-        # the effectiveness stage's measurement noise: the healthy estimates' RMS (the stage stays off until asked)
-        effectiveness=EffectivenessOptions(
-            torque_sigma_nm=_round_up(max(thresholds["torque"].sigma, 1e-6)),
-            steer_sigma_rad=_round_up(max(thresholds["steer"].sigma, 1e-9)),
-        ),
+        effectiveness=stage,
     )
     return CalibrationReport(
         profile=profile,
@@ -263,6 +262,7 @@ def calibrate_from_base(
     nominal_torque_nm: float | None = None,
     false_alarms_per_1000_h: float = 1.0,
     gust_n: float = GUST_N,
+    effectiveness: bool = False,
 ) -> CalibrationReport:
     """:func:`calibrate_profile` with a base document: {"params": {...}, "design"?, "alarms"?, "description"?}."""
     return calibrate_profile(
@@ -273,15 +273,43 @@ def calibrate_from_base(
         nominal_torque_nm=nominal_torque_nm,
         false_alarms_per_1000_h=false_alarms_per_1000_h,
         gust_n=gust_n,
+        effectiveness=effectiveness,
         description=str(base.get("description", "")),
     )
 
 
-def healthy_fault_estimates(gains: ObserverGains, drives: Sequence[Drive], warmup_s: float) -> FloatArray:
-    """The observer's fault estimates [T_f, delta_f] over the healthy drives, each after its warm-up, (K, 2)."""
+def channel_thresholds(
+    gains: ObserverGains,
+    estimates: FloatArray,
+    gust: FloatArray,
+    alarms: AlarmThresholds,
+    false_alarms_per_1000_h: float,
+    nominal_torque_nm: float,
+) -> dict[str, ChannelThresholds]:
+    """:func:`fault_thresholds` of each channel from its healthy estimates (K, 2) and gust peaks (2,)."""
+    return {
+        channel: fault_thresholds(
+            estimates[:, i],
+            certified_rms(gains, i),
+            sample_period_s=gains.params.sample_period_s,
+            persistence_s=alarms.raise_after_s,
+            false_alarms_per_1000_h=false_alarms_per_1000_h,
+            required_bias=nominal_torque_nm * REQUIRED_TORQUE_SHARE if channel == "torque" else REQUIRED_STEER_RAD,
+            gust_peak=float(gust[i]),
+        )
+        for i, channel in enumerate(CHANNELS)
+    }
+
+
+def healthy_fault_estimates(
+    gains: ObserverGains, drives: Sequence[Drive], warmup_s: float, stage: EffectivenessOptions | None = None
+) -> FloatArray:
+    """The fault estimates [T_f, delta_f] over the healthy drives, each after its warm-up, (K, 2): the observer's,
+    or with an enabled ``stage`` the loss-of-effectiveness stage's total faults."""
+    make = observer_stepper(gains) if stage is None or not stage.enabled else effectiveness_stepper(gains, stage)
     parts = []
     for drive in drives:
-        observer = FuzzyObserver(gains, drive.y[:1], None, drive.u[:1])
+        observer = make(drive.y[:1], drive.u[:1])
         faults = np.empty((len(drive), 2))
         for k in range(len(drive)):
             faults[k] = observer.step(drive.y[k : k + 1], drive.u[k : k + 1]).faults[0]
@@ -305,6 +333,15 @@ def observer_stepper(gains: ObserverGains) -> StepperFactory:
 
     def make(y0: FloatArray, u0: FloatArray) -> Stepper:
         return FuzzyObserver(gains, y0, None, u0)
+
+    return make
+
+
+def effectiveness_stepper(gains: ObserverGains, stage: EffectivenessOptions) -> StepperFactory:
+    """The fuzzy observer with its loss-of-effectiveness stage as a :data:`StepperFactory` (total faults)."""
+
+    def make(y0: FloatArray, u0: FloatArray) -> Stepper:
+        return EffectivenessObserver(gains, stage, y0, None, u0)
 
     return make
 
@@ -477,8 +514,8 @@ def run_calibration(request: dict[str, Any]) -> dict[str, Any]:
     """Worker-process entry point of ``POST /profiles/{name}/calibration``: plain data in and out.
 
     request : {"base": {"params", "design"?, "alarms"?, "description"?}, "recordings": [{"name", "csv"}],
-    "false_alarms_per_1000_h", "nominal_torque_nm", "gust_n"?}. Returns {"ok": True, "profile", "report"} or
-    {"ok": False, "error": "bad_recording" | "refused" | "design_failed" | "bad_request", "reason"}.
+    "false_alarms_per_1000_h", "nominal_torque_nm", "gust_n"?, "effectiveness"?}. Returns {"ok": True, "profile",
+    "report"} or {"ok": False, "error": "bad_recording" | "refused" | "design_failed" | "bad_request", "reason"}.
     """
     from edge_client.recording import RecordingError, parse_recording
     from synth.calibration import CalibrationRefused
@@ -500,6 +537,7 @@ def run_calibration(request: dict[str, Any]) -> dict[str, Any]:
             nominal_torque_nm=request.get("nominal_torque_nm"),
             false_alarms_per_1000_h=float(request.get("false_alarms_per_1000_h", 1.0)),
             gust_n=float(request.get("gust_n", GUST_N)),
+            effectiveness=bool(request.get("effectiveness", False)),
         )
     except CalibrationRefused as exc:
         return {"ok": False, "error": "refused", "reason": exc.reason}

@@ -51,10 +51,13 @@ from service.calibration import (
     ChannelThresholds,
     block_sigma,
     calibrate_profile,
+    effectiveness_stepper,
     fault_thresholds,
     gust_drives,
+    healthy_fault_estimates,
     held_peaks,
 )
+from service.calibration import channel_thresholds as calibrated_thresholds
 from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, FaultLevels
 from service.profiles import AlarmThresholds
 from synth.calibration import Drive as Recording
@@ -485,6 +488,27 @@ def ekf_thresholds(
     return thresholds, AlarmThresholds.model_validate(settings)
 
 
+def effectiveness_alarms(report: CalibrationReport, calibration_run: mb.MultibodyRun) -> AlarmThresholds:
+    """The profile's alarms with the fault thresholds `agv-fe calibrate --effectiveness` sets: from the stage's
+    total faults on the calibration drive and in the calibration's gust (the identified model, design and stage
+    noise are the report's; service.calibration.calibrate_profile does the same with effectiveness=True)."""
+    alarms = report.profile.alarms
+    stage = report.profile.effectiveness.model_copy(update={"enabled": True})
+    estimates = healthy_fault_estimates(report.gains, [recording(calibration_run)], alarms.warmup_s, stage)
+    gusts = gust_drives(report.profile.params, report.profile.bounds, report.gust_n)
+    gust = held_peaks(effectiveness_stepper(report.gains, stage), gusts, alarms.raise_after_s)
+    nominal = report.nominal_torque_nm
+    thresholds = calibrated_thresholds(report.gains, estimates, gust, alarms, report.false_alarms_per_1000_h, nominal)
+    return alarms.model_copy(
+        update={
+            "torque_warn_nm": thresholds["torque"].warn,
+            "torque_fault_nm": thresholds["torque"].fault,
+            "steer_warn_rad": thresholds["steer"].warn,
+            "steer_fault_rad": thresholds["steer"].fault,
+        }
+    )
+
+
 def channel_thresholds(alarms: AlarmThresholds) -> dict[str, tuple[float, float]]:
     """(WARN, FAULT) per channel [N m], [rad]."""
     return {
@@ -865,7 +889,7 @@ def evaluate_set(
         "calibrated": (observer_factory(report.gains), report.profile.alarms, report.profile.params.sample_period_s),
         "effectiveness": (
             effectiveness_factory(report.gains, report.profile.effectiveness.model_copy(update={"enabled": True})),
-            report.profile.alarms,
+            effectiveness_alarms(report, runs.calibration),
             report.profile.params.sample_period_s,
         ),
         "EKF": (ekf_factory(report.gains), ekf_alarms, report.profile.params.sample_period_s),
@@ -1566,7 +1590,9 @@ def _how_measured(plan: dict[str, Any]) -> list[str]:
         "first demand); the same observer with its loss-of-effectiveness stage (synth/effectiveness.py, the "
         "profile's effectiveness options: a Kalman filter on the observer's reported faults against its own "
         "response to the demand; its faults are the totals, bias plus (alpha - 1) demand, and the alarm rule "
-        "runs on them); the augmented EKF (synth/ekf.py) with the same parameters, bounds and noise model; the "
+        "runs on them with the thresholds `agv-fe calibrate --effectiveness` sets from the stage's totals on the "
+        "calibration drive and in its gust); the augmented EKF (synth/ekf.py) with the same parameters, bounds "
+        "and noise model; the "
         "`paper` profile (VehicleParams(), OperatingBounds(), DesignOptions(), AlarmThresholds()). Each starts "
         "from its drive's first measurement at t = 0; drives of equal length run as one batch. Alarm levels: "
         "`service.fleet.alarms.FaultLevels` with the profile's thresholds, warm-up, persistence and hysteresis, "

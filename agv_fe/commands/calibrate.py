@@ -55,6 +55,12 @@ def register(sub: Any) -> None:
         help="the lateral wind gust [N], held 2 s, the vehicle must ride through without a steering alarm "
         "(default 800; 0: no gust floor)",
     )
+    parser.add_argument(
+        "--effectiveness",
+        action="store_true",
+        help="enable the loss-of-effectiveness stage in the profile and set the fault thresholds from its total "
+        "faults on the recordings (the service then reports alpha and alarms on it)",
+    )
     parser.add_argument("--report", metavar="REPORT.json", help="also write the calibration report as JSON")
     parser.set_defaults(handler=run)
 
@@ -89,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
                 nominal_torque_nm=args.nominal_torque,
                 false_alarms_per_1000_h=args.false_alarms,
                 gust_n=gust,
+                effectiveness=args.effectiveness,
             )
         except CalibrationRefused as exc:
             raise CommandError(f"calibration refused: {exc.reason}", EXIT_NO_DESIGN) from exc

@@ -416,6 +416,11 @@ class CalibrationRequest(BaseModel):
         description="the lateral wind gust [N], held 2 s, the vehicle rides through without a steering alarm "
         "(0: no gust floor on the thresholds)",
     )
+    effectiveness: bool = Field(
+        False,
+        description="enable the loss-of-effectiveness stage in the proposed profile and set the fault thresholds "
+        "from its total faults on the recordings",
+    )
 
 
 class CalibrationProposal(BaseModel):

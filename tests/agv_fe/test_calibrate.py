@@ -67,3 +67,31 @@ def test_calibrate_refuses_with_the_reason_and_exit_codes(files, capsys):
     assert main(["calibrate", str(rec), "--base", str(base), "--out", str(root / "x.json"), "--gust", "-5"]) == 2
     assert "--gust must be a force of 0 N or more, got -5" in capsys.readouterr().err
     assert not (root / "x.json").exists()
+
+
+def test_calibrate_with_the_effectiveness_stage_sets_thresholds_from_its_totals(files, capsys):
+    """--effectiveness: the profile enables the stage, and the fault thresholds come from the stage's total faults on
+    the same drive (which vary more than the observer's own estimates), so replaying that drive with the stage
+    raises no level, and the profile is one the service accepts."""
+    from service.profiles import ProfileSpec
+
+    root, rec, base = files
+    plain, staged = root / "plain.json", root / "staged.json"
+    plain_report, staged_report = root / "plain-report.json", root / "staged-report.json"
+    assert main(["calibrate", str(rec), "--base", str(base), "--out", str(plain), "--report", str(plain_report)]) == 0
+    args = ["calibrate", str(rec), "--base", str(base), "--out", str(staged), "--report", str(staged_report)]
+    assert main([*args, "--effectiveness"]) == 0
+    capsys.readouterr()
+    doc, plain_doc = json.loads(staged.read_text()), json.loads(plain.read_text())
+    assert doc["effectiveness"]["enabled"] is True
+    assert doc["effectiveness"]["torque_sigma_nm"] == plain_doc["effectiveness"]["torque_sigma_nm"]
+    staged_sigma = json.loads(staged_report.read_text())["thresholds"]["torque"]["sigma"]
+    plain_sigma = json.loads(plain_report.read_text())["thresholds"]["torque"]["sigma"]
+    assert staged_sigma > plain_sigma  # the totals of the stage, not the observer's estimates
+    ProfileSpec.model_validate(doc)
+    out = root / "staged-estimates.csv"
+    assert main(["replay", str(rec), "--params", str(staged), "--out", str(out)]) == 0
+    with out.open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert "torque_alpha_hat" in rows[0]
+    assert {r["torque_level"] for r in rows} == {"OK"} and {r["steer_level"] for r in rows} == {"OK"}

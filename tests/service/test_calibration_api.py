@@ -42,15 +42,22 @@ def test_calibration_proposes_a_profile_that_a_put_applies(tmp_path, recording_c
         info = srv.get("/profiles/car").json()
         assert info["spec"]["params"]["effective_mass_kg"] == params["effective_mass_kg"]
         assert info["active_version"] == job["gain_version"]
-        # a second calibration of the existing profile may leave out the base: the profile's own data sheet
+        # a second calibration of the existing profile may leave out the base: the profile's own data sheet; this
+        # one also enables the effectiveness stage, whose totals set the thresholds, and the service runs it
         again = srv.http.post(
             "/profiles/car/calibration",
-            json={"recordings": [{"name": "drive-1.csv", "csv": recording_csv}]},
+            json={"recordings": [{"name": "drive-1.csv", "csv": recording_csv}], "effectiveness": True},
             headers=srv.auth,
             timeout=120.0,
         )
         assert again.status_code == 200, again.text
-        assert again.json()["profile"]["params"]["effective_mass_kg"] == pytest.approx(1290.0, rel=0.01)
+        staged = again.json()
+        assert staged["profile"]["params"]["effective_mass_kg"] == pytest.approx(1290.0, rel=0.01)
+        assert staged["profile"]["effectiveness"]["enabled"] is True
+        assert staged["report"]["thresholds"]["torque"]["sigma"] > report["thresholds"]["torque"]["sigma"]
+        applied = srv.http.put("/profiles/car", json=staged["profile"], headers=srv.auth)
+        assert applied.status_code in (200, 202), applied.text
+        assert srv.get("/profiles/car").json()["spec"]["effectiveness"]["enabled"] is True
 
 
 def test_calibration_says_what_is_wrong(tmp_path, recording_csv):
