@@ -1,0 +1,129 @@
+"""`agv-fe ros2-bridge` (edge_client/ros2_bridge.py) against real parts: CDR messages put by a zenoh session on the
+exact rmw_zenoh key expressions (with rmw_zenoh's attachment), the bridge in its own process, the real service
+answering with estimates; bad input (malformed CDR, another type definition, a NaN, a topic that stops) counted
+while the bridge keeps running."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+pytest.importorskip("rosbags")
+
+from edge_client.ros2 import RosMapping
+from edge_client.ros2_bridge import dds_type_name, rmw_attachment, topic_key
+from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint
+from edge_client.simulation import simulate_plant
+from edge_client.transport import close_session, open_session
+from tests.edge_client.ros2_messages import MAPPING, TOPICS, messages, store
+from tests.edge_client.test_publisher import Counter
+
+pytestmark = pytest.mark.network
+
+VEHICLE = "ros-car-1"
+GID = bytes(range(16))
+#: at most this many 10 ms periods of publishing, whatever happens (the bridge runs 6 s once every topic came)
+MAX_PERIODS = 4_000
+
+
+def test_the_rmw_zenoh_key_of_a_topic():
+    """The format of rmw_zenoh's design document, with its own example: std_msgs/String on `chatter`."""
+    ts = store(RosMapping.model_validate(yaml.safe_load(MAPPING)))
+    assert dds_type_name("std_msgs/msg/String") == "std_msgs::msg::dds_::String_"
+    assert topic_key(0, "/chatter", "std_msgs/msg/String", ts.hash_rihs01("std_msgs/msg/String")) == (
+        "0/chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+    )
+    assert (
+        topic_key(2, "/robot1/odom", "nav_msgs/msg/Odometry", "H") == "2/robot1/odom/nav_msgs::msg::dds_::Odometry_/H"
+    )
+    assert rmw_attachment(7, 1_700_000_000_000_000_000, GID) == (
+        (7).to_bytes(8, "little") + (1_700_000_000_000_000_000).to_bytes(8, "little") + b"\x10" + GID
+    )
+
+
+def _drive():
+    scenario = Scenario(
+        name="ros2-live", duration_s=20.0, initial_speed_mps=12.0,
+        speed_profile=(SpeedPoint(t_s=0.0, speed_mps=12.0),),
+        manoeuvres=(Manoeuvre(kind="lane_change", start_s=3.0, duration_s=4.0, amplitude_rad=0.02),),
+        noise=REALISTIC_NOISE, seed=11,
+    )  # fmt: skip
+    result = simulate_plant([scenario])
+    return result.y[:, 0], result.u[:, 0].astype(np.float32).astype(float)
+
+
+def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_back(
+    router, estimation_service, tmp_path
+):
+    mapping = RosMapping.model_validate(yaml.safe_load(MAPPING))
+    ts = store(mapping)
+    (tmp_path / "map.yaml").write_text(MAPPING)
+    y, u = _drive()
+    vehicle = open_session(router.client())  # the ROS 2 nodes' side, and the test's eyes on the measurements
+    counter = Counter(vehicle)
+    publishers = {
+        topic: vehicle.declare_publisher(topic_key(0, topic, kind, ts.hash_rihs01(kind)))
+        for topic, kind in TOPICS.items()
+    }
+    other_definition = vehicle.declare_publisher(topic_key(0, "/imu", TOPICS["/imu"], "RIHS01_" + "0" * 64))
+    bridge = subprocess.Popen(
+        [sys.executable, "-m", "agv_fe", "ros2-bridge", "--map", str(tmp_path / "map.yaml"), "--vehicle", VEHICLE,
+         "--connect", router.endpoint, "--duration", "6", "--wait", "60", "--log", str(tmp_path / "back.jsonl")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    sent = {column: set() for column in ("vx", "r", "torque", "steer")}
+    try:
+        first_meas = None
+        deadline = time.monotonic()
+        for period in range(MAX_PERIODS):
+            if bridge.poll() is not None:
+                break
+            k = period % len(y)
+            now_ns = time.time_ns()
+            with counter.lock:
+                seen = len(counter.meas[VEHICLE])
+            first_meas = period if first_meas is None and seen else first_meas
+            since = -1 if first_meas is None else period - first_meas
+            for topic, raw in messages(ts, y[k, 0], y[k, 1], u[k, 0], u[k, 1], now_ns).items():
+                if topic == "/odom" and 200 <= since < 250:  # the odometry stops for 0.5 s
+                    continue
+                publishers[topic].put(raw, attachment=rmw_attachment(period, now_ns, GID))
+            sent["vx"].add(y[k, 0]), sent["r"].add(y[k, 1]), sent["torque"].add(u[k, 0]), sent["steer"].add(u[k, 1])
+            if since == 100:  # bad input, once each: malformed CDR, another type definition, a non-finite value
+                publishers["/drive_torque"].put(b"\x00\x01\x00\x00\x07", attachment=rmw_attachment(0, now_ns, GID))
+                other_definition.put(messages(ts, 1.0, 1.0, 1.0, 1.0, now_ns)["/imu"])
+                publishers["/odom"].put(messages(ts, float("nan"), 0.0, 0.0, 0.0, now_ns)["/odom"])
+            deadline += 0.01
+            time.sleep(max(deadline - time.monotonic(), 0.0))
+        out, err = bridge.communicate(timeout=60)
+    finally:
+        if bridge.poll() is None:
+            bridge.kill()
+            bridge.wait(timeout=10)
+        time.sleep(0.2)
+        counter.close()
+        for publisher in (*publishers.values(), other_definition):
+            publisher.undeclare()
+        close_session(vehicle)
+    assert bridge.returncode == 0, err
+    assert "1 undecodable, 1 not finite, 1 of another type definition" in out, out
+    stale = int(out.split("ticks not sent for a stale column: vx ")[1].split()[0])
+    assert 35 <= stale <= 60, out  # 0.5 s without odometry, less the 0.1 s it may be held
+    meas = counter.meas[VEHICLE]
+    seqs = [m.seq for m in meas]
+    assert seqs[0] == 0 and seqs == sorted(seqs) and len(meas) > 400
+    assert len(meas) == seqs[-1] + 1 - stale  # every tick sent but the stale ones: a gap the service counts
+    # every value sent is one the vehicle's messages carried, sign and scale undone (torque halved, r negated)
+    assert all(m.vx_mps in sent["vx"] and m.r_radps in sent["r"] for m in meas)
+    assert all(m.torque_nm in sent["torque"] and m.steer_rad in sent["steer"] for m in meas)
+    back = [json.loads(line) for line in (tmp_path / "back.jsonl").read_text().splitlines()]
+    estimates = [b["message"] for b in back if b["type"] == "estimate"]
+    assert len(estimates) > 300 and {e["vehicle"] for e in estimates} == {VEHICLE}
+    assert {e["seq"] for e in estimates} <= set(seqs)
+    assert f"sent {len(meas)} measurements" in out
