@@ -24,7 +24,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -208,3 +208,87 @@ def describe_keys(source: Ros2Source) -> list[str]:
         names = ", ".join(column for column, _ in columns)
         lines.append(f"  {names:<10} {source.keys[topic]}")
     return lines
+
+
+#: The estimate's level as a diagnostic_msgs/msg/DiagnosticStatus level (OK 0, WARN 1, ERROR 2).
+DIAGNOSTIC_LEVEL = {"OK": 0, "WARN": 1, "FAULT": 2}
+DIAGNOSTIC_TYPE = "diagnostic_msgs/msg/DiagnosticStatus"
+#: rmw_zenoh's compact QoS of a publisher (reliable, volatile, keep last 7): the form of its design document's example.
+PUBLISHER_QOS = "::,7:,:,:,,"
+
+
+class EstimateRepublisher:
+    """The service's estimates of one vehicle, republished as a ROS 2 topic for the vehicle's own nodes.
+
+    Each estimate becomes a ``diagnostic_msgs/msg/DiagnosticStatus``: level OK / WARN / ERROR (FAULT) from the
+    estimate's level, name ``agv_fe/<vehicle>``, hardware_id the vehicle id, and the values (seq, vx, vy, r,
+    torque_fault, steer_fault, in_domain, gain_version) as key-value strings; it is put on the topic's rmw_zenoh key
+    with rmw_zenoh's attachment, and liveliness tokens for a node ``agv_fe_bridge`` and its publisher let the ROS 2
+    graph see the topic (``ros2 topic list``).
+    """
+
+    def __init__(
+        self, session: zenoh.Session, store: Any, domain_id: int, topic: str, vehicle_id: str, prefix: str
+    ) -> None:
+        from edge_client.transport import Publication
+        from service.protocol import vehicle_key
+
+        self.store = store
+        self.vehicle_id = vehicle_id
+        self.sent = 0
+        self.bad = 0
+        self._gid = bytes.fromhex(str(session.zid()).rjust(32, "0")[-32:])
+        type_hash = self.store.hash_rihs01(DIAGNOSTIC_TYPE)
+        self.key = topic_key(domain_id, topic, DIAGNOSTIC_TYPE, type_hash)
+        zid = str(session.zid())
+        node = f"@ros2_lv/{domain_id}/{zid}/0/0/NN/%/%/agv_fe_bridge"
+        entity = (
+            f"@ros2_lv/{domain_id}/{zid}/0/1/MP/%/%/agv_fe_bridge/{topic.replace('/', '%')}/"
+            f"{dds_type_name(DIAGNOSTIC_TYPE)}/{type_hash}/{PUBLISHER_QOS}"
+        )
+        self._publication = Publication(session, self.key, token_keys=(node, entity))
+        try:
+            self._subscription = Subscription(session, vehicle_key(vehicle_id, "estimate", prefix), self._on_estimate)
+        except BaseException:
+            self._publication.close()
+            raise
+
+    def _on_estimate(self, rx: Received) -> None:
+        from service.protocol import Estimate, ProtocolError
+
+        try:
+            estimate = Estimate.decode(rx.payload)
+        except ProtocolError:
+            self.bad += 1
+            return
+        t = self.store.types
+        values = {
+            "seq": str(estimate.seq),
+            "vx": repr(estimate.vx),
+            "vy": repr(estimate.vy),
+            "r": repr(estimate.r),
+            "torque_fault": repr(estimate.torque_fault),
+            "steer_fault": repr(estimate.steer_fault),
+            "in_domain": str(estimate.in_domain).lower(),
+            "gain_version": estimate.gain_version,
+        }
+        status = t[DIAGNOSTIC_TYPE](
+            level=DIAGNOSTIC_LEVEL.get(estimate.level, 2),
+            name=f"agv_fe/{self.vehicle_id}",
+            message=f"torque fault {estimate.torque_fault:.1f} N m, steering fault {estimate.steer_fault:.4f} rad",
+            hardware_id=self.vehicle_id,
+            values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values.items()],
+        )
+        payload = bytes(self.store.serialize_cdr(status, DIAGNOSTIC_TYPE))
+        self.sent += 1
+        self._publication.put(payload, rmw_attachment(self.sent, time.time_ns(), self._gid))
+
+    def close(self) -> None:
+        self._subscription.close()
+        self._publication.close()
+
+    def __enter__(self) -> EstimateRepublisher:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()

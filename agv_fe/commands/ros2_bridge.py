@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import re
 import textwrap
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,12 @@ def register(sub: Any) -> None:
     parser.add_argument(
         "--wait", type=float, default=30.0, metavar="S", help="how long to wait for every topic at start (default 30)"
     )
+    parser.add_argument(
+        "--republish",
+        metavar="TOPIC",
+        help="also republish the vehicle's estimates as this ROS 2 topic (diagnostic_msgs/msg/DiagnosticStatus, "
+        "level OK / WARN / ERROR), for the vehicle's own nodes",
+    )
     parser.add_argument("--log", metavar="FILE.jsonl", help="write every estimate and alarm received, one JSON a line")
     parser.add_argument(
         "--progress", type=float, default=5.0, metavar="S", help="seconds between progress lines (default 5)"
@@ -53,6 +60,10 @@ def _check(args: argparse.Namespace) -> tuple[Any, Any]:
         raise CommandError(f"--duration: expected seconds > 0, got {args.duration}")
     if not (math.isfinite(args.wait) and args.wait >= 0):
         raise CommandError(f"--wait: expected seconds >= 0, got {args.wait}")
+    if args.republish is not None and not re.fullmatch(r"(/[A-Za-z_][A-Za-z0-9_]*)+", args.republish):
+        raise CommandError(
+            f"--republish: expected a fully qualified topic name such as /agv_fe/status, got {args.republish!r}"
+        )
     if not (math.isfinite(args.progress) and args.progress > 0):
         raise CommandError(f"--progress: expected seconds > 0, got {args.progress}")
     try:
@@ -70,7 +81,7 @@ def _check(args: argparse.Namespace) -> tuple[Any, Any]:
 def run(args: argparse.Namespace) -> int:
     from edge_client.publisher import FleetPublisher, PublisherOptions
     from edge_client.recording import RecordingError
-    from edge_client.ros2_bridge import Ros2Source, describe_keys
+    from edge_client.ros2_bridge import EstimateRepublisher, Ros2Source, describe_keys
     from edge_client.transport import TransportError, close_session, open_session
 
     try:
@@ -82,11 +93,19 @@ def run(args: argparse.Namespace) -> int:
                         f"{transport.describe()}", 100))  # fmt: skip
     options = PublisherOptions(truth_rate_hz=0.0, buffer_s=0.0, prefix=args.prefix, warmup_s=0.0)
     progress = ProgressPrinter()
+    republisher = None
     try:
         with contextlib.ExitStack() as stack:
             stack.callback(close_session, session)
             source = stack.enter_context(Ros2Source(session, mapping, args.vehicle, wait_s=args.wait))
             print("\n".join(["subscribed (signal, rmw_zenoh key):", *describe_keys(source)]), flush=True)
+            if args.republish:
+                republisher = stack.enter_context(
+                    EstimateRepublisher(
+                        session, source.store, mapping.domain_id, args.republish, args.vehicle, args.prefix
+                    )
+                )
+                print(f"estimates republished on {republisher.key}", flush=True)
             stack.callback(progress.finish)
             log = stack.enter_context(Path(args.log).open("w")) if args.log else None
             publisher = stack.enter_context(FleetPublisher(session, source, options, log=log))
@@ -95,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
                 args.duration, stop=stop, on_progress=progress, progress_period_s=args.progress, drain_s=1.0
             )
             lines = source.stats.describe()
+            if republisher is not None:
+                lines.append(f"republished {republisher.sent} estimates on {republisher.key}")
     except RecordingError as exc:
         return fail(CommandError(str(exc)))
     except OSError as exc:

@@ -20,7 +20,7 @@ from edge_client.ros2 import RosMapping
 from edge_client.ros2_bridge import dds_type_name, rmw_attachment, topic_key
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint
 from edge_client.simulation import simulate_plant
-from edge_client.transport import close_session, open_session
+from edge_client.transport import ChannelSubscription, close_session, open_session
 from tests.edge_client.ros2_messages import MAPPING, TOPICS, messages, store
 from tests.edge_client.test_publisher import Counter
 
@@ -30,6 +30,7 @@ VEHICLE = "ros-car-1"
 GID = bytes(range(16))
 #: at most this many 10 ms periods of publishing, whatever happens (the bridge runs 6 s once every topic came)
 MAX_PERIODS = 4_000
+STATUS = "diagnostic_msgs/msg/DiagnosticStatus"
 
 
 def test_the_rmw_zenoh_key_of_a_topic():
@@ -72,9 +73,14 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
         for topic, kind in TOPICS.items()
     }
     other_definition = vehicle.declare_publisher(topic_key(0, "/imu", TOPICS["/imu"], "RIHS01_" + "0" * 64))
+    # the vehicle's own node listening to the estimates republished as a ROS 2 topic, and to the ROS 2 graph
+    status_key = topic_key(0, "/agv_fe/status", STATUS, ts.hash_rihs01(STATUS))
+    statuses = ChannelSubscription(vehicle, status_key)
+    graph = ChannelSubscription(vehicle, "@ros2_lv/0/**", liveliness=True)
     bridge = subprocess.Popen(
         [sys.executable, "-m", "agv_fe", "ros2-bridge", "--map", str(tmp_path / "map.yaml"), "--vehicle", VEHICLE,
-         "--connect", router.endpoint, "--duration", "6", "--wait", "60", "--log", str(tmp_path / "back.jsonl")],
+         "--connect", router.endpoint, "--duration", "6", "--wait", "60", "--republish", "/agv_fe/status",
+         "--log", str(tmp_path / "back.jsonl")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     sent = {column: set() for column in ("vx", "r", "torque", "steer")}
@@ -107,6 +113,10 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
             bridge.kill()
             bridge.wait(timeout=10)
         time.sleep(0.2)
+        received_statuses = statuses.drain()
+        tokens = [rx.key for rx in graph.drain() if rx.put]
+        statuses.close()
+        graph.close()
         counter.close()
         for publisher in (*publishers.values(), other_definition):
             publisher.undeclare()
@@ -127,3 +137,16 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
     assert len(estimates) > 300 and {e["vehicle"] for e in estimates} == {VEHICLE}
     assert {e["seq"] for e in estimates} <= set(seqs)
     assert f"sent {len(meas)} measurements" in out
+    # the estimates as diagnostic_msgs/DiagnosticStatus on the topic's rmw_zenoh key, decoded by rosbags
+    by_seq = {e["seq"]: e for e in estimates}
+    decoded = [ts.deserialize_cdr(rx.payload, STATUS) for rx in received_statuses]
+    assert len(decoded) > 300 and f"republished {len(decoded)} estimates on {status_key}" in out
+    for status in decoded:
+        values = {kv.key: kv.value for kv in status.values}
+        estimate = by_seq[int(values["seq"])]
+        assert status.hardware_id == VEHICLE and status.level == {"OK": 0, "WARN": 1, "FAULT": 2}[estimate["level"]]
+        assert float(values["torque_fault"]) == estimate["torque_fault"]
+        assert float(values["steer_fault"]) == estimate["steer_fault"]
+    # and the ROS 2 graph sees the bridge's node and its publisher (liveliness tokens of rmw_zenoh's format)
+    assert any(key.endswith("/0/0/NN/%/%/agv_fe_bridge") for key in tokens), tokens
+    assert any(f"/0/1/MP/%/%/agv_fe_bridge/%agv_fe%status/{dds_type_name(STATUS)}/" in key for key in tokens), tokens
