@@ -5,6 +5,8 @@ buckets, and decodes Python's payloads to the same numbers, refusing what the se
 from __future__ import annotations
 
 import math
+import re
+import shlex
 import shutil
 import struct
 import subprocess
@@ -89,3 +91,23 @@ def test_the_c_decoder_reads_python_payloads_and_refuses_what_the_service_refuse
         assert _decoded(example, bytes(payload)) == f"error {ERRORS[reason]}", reason
     assert _decoded(example, bytes(refused_reserved_bytes)) == f"error {ERRORS['reserved']}"
     assert _decoded(example, bytes(refused_id)) == f"error {ERRORS['id']}"
+
+
+def test_the_example_of_docs_integration_md_runs_as_printed(tmp_path):
+    """The page's two commands, run verbatim in a copy of include/ and examples/, print the page's output."""
+    if COMPILER is None:
+        pytest.fail("no C compiler (cc or gcc): .ci/install-system-deps installs gcc")
+    text = (ROOT / "docs/integration.md").read_text()
+    section = text[text.index("\n## C\n") : text.index("\n## Plain Zenoh\n")]
+    (commands,) = re.findall(r"```sh\n(.*?)```", section, re.S)
+    (expected,) = re.findall(r"```text\n(.*?)```", section, re.S)
+    shutil.copytree(ROOT / "include", tmp_path / "include")
+    shutil.copytree(ROOT / "examples", tmp_path / "examples")
+    outputs = []
+    for line in commands.splitlines():
+        argv = shlex.split(line)
+        argv[0] = COMPILER if argv[0] == "cc" else str(tmp_path / argv[0])
+        done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, (line, done.stderr)
+        outputs.append(done.stdout)
+    assert "".join(outputs) == expected

@@ -34,8 +34,18 @@ def _header(ts: Any, stamp_ns: int) -> Any:
     )
 
 
-def messages(ts: Any, vx: float, r: float, torque: float, steer: float, stamp_ns: int) -> dict[str, bytes]:
-    """Topic -> CDR bytes of one sample's four messages (the signs and scales of :data:`MAPPING` undone)."""
+def messages(
+    ts: Any,
+    vx: float,
+    r: float,
+    torque: float,
+    steer: float,
+    stamp_ns: int,
+    imu_sign: float = -1.0,
+    torque_factor: float = 2.0,
+) -> dict[str, bytes]:
+    """Topic -> CDR bytes of one sample's four messages: the IMU's z is ``imu_sign`` r and the torque message
+    carries ``torque_factor`` T_d (the defaults are what :data:`MAPPING`'s sign and scale undo)."""
     t = ts.types
     vec = t["geometry_msgs/msg/Vector3"]
     zero6 = np.zeros(36)
@@ -55,7 +65,7 @@ def messages(ts: Any, vx: float, r: float, torque: float, steer: float, stamp_ns
         header=_header(ts, stamp_ns),
         orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
         orientation_covariance=zero3,
-        angular_velocity=vec(x=0.0, y=0.0, z=-r),
+        angular_velocity=vec(x=0.0, y=0.0, z=imu_sign * r),
         angular_velocity_covariance=zero3,
         linear_acceleration=vec(x=0.0, y=0.0, z=9.81),
         linear_acceleration_covariance=zero3,
@@ -64,6 +74,6 @@ def messages(ts: Any, vx: float, r: float, torque: float, steer: float, stamp_ns
         steering_angle=steer, steering_angle_velocity=0.0, speed=vx, acceleration=0.0, jerk=0.0
     )
     cmd = t["ackermann_msgs/msg/AckermannDriveStamped"](header=_header(ts, stamp_ns), drive=drive)
-    torque_msg = t["std_msgs/msg/Float64"](data=2.0 * torque)
+    torque_msg = t["std_msgs/msg/Float64"](data=torque_factor * torque)
     built = {"/odom": odom, "/imu": imu, "/drive_torque": torque_msg, "/cmd": cmd}
     return {topic: bytes(ts.serialize_cdr(message, TOPICS[topic])) for topic, message in built.items()}
