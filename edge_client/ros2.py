@@ -51,7 +51,7 @@ class RosSignal(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    topic: str = Field(pattern=r"^/[A-Za-z0-9_~{}/]+$", description="fully qualified topic name, e.g. /odom")
+    topic: str = Field(pattern=r"^(/[A-Za-z_][A-Za-z0-9_]*)+$", description="fully qualified topic name, e.g. /odom")
     type: str = Field(pattern=r"^[A-Za-z0-9_]+/msg/[A-Za-z0-9_]+$", description="e.g. nav_msgs/msg/Odometry")
     field: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$", description="dotted path")
     scale: float = Field(1.0, allow_inf_nan=False, description="to the protocol's unit (and sign): multiply by this")
@@ -199,7 +199,11 @@ def read_bag(path: str | Path, mapping: RosMapping) -> tuple[Recording, RosStats
                     continue
                 t_s = (t_ns - reader.start_time) * 1e-9
                 for column, signal in wanted[connection.topic]:
-                    value = field_value(message, signal)
+                    try:
+                        value = field_value(message, signal)
+                    except (AttributeError, TypeError, ValueError):  # the bag's own definition of the type differs
+                        stats.undecodable += 1
+                        continue
                     if not math.isfinite(value):
                         stats.non_finite += 1
                         continue

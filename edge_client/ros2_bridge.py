@@ -9,7 +9,7 @@ header; the attachment (sequence number and source time stamp, 8 bytes each litt
 GID) is not needed here: a message counts when it arrives, as a controller subscribed to the topic would see it.
 
 :class:`Ros2Source` subscribes to the mapped topics (edge_client/ros2.py's mapping) on those keys, with any type
-hash, decodes each message with rosbags and keeps the latest value of each column (edge_client/grid.py's
+type, decodes each message with rosbags and keeps the latest value of each column (edge_client/grid.py's
 :class:`~edge_client.grid.LiveHold`). It is a :class:`~edge_client.sources.SampleSource`: the 100 Hz publisher
 (edge_client/publisher.py) samples it at each tick and sends the measurement in the service's protocol, with its
 pacing, sequence numbers, buffering and the estimates that come back. A tick at which a column is older than the
@@ -79,7 +79,7 @@ class BridgeStats:
         stale = ", ".join(f"{column} {count}" for column, count in self.stale_ticks.items() if count) or "none"
         return [
             f"received {self.messages} messages: used {used}; refused {self.undecodable} undecodable, "
-            f"{self.non_finite} not finite, {self.other_type} of another type definition (type hash)",
+            f"{self.non_finite} not finite, {self.other_type} of another type or type definition (type hash)",
             f"grid: {self.sampled} of {self.ticks} ticks sampled; ticks not sent for a stale column: {stale}",
         ]
 
@@ -113,7 +113,8 @@ class Ros2Source:
                 type_name = columns[0][1].type
                 type_hash = self.store.hash_rihs01(type_name)
                 self.keys[topic] = topic_key(mapping.domain_id, topic, type_name, type_hash)
-                selector = topic_key(mapping.domain_id, topic, type_name, "*")
+                # any type on the topic: a message of another type or type definition is counted, not ignored
+                selector = f"{mapping.domain_id}/{topic.strip('/')}/*/*"
                 self._subscriptions.append(Subscription(session, selector, self._receiver(columns, type_hash)))
         except BaseException:
             self.close()
@@ -121,6 +122,7 @@ class Ros2Source:
 
     def _receiver(self, columns: list[tuple[str, RosSignal]], type_hash: str) -> Callable[[Received], None]:
         type_name = columns[0][1].type
+        expected = [dds_type_name(type_name), type_hash]
 
         def on_message(rx: Received) -> None:
             # zenoh's thread: decode, check, hold; never raise
@@ -128,18 +130,18 @@ class Ros2Source:
 
             with self._lock:
                 self.stats.messages += 1
-            if rx.key.rsplit("/", 1)[-1] != type_hash:
+            if rx.key.rsplit("/", 2)[1:] != expected:
                 with self._lock:
                     self.stats.other_type += 1
                 return
             try:
                 message = self.store.deserialize_cdr(rx.payload, type_name)
-            except SerdeError:
+                values = [(column, field_value(message, signal)) for column, signal in columns]
+            except (SerdeError, AttributeError, TypeError, ValueError):
                 with self._lock:
                     self.stats.undecodable += 1
                 return
-            for column, signal in columns:
-                value = field_value(message, signal)
+            for column, value in values:
                 with self._lock:
                     if not np.isfinite(value):
                         self.stats.non_finite += 1

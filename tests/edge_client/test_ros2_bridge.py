@@ -73,6 +73,7 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
         for topic, kind in TOPICS.items()
     }
     other_definition = vehicle.declare_publisher(topic_key(0, "/imu", TOPICS["/imu"], "RIHS01_" + "0" * 64))
+    other_type = vehicle.declare_publisher(topic_key(0, "/imu", "std_msgs/msg/Float64", "RIHS01_" + "1" * 64))
     # the vehicle's own node listening to the estimates republished as a ROS 2 topic, and to the ROS 2 graph
     status_key = topic_key(0, "/agv_fe/status", STATUS, ts.hash_rihs01(STATUS))
     statuses = ChannelSubscription(vehicle, status_key)
@@ -101,9 +102,10 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
                     continue
                 publishers[topic].put(raw, attachment=rmw_attachment(period, now_ns, GID))
             sent["vx"].add(y[k, 0]), sent["r"].add(y[k, 1]), sent["torque"].add(u[k, 0]), sent["steer"].add(u[k, 1])
-            if since == 100:  # bad input, once each: malformed CDR, another type definition, a non-finite value
+            if since == 100:  # bad input, once each: malformed CDR, another type definition, another type, a NaN
                 publishers["/drive_torque"].put(b"\x00\x01\x00\x00\x07", attachment=rmw_attachment(0, now_ns, GID))
                 other_definition.put(messages(ts, 1.0, 1.0, 1.0, 1.0, now_ns)["/imu"])
+                other_type.put(messages(ts, 1.0, 1.0, 1.0, 1.0, now_ns)["/drive_torque"])
                 publishers["/odom"].put(messages(ts, float("nan"), 0.0, 0.0, 0.0, now_ns)["/odom"])
             deadline += 0.01
             time.sleep(max(deadline - time.monotonic(), 0.0))
@@ -118,11 +120,11 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
         statuses.close()
         graph.close()
         counter.close()
-        for publisher in (*publishers.values(), other_definition):
+        for publisher in (*publishers.values(), other_definition, other_type):
             publisher.undeclare()
         close_session(vehicle)
     assert bridge.returncode == 0, err
-    assert "1 undecodable, 1 not finite, 1 of another type definition" in out, out
+    assert "1 undecodable, 1 not finite, 2 of another type or type definition" in out, out
     stale = int(out.split("ticks not sent for a stale column: vx ")[1].split()[0])
     assert 35 <= stale <= 60, out  # 0.5 s without odometry, less the 0.1 s it may be held
     meas = counter.meas[VEHICLE]
@@ -150,3 +152,19 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
     # and the ROS 2 graph sees the bridge's node and its publisher (liveliness tokens of rmw_zenoh's format)
     assert any(key.endswith("/0/0/NN/%/%/agv_fe_bridge") for key in tokens), tokens
     assert any(f"/0/1/MP/%/%/agv_fe_bridge/%agv_fe%status/{dds_type_name(STATUS)}/" in key for key in tokens), tokens
+
+
+def test_a_mapping_the_bridge_cannot_use_is_refused_before_it_joins_the_network(tmp_path, capsys):
+    from agv_fe.cli import main
+
+    cases = {
+        "unknown type": (MAPPING.replace("std_msgs/msg/Float64", "acme_msgs/msg/Torque"),
+                         "unknown message type acme_msgs/msg/Torque (mapped to torque)"),
+        "missing field": (MAPPING.replace("drive.steering_angle", "drive.angle"), "has no field 'angle'"),
+        "bad topic": (MAPPING.replace("/odom", "odom"), "vx.topic"),
+    }  # fmt: skip
+    for name, (text, message) in cases.items():
+        (tmp_path / "map.yaml").write_text(text)
+        code = main(["ros2-bridge", "--map", str(tmp_path / "map.yaml"), "--vehicle", VEHICLE, "--connect",
+                     "tcp/127.0.0.1:9"])  # fmt: skip
+        assert code == 2 and message in capsys.readouterr().err, name
