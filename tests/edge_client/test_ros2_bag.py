@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import re
 from pathlib import Path
 
@@ -136,3 +137,20 @@ def test_what_cannot_be_read_is_said(tmp_path, bags, drive, capsys):
     stopped = write_bag(tmp_path / "stopped", drive, StoragePlugin.SQLITE3, stop_odom_after_s=6.0)
     with pytest.raises(RecordingError, match=r"vx not received for 0\.1\d+ s at t = 6\.\d+ s"):
         read_bag(stopped, mapping)
+
+
+def test_calibrate_reads_bags_with_the_mapping(tmp_path, bags, capsys):
+    """The same --map for calibrate: the bag is read (12 s of driving, too little to identify the vehicle: refused
+    with the calibration's reason, exit 3), and a path that is no bag is said."""
+    from tests.calibration_data import BASE
+
+    root, paths = bags
+    base = tmp_path / "base.json"
+    base.write_text(json.dumps({"params": BASE}))
+    command = ["calibrate", str(paths["mcap"]), "--map", str(root / "map.yaml"), "--base", str(base), "--out",
+               str(tmp_path / "profile.json")]  # fmt: skip
+    assert main(command) == 3
+    captured = capsys.readouterr()
+    assert "1 undecodable" in captured.out and "calibration refused" in captured.err
+    command[1] = str(tmp_path / "no-bag")
+    assert main(command) == 2 and "cannot read the bag" in capsys.readouterr().err
