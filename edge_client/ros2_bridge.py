@@ -20,6 +20,7 @@ another type definition (type hash), one that does not decode (malformed CDR), a
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -143,7 +144,7 @@ class Ros2Source:
                 return
             for column, value in values:
                 with self._lock:
-                    if not np.isfinite(value):
+                    if not math.isfinite(value):
                         self.stats.non_finite += 1
                         continue
                     self.stats.used[column] += 1
@@ -170,7 +171,10 @@ class Ros2Source:
         if not self._first.wait(self.wait_s):
             missing = self.hold.sample(self._clock()).stale
             topics = ", ".join(f"{column} ({self.keys[self.mapping.signals()[column].topic]})" for column in missing)
-            raise RecordingError(f"no message within {self.wait_s:g} s for {topics}")
+            raise RecordingError(
+                f"no instant within {self.wait_s:g} s at which every signal was fresher than max_age_s = "
+                f"{self.mapping.max_age_s:g} s; missing or stale: {topics}"
+            )
 
     def next_tick(self) -> Tick:
         sample = self.hold.sample(self._clock())

@@ -168,3 +168,16 @@ def test_a_mapping_the_bridge_cannot_use_is_refused_before_it_joins_the_network(
         code = main(["ros2-bridge", "--map", str(tmp_path / "map.yaml"), "--vehicle", VEHICLE, "--connect",
                      "tcp/127.0.0.1:9"])  # fmt: skip
         assert code == 2 and message in capsys.readouterr().err, name
+
+
+@pytest.mark.network
+def test_a_topic_that_never_comes_is_named(router, tmp_path, capsys):
+    """No vehicle on the network: after --wait the bridge stops, naming every signal and its exact key."""
+    from agv_fe.cli import main
+
+    (tmp_path / "map.yaml").write_text(MAPPING)
+    code = main(["ros2-bridge", "--map", str(tmp_path / "map.yaml"), "--vehicle", VEHICLE, "--connect",
+                 router.endpoint, "--wait", "0.5"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and "missing or stale: vx (0/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_" in err, err
+    assert "steer (0/cmd/ackermann_msgs::msg::dds_::AckermannDriveStamped_/RIHS01_" in err
