@@ -19,6 +19,7 @@ COMMANDS = {
     "fleet": "agv_fe.commands.fleet",
     "dashboard": "agv_fe.commands.dashboard",
     "publish-csv": "agv_fe.commands.publish_csv",
+    "ros2-bridge": "agv_fe.commands.ros2_bridge",
     "zenoh-acl": "agv_fe.commands.zenoh_acl",
     "demo": "agv_fe.commands.demo",
     "bench": "agv_fe.commands.bench",

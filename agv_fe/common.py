@@ -288,3 +288,37 @@ def gains_from_args(args: argparse.Namespace, profile: VehicleProfileFile | None
         except (SynthesisError, KeyError, TypeError, ValueError) as exc:
             raise CommandError(f"{args.gains}: unusable gains: {exc}") from exc
     return synthesize_or_fail(args, profile=profile)
+
+
+def add_bag_argument(parser: argparse.ArgumentParser) -> None:
+    """``--map``: the input is a ROS 2 bag read through a mapping file (edge_client/ros2.py), not a CSV."""
+    parser.add_argument(
+        "--map",
+        metavar="MAPPING.yaml",
+        help="read the input as a ROS 2 bag (rosbag2 directory, .db3 or .mcap) whose topics this mapping names "
+        "(topic, message type, field, scale and offset per signal: docs/integration.md); needs the 'ros2' extra",
+    )
+
+
+def read_input(path: str, mapping_path: str | None, sample_period_s: float = 0.01) -> Any:
+    """The recording at ``path``: a CSV, or with ``mapping_path`` a ROS 2 bag on the grid of its mapping (whose
+    sample period must be ``sample_period_s``). A :class:`CommandError` says what is wrong."""
+    from edge_client.recording import RecordingError, read_recording
+
+    try:
+        if mapping_path is None:
+            return read_recording(path, sample_period_s)
+        try:
+            from edge_client.ros2 import load_ros_mapping, read_bag
+        except ImportError as exc:  # rosbags missing
+            raise CommandError(f"--map needs rosbags: pip install 'agv-fault-estimator[ros2]' ({exc})") from exc
+        mapping = load_ros_mapping(mapping_path)
+        if abs(mapping.sample_period_s - sample_period_s) > 1e-12:
+            raise CommandError(
+                f"{mapping_path}: sample_period_s {mapping.sample_period_s:g} s, the profile's is {sample_period_s:g} s"
+            )
+        recording, stats = read_bag(path, mapping)
+        print(f"{path}: {stats.describe()}; {len(recording)} samples on the {sample_period_s * 1000:g} ms grid")
+        return recording
+    except RecordingError as exc:
+        raise CommandError(str(exc)) from exc

@@ -13,7 +13,7 @@ protocol's unit (docs/protocol.md), value = scale x decoded + offset:
     steer:  {message: STEER_DEMAND, signal: RoadWheelAngleDemand}               # rad
 
 The log is read with python-can (candump ``.log``, Vector ``.asc`` and ``.blf``,
-``.trc``, ``.csv``... by its extension) and decoded with cantools. Resampling:
+``.trc``, ``.csv``... by its extension) and decoded with cantools. Resampling (the rule of edge_client/grid.py):
 the grid starts at the first time stamp at which every column has been received
 and runs every ``sample_period_s``; each grid point takes the latest value
 received at or before it (a zero-order hold, what a controller sampling the bus
@@ -30,16 +30,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from edge_client.grid import COLUMNS, hold_on_grid
 from edge_client.recording import Recording, RecordingError
-from synth.model import FloatArray
-
-COLUMNS = ("vx", "r", "torque", "steer")
-#: Time stamps this close are the same instant [s]: a candump log's resolution.
-TIME_RESOLUTION_S = 1e-6
 
 
 class CanSignal(BaseModel):
@@ -109,7 +104,8 @@ def read_can_log(log: str | Path, dbc: str | Path, mapping: CanMapping) -> tuple
         samples, stats = _decode(messages, database, wanted)
     except (OSError, ValueError, can.CanError) as exc:
         raise RecordingError(f"{log}: cannot read the CAN log: {exc}") from exc
-    return _resample(samples, mapping, stats, str(log)), stats
+    recording, stats.first_complete_s = hold_on_grid(samples, mapping.sample_period_s, mapping.max_age_s, str(log))
+    return recording, stats
 
 
 def _resolve(database: Any, mapping: CanMapping, dbc: str | Path) -> dict[int, list[tuple[str, CanSignal]]]:
@@ -157,44 +153,3 @@ def _decode(
             values.append(signal.scale * float(value) + signal.offset)
             stats.used[column] += 1
     return samples, stats
-
-
-def _resample(
-    samples: dict[str, tuple[list[float], list[float]]], mapping: CanMapping, stats: CanStats, source: str
-) -> Recording:
-    missing = [column for column in COLUMNS if not samples[column][0]]
-    if missing:
-        raise RecordingError(f"{source}: no frame of {', '.join(missing)} in the log (check the mapping)")
-    series = {c: (np.asarray(samples[c][0]), np.asarray(samples[c][1])) for c in COLUMNS}
-    for column, (times, _) in series.items():
-        if np.any(np.diff(times) < 0):
-            raise RecordingError(f"{source}: the time stamps of {column} go backwards")
-    # from the first time every column is known to the log's last value: a column that stops before the others
-    # is found stale below, not cut off silently
-    start = max(times[0] for times, _ in series.values())
-    end = max(times[-1] for times, _ in series.values())
-    period = mapping.sample_period_s
-    n = int(np.floor((end - start) / period + 1e-9)) + 1
-    if n < 2:
-        raise RecordingError(f"{source}: under two samples in which every column is known")
-    grid = start + period * np.arange(n)
-    out = np.empty((n, 4))
-    for i, column in enumerate(COLUMNS):
-        times, values = series[column]
-        # a frame within a microsecond of a grid point (the resolution of a candump log; an absolute time stamp
-        # of 1.7e9 s carries 0.2 us of rounding) counts as at it
-        latest = np.searchsorted(times, grid + TIME_RESOLUTION_S, side="right") - 1
-        age = grid - times[latest]
-        stale = np.flatnonzero(age > mapping.max_age_s)
-        if stale.size:
-            k = int(stale[0])
-            raise RecordingError(
-                f"{source}: {column} not received for {age[k]:.3f} s at t = {grid[k] - start:.2f} s of the recording "
-                f"(more than max_age_s = {mapping.max_age_s:g} s): the signal stopped or its message is mapped wrong"
-            )
-        out[:, i] = values[latest]
-    if not np.isfinite(out).all():
-        raise RecordingError(f"{source}: a decoded value is not finite")
-    stats.first_complete_s = float(start)
-    t: FloatArray = period * np.arange(n)  # not grid - start: log time stamps are large numbers
-    return Recording(t=t, y=out[:, :2].copy(), u=out[:, 2:].copy())

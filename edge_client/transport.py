@@ -161,6 +161,28 @@ class Subscription:
         self._subscriber.undeclare()
 
 
+class Publication:
+    """A publisher on one key expression, with liveliness tokens that announce it (e.g. to a ROS 2 graph)."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str, token_keys: Sequence[str] = ()) -> None:
+        self._publisher: Any = session.declare_publisher(key_expr, reliability=zenoh.Reliability.RELIABLE)
+        self._tokens: list[Any] = []
+        try:
+            self._tokens.extend(session.liveliness().declare_token(key) for key in token_keys)
+        except BaseException:
+            self.close()
+            raise
+
+    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+        self._publisher.put(payload, attachment=attachment)
+
+    def close(self) -> None:
+        for item in (self._publisher, *self._tokens):
+            with contextlib.suppress(zenoh.ZError):
+                item.undeclare()
+        self._tokens.clear()
+
+
 class ChannelSubscription:
     """A subscriber whose samples wait in a bounded channel until :meth:`drain`.
 

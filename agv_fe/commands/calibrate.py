@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from agv_fe.common import EXIT_NO_DESIGN, CommandError, fail, load_json
+from agv_fe.common import EXIT_NO_DESIGN, CommandError, add_bag_argument, fail, load_json, read_input
 from synth.calibration import REQUIRED_BASE_FIELDS
 
 
@@ -22,7 +22,10 @@ def register(sub: Any) -> None:
         "confidence interval and the fit residuals; refuses, with the reason, data that cannot identify the "
         "vehicle. The profile written is accepted by synth --params, replay --params and PUT /profiles/{name}.",
     )
-    parser.add_argument("recordings", nargs="+", metavar="REC.csv", help="healthy recordings, 100 Hz")
+    parser.add_argument(
+        "recordings", nargs="+", metavar="REC.csv", help="healthy recordings, 100 Hz (ROS 2 bags with --map)"
+    )
+    add_bag_argument(parser)
     parser.add_argument(
         "--base",
         required=True,
@@ -66,7 +69,6 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from edge_client.recording import RecordingError, read_recording
     from service.calibration import GUST_N, calibrate_from_base
     from synth.calibration import CalibrationRefused, Drive
     from synth.errors import SynthesisError
@@ -82,10 +84,7 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(f"--gust must be a force of 0 N or more, got {args.gust}")
         drives = []
         for path in args.recordings:
-            try:
-                rec = read_recording(path, float(base["params"].get("sample_period_s", 0.01)))
-            except RecordingError as exc:
-                raise CommandError(str(exc)) from exc
+            rec = read_input(path, args.map, float(base["params"].get("sample_period_s", 0.01)))
             drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=Path(path).name))
         print(f"calibrating from {len(drives)} recording(s) ...", flush=True)
         try:

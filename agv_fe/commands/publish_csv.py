@@ -9,7 +9,7 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
-from agv_fe.common import CommandError, fail
+from agv_fe.common import CommandError, add_bag_argument, fail, read_input
 from agv_fe.edge_args import ProgressPrinter, add_transport_arguments, stop_on_interrupt, transport_options
 
 
@@ -22,7 +22,8 @@ def register(sub: Any) -> None:
         "k * 10 ms) and a liveliness token, and collect the estimates and alarms the service sends back. "
         "This is how a real vehicle's log reaches the service.",
     )
-    parser.add_argument("input", metavar="FILE.csv", help="recorded stream")
+    parser.add_argument("input", metavar="FILE.csv", help="recorded stream (a ROS 2 bag with --map)")
+    add_bag_argument(parser)
     parser.add_argument("--vehicle", required=True, metavar="ID", help="vehicle id (1-64 of A-Z a-z 0-9 _ . -)")
     parser.add_argument(
         "--buffer", type=float, default=2.0, metavar="S", help="buffer while undeliverable (default 2 s)"
@@ -37,7 +38,6 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from edge_client.publisher import FleetPublisher, PublisherOptions
-    from edge_client.recording import RecordingError, read_recording
     from edge_client.sources import RecordingSource
     from edge_client.transport import TransportError, close_session, open_session
     from service.protocol import ProtocolError, check_vehicle_id
@@ -52,10 +52,7 @@ def run(args: argparse.Namespace) -> int:
         if not (math.isfinite(args.progress) and args.progress > 0):
             raise CommandError(f"--progress: expected seconds > 0, got {args.progress}")
         transport = transport_options(args)
-        try:
-            recording = read_recording(args.input)
-        except RecordingError as exc:
-            raise CommandError(str(exc)) from exc
+        recording = read_input(args.input, args.map)
     except CommandError as exc:
         return fail(exc)
     source = RecordingSource(args.vehicle, recording)

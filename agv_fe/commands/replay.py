@@ -12,12 +12,14 @@ import numpy as np
 from agv_fe.common import (
     CommandError,
     VehicleProfileFile,
+    add_bag_argument,
     add_design_arguments,
     add_estimator_argument,
     estimator_factory,
     fail,
     gains_from_args,
     load_profile_file,
+    read_input,
 )
 
 if TYPE_CHECKING:
@@ -40,7 +42,8 @@ def register(sub: Any) -> None:
         "alarm thresholds of the --params profile (default: the default thresholds), on the time stamps "
         "t_ns = round(t * 1e9): the service gives the same levels for the same stream.",
     )
-    parser.add_argument("input", metavar="INPUT.csv", help="recorded stream")
+    parser.add_argument("input", metavar="INPUT.csv", help="recorded stream (a ROS 2 bag with --map)")
+    add_bag_argument(parser)
     parser.add_argument("--out", required=True, metavar="OUTPUT.csv", help="estimates")
     parser.add_argument(
         "--gains",
@@ -81,7 +84,7 @@ class Replay:
 
 
 def run(args: argparse.Namespace) -> int:
-    from edge_client.recording import RecordingError, read_recording, write_estimates
+    from edge_client.recording import write_estimates
     from service.fleet.alarms import LEVEL_NAMES
 
     try:
@@ -89,11 +92,8 @@ def run(args: argparse.Namespace) -> int:
         profile = load_profile_file(args.params)
         # stored gains load at once; a design takes seconds: the recording is checked before one is made
         gains = gains_from_args(args, profile) if args.gains else None
-        try:
-            period = profile.params.sample_period_s if gains is None else gains.params.sample_period_s
-            recording = read_recording(args.input, period)
-        except RecordingError as exc:
-            raise CommandError(str(exc)) from exc
+        period = profile.params.sample_period_s if gains is None else gains.params.sample_period_s
+        recording = read_input(args.input, args.map, period)
         if gains is None:
             gains = gains_from_args(args, profile)
         effectiveness = args.effectiveness or profile.effectiveness.enabled

@@ -1,0 +1,136 @@
+"""`agv-fe ros2-bridge`: a ROS 2 vehicle's topics (rmw_zenoh) to the service's measurements, live, at 100 Hz."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import re
+import textwrap
+from pathlib import Path
+from typing import Any
+
+from agv_fe.common import CommandError, fail
+from agv_fe.edge_args import ProgressPrinter, add_transport_arguments, stop_on_interrupt, transport_options
+
+
+def register(sub: Any) -> None:
+    parser = sub.add_parser(
+        "ros2-bridge",
+        help="bridge a ROS 2 vehicle (rmw_zenoh) to the service, live",
+        description="Subscribe over Zenoh to the ROS 2 topics a mapping file names, on the key expressions of ROS 2's "
+        "Zenoh middleware rmw_zenoh (<domain_id>/<topic>/<type>/<type hash>), decode their CDR messages (rosbags), "
+        "hold the latest value of each signal and send it every 10 ms as one vehicle's measurement in the service's "
+        "protocol; a tick at which a signal is older than the mapping's max_age_s is not sent. Collects the "
+        "estimates and alarms that come back. Join the zenoh router the vehicle's nodes use (rmw_zenohd, "
+        "tcp/127.0.0.1:7447 by default) and that the service reaches. Needs the 'ros2' extra (rosbags).",
+    )
+    parser.add_argument("--map", required=True, metavar="MAPPING.yaml", help="which topic field is which signal")
+    parser.add_argument("--vehicle", required=True, metavar="ID", help="vehicle id (1-64 of A-Z a-z 0-9 _ . -)")
+    parser.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)"
+    )
+    parser.add_argument(
+        "--wait", type=float, default=30.0, metavar="S", help="how long to wait for every topic at start (default 30)"
+    )
+    parser.add_argument(
+        "--republish",
+        metavar="TOPIC",
+        help="also republish the vehicle's estimates as this ROS 2 topic (diagnostic_msgs/msg/DiagnosticStatus, "
+        "level OK / WARN / ERROR), for the vehicle's own nodes",
+    )
+    parser.add_argument("--log", metavar="FILE.jsonl", help="write every estimate and alarm received, one JSON a line")
+    parser.add_argument(
+        "--progress", type=float, default=5.0, metavar="S", help="seconds between progress lines (default 5)"
+    )
+    add_transport_arguments(parser)
+    parser.set_defaults(handler=run)
+
+
+def _check(args: argparse.Namespace) -> tuple[Any, Any]:
+    """The mapping and the transport options, or a CommandError naming the flag at fault."""
+    from edge_client.recording import RecordingError
+    from service.protocol import ProtocolError, check_vehicle_id
+
+    try:
+        check_vehicle_id(args.vehicle)
+    except ProtocolError as exc:
+        raise CommandError(f"--vehicle: {exc}") from exc
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise CommandError(f"--duration: expected seconds > 0, got {args.duration}")
+    if not (math.isfinite(args.wait) and args.wait >= 0):
+        raise CommandError(f"--wait: expected seconds >= 0, got {args.wait}")
+    if args.republish is not None and not re.fullmatch(r"(/[A-Za-z_][A-Za-z0-9_]*)+", args.republish):
+        raise CommandError(
+            f"--republish: expected a fully qualified topic name such as /agv_fe/status, got {args.republish!r}"
+        )
+    if not (math.isfinite(args.progress) and args.progress > 0):
+        raise CommandError(f"--progress: expected seconds > 0, got {args.progress}")
+    try:
+        from edge_client.ros2 import load_ros_mapping, typestore_for
+    except ImportError as exc:
+        raise CommandError(f"ros2-bridge needs rosbags: pip install 'agv-fault-estimator[ros2]' ({exc})") from exc
+    try:
+        mapping = load_ros_mapping(args.map)
+        typestore_for(mapping)  # unknown types and field paths are refused before joining the network
+    except RecordingError as exc:
+        raise CommandError(str(exc)) from exc
+    return mapping, transport_options(args)
+
+
+def run(args: argparse.Namespace) -> int:
+    from edge_client.publisher import FleetPublisher, PublisherOptions
+    from edge_client.recording import RecordingError
+    from edge_client.ros2_bridge import EstimateRepublisher, Ros2Source, describe_keys
+    from edge_client.transport import TransportError, close_session, open_session
+
+    try:
+        mapping, transport = _check(args)
+        session = open_session(transport)
+    except (CommandError, TransportError) as exc:
+        return fail(exc if isinstance(exc, CommandError) else CommandError(str(exc)))
+    print(textwrap.fill(f"bridging ROS 2 domain {mapping.domain_id} to vehicle {args.vehicle}; zenoh "
+                        f"{transport.describe()}", 100))  # fmt: skip
+    options = PublisherOptions(truth_rate_hz=0.0, buffer_s=0.0, prefix=args.prefix, warmup_s=0.0)
+    progress = ProgressPrinter()
+    republisher = None
+    try:
+        with contextlib.ExitStack() as stack:
+            stack.callback(close_session, session)
+            source = stack.enter_context(Ros2Source(session, mapping, args.vehicle, wait_s=args.wait))
+            print("\n".join(["subscribed (signal, rmw_zenoh key):", *describe_keys(source)]), flush=True)
+            if args.republish:
+                republisher = stack.enter_context(
+                    EstimateRepublisher(
+                        session, source.store, mapping.domain_id, args.republish, args.vehicle, args.prefix
+                    )
+                )
+                print(f"estimates republished on {republisher.key}", flush=True)
+            stack.callback(progress.finish)
+            log = stack.enter_context(Path(args.log).open("w")) if args.log else None
+            publisher = stack.enter_context(FleetPublisher(session, source, options, log=log))
+            stop = stack.enter_context(stop_on_interrupt())
+            report = publisher.run(
+                args.duration, stop=stop, on_progress=progress, progress_period_s=args.progress, drain_s=1.0
+            )
+            lines = source.stats.describe()
+            if republisher is not None:
+                lines.append(f"republished {republisher.sent} estimates on {republisher.key}")
+    except RecordingError as exc:
+        return fail(CommandError(str(exc)))
+    except OSError as exc:
+        return fail(CommandError(f"{args.log}: cannot write: {exc.strerror}"))
+    print("\n".join(lines))
+    print(
+        f"sent {report.sent} measurements in {report.elapsed_s:.2f} s; estimates received {report.estimates}, "
+        f"alarms {report.alarms}; round trip p50 {report.rtt_p50_ms:.2f} ms, p99 {report.rtt_p99_ms:.2f} ms"
+    )
+    last = report.vehicles[0].last_estimate
+    if last is not None:
+        print(
+            f"last estimate (seq {last.seq}): v_y {last.vy:.3f} m/s, T_f {last.torque_fault:.1f} N m, "
+            f"delta_f {last.steer_fault:.4f} rad, level {last.level}"
+        )
+    if report.estimates == 0:
+        print("no estimate came back: is the service running and connected to the same router?")
+    return 0

@@ -1,0 +1,105 @@
+"""The four signals on the 10 ms grid: how a recording or a live bridge turns asynchronous messages into samples.
+
+Vehicles carry v_x, r, the drive-torque demand and the steering demand on their own buses (CAN frames, ROS 2
+topics) at their own rates and phases. Both the offline converters (edge_client/can_log.py, edge_client/ros2.py)
+and the live ROS 2 bridge (edge_client/ros2_bridge.py) put them on the grid by one rule:
+
+* **zero-order hold**: a grid point takes, for each column, the latest value received at or before it (what a
+  controller sampling the bus would see); nothing is interpolated, so no value from the future leaks in;
+* **start**: the grid starts at the first instant every column has been received;
+* **late or missing**: a column whose latest value is older than ``max_age_s`` at a grid point is stale. Offline,
+  the recording ends there with an error naming the column and the time (a signal that stopped is never held
+  silently); live, no measurement is sent for that grid point and the stale column is counted by name, so the
+  service sees a gap (its ``long_gap_s`` rule re-initialises the observer after a long one).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from edge_client.recording import Recording, RecordingError
+from synth.model import FloatArray
+
+COLUMNS = ("vx", "r", "torque", "steer")
+#: Time stamps this close are the same instant [s]: a candump log's resolution (an absolute time stamp of 1.7e9 s
+#: carries 0.2 us of rounding).
+TIME_RESOLUTION_S = 1e-6
+
+
+def hold_on_grid(
+    samples: dict[str, tuple[list[float], list[float]]], sample_period_s: float, max_age_s: float, source: str
+) -> tuple[Recording, float]:
+    """The recording of ``samples`` (per column: time stamps [s], values in the protocol's units, in arrival order)
+    on the grid, by the module's rule; and the grid's first time stamp [s] on the samples' clock."""
+    missing = [column for column in COLUMNS if not samples[column][0]]
+    if missing:
+        raise RecordingError(f"{source}: no value of {', '.join(missing)} in the input (check the mapping)")
+    series = {c: (np.asarray(samples[c][0]), np.asarray(samples[c][1])) for c in COLUMNS}
+    for column, (times, _) in series.items():
+        if np.any(np.diff(times) < 0):
+            raise RecordingError(f"{source}: the time stamps of {column} go backwards")
+    # from the first time every column is known to the input's last value: a column that stops before the others
+    # is found stale below, not cut off silently
+    start = max(times[0] for times, _ in series.values())
+    end = max(times[-1] for times, _ in series.values())
+    n = int(np.floor((end - start) / sample_period_s + 1e-9)) + 1
+    if n < 2:
+        raise RecordingError(f"{source}: under two samples in which every column is known")
+    grid = start + sample_period_s * np.arange(n)
+    out = np.empty((n, 4))
+    for i, column in enumerate(COLUMNS):
+        times, values = series[column]
+        latest = np.searchsorted(times, grid + TIME_RESOLUTION_S, side="right") - 1
+        age = grid - times[latest]
+        stale = np.flatnonzero(age > max_age_s)
+        if stale.size:
+            k = int(stale[0])
+            raise RecordingError(
+                f"{source}: {column} not received for {age[k]:.3f} s at t = {grid[k] - start:.2f} s of the recording "
+                f"(more than max_age_s = {max_age_s:g} s): the signal stopped or its message is mapped wrong"
+            )
+        out[:, i] = values[latest]
+    if not np.isfinite(out).all():
+        raise RecordingError(f"{source}: a decoded value is not finite")
+    t: FloatArray = sample_period_s * np.arange(n)  # not grid - start: absolute time stamps are large numbers
+    return Recording(t=t, y=out[:, :2].copy(), u=out[:, 2:].copy()), float(start)
+
+
+@dataclass(frozen=True)
+class GridSample:
+    """One grid point of a live stream: the four values [vx, r, torque, steer], or the columns that were stale."""
+
+    values: tuple[float, float, float, float] | None
+    stale: tuple[str, ...] = ()
+
+
+class LiveHold:
+    """The latest value of each column and when it came (ns, any monotonic clock): the live side of the rule.
+
+    ``update`` is called from the transport's threads, ``sample`` from the grid's loop; a lock keeps each pair of
+    value and time together.
+    """
+
+    def __init__(self, max_age_s: float) -> None:
+        self.max_age_ns = round(max_age_s * 1e9)
+        self._value = dict.fromkeys(COLUMNS, 0.0)
+        self._received_ns: dict[str, int | None] = dict.fromkeys(COLUMNS, None)
+        self._lock = threading.Lock()
+
+    def update(self, column: str, value: float, received_ns: int) -> None:
+        with self._lock:
+            self._value[column] = value
+            self._received_ns[column] = received_ns
+
+    def sample(self, now_ns: int) -> GridSample:
+        """The values held at ``now_ns``; before every column has come once, or with one older than ``max_age_s``,
+        no values and the names of the columns at fault."""
+        with self._lock:
+            stale = tuple(c for c in COLUMNS if (t := self._received_ns[c]) is None or now_ns - t > self.max_age_ns)
+            if stale:
+                return GridSample(None, stale)
+            v = self._value
+            return GridSample((v["vx"], v["r"], v["torque"], v["steer"]))

@@ -1,0 +1,300 @@
+"""A ROS 2 vehicle live over rmw_zenoh: its topics in, the service's measurements out, on the 10 ms grid.
+
+ROS 2's Zenoh middleware (rmw_zenoh, docs/design.md of ros2/rmw_zenoh) puts every message of a topic on the key
+expression ``<domain_id>/<fully qualified name without its leading />/<DDS type name>/<type hash>``, e.g.
+``0/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_<64 hex digits>``, where the DDS type name of
+``pkg/msg/Name`` is ``pkg::msg::dds_::Name_`` and the type hash is the RIHS01 hash of the type's description
+(REP-2016; rosbags' typestore computes it). The payload is the message in CDR with its 4-byte encapsulation
+header; the attachment (sequence number and source time stamp, 8 bytes each little-endian, then the publisher's
+GID) is not needed here: a message counts when it arrives, as a controller subscribed to the topic would see it.
+
+:class:`Ros2Source` subscribes to the mapped topics (edge_client/ros2.py's mapping) on those keys, with any type
+type, decodes each message with rosbags and keeps the latest value of each column (edge_client/grid.py's
+:class:`~edge_client.grid.LiveHold`). It is a :class:`~edge_client.sources.SampleSource`: the 100 Hz publisher
+(edge_client/publisher.py) samples it at each tick and sends the measurement in the service's protocol, with its
+pacing, sequence numbers, buffering and the estimates that come back. A tick at which a column is older than the
+mapping's ``max_age_s`` sends nothing (the stale column is counted by name); its sequence number is skipped, so
+the service counts the missing samples. Bad input never stops the bridge; it is counted by reason: a message of
+another type definition (type hash), one that does not decode (malformed CDR), a field that is not finite.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from edge_client.grid import COLUMNS, LiveHold
+from edge_client.recording import RecordingError
+from edge_client.ros2 import RosMapping, RosSignal, field_value, typestore_for
+from edge_client.sources import Tick
+from edge_client.transport import Received, Subscription
+
+if TYPE_CHECKING:
+    import zenoh
+
+#: The bridge runs until stopped: the publisher is told it has this many samples.
+ENDLESS = 2**62
+
+
+def dds_type_name(type_name: str) -> str:
+    """``pkg/msg/Name`` -> ``pkg::msg::dds_::Name_``, the type chunk of an rmw_zenoh key."""
+    package, kind, name = type_name.split("/")
+    return f"{package}::{kind}::dds_::{name}_"
+
+
+def topic_key(domain_id: int, topic: str, type_name: str, type_hash: str) -> str:
+    """The key expression rmw_zenoh publishes ``topic`` on: ``<domain_id>/<topic>/<DDS type>/<type hash>``."""
+    return f"{domain_id}/{topic.strip('/')}/{dds_type_name(type_name)}/{type_hash}"
+
+
+def rmw_attachment(seq: int, source_timestamp_ns: int, gid: bytes) -> bytes:
+    """An rmw_zenoh publication's attachment: seq (i64 LE), source time stamp [ns] (i64 LE), GID length, GID."""
+    return (
+        seq.to_bytes(8, "little", signed=True)
+        + source_timestamp_ns.to_bytes(8, "little", signed=True)
+        + (bytes([len(gid)]) + gid)
+    )
+
+
+@dataclass
+class BridgeStats:
+    """What the bridge received, used and refused, and the ticks it could not send, by stale column."""
+
+    messages: int = 0
+    used: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COLUMNS, 0))
+    undecodable: int = 0
+    non_finite: int = 0
+    other_type: int = 0
+    stale_ticks: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COLUMNS, 0))
+    ticks: int = 0
+    sampled: int = 0
+
+    def describe(self) -> list[str]:
+        used = ", ".join(f"{column} {count}" for column, count in self.used.items())
+        stale = ", ".join(f"{column} {count}" for column, count in self.stale_ticks.items() if count) or "none"
+        return [
+            f"received {self.messages} messages: used {used}; refused {self.undecodable} undecodable, "
+            f"{self.non_finite} not finite, {self.other_type} of another type or type definition (type hash)",
+            f"grid: {self.sampled} of {self.ticks} ticks sampled; ticks not sent for a stale column: {stale}",
+        ]
+
+
+class Ros2Source:
+    """One ROS 2 vehicle's mapped topics over Zenoh as a one-vehicle sample source (module docstring)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        mapping: RosMapping,
+        vehicle_id: str,
+        *,
+        wait_s: float = 30.0,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.mapping = mapping
+        self.store = typestore_for(mapping)
+        self.hold = LiveHold(mapping.max_age_s)
+        self.stats = BridgeStats()
+        self.wait_s = wait_s
+        self._ids = [vehicle_id]
+        self._clock = clock
+        self._k = 0
+        self._lock = threading.Lock()
+        self._first = threading.Event()
+        self.keys: dict[str, str] = {}
+        self._subscriptions: list[Subscription] = []
+        try:
+            for topic, columns in mapping.topics().items():
+                type_name = columns[0][1].type
+                type_hash = self.store.hash_rihs01(type_name)
+                self.keys[topic] = topic_key(mapping.domain_id, topic, type_name, type_hash)
+                # any type on the topic: a message of another type or type definition is counted, not ignored
+                selector = f"{mapping.domain_id}/{topic.strip('/')}/*/*"
+                self._subscriptions.append(Subscription(session, selector, self._receiver(columns, type_hash)))
+        except BaseException:
+            self.close()
+            raise
+
+    def _receiver(self, columns: list[tuple[str, RosSignal]], type_hash: str) -> Callable[[Received], None]:
+        type_name = columns[0][1].type
+        expected = [dds_type_name(type_name), type_hash]
+
+        def on_message(rx: Received) -> None:
+            # zenoh's thread: decode, check, hold; never raise
+            from rosbags.serde import SerdeError
+
+            with self._lock:
+                self.stats.messages += 1
+            if rx.key.rsplit("/", 2)[1:] != expected:
+                with self._lock:
+                    self.stats.other_type += 1
+                return
+            try:
+                message = self.store.deserialize_cdr(rx.payload, type_name)
+                values = [(column, field_value(message, signal)) for column, signal in columns]
+            except (SerdeError, AttributeError, TypeError, ValueError):
+                with self._lock:
+                    self.stats.undecodable += 1
+                return
+            for column, value in values:
+                with self._lock:
+                    if not math.isfinite(value):
+                        self.stats.non_finite += 1
+                        continue
+                    self.stats.used[column] += 1
+                self.hold.update(column, value, rx.received_ns)
+            if self.hold.sample(self._clock()).values is not None:
+                self._first.set()
+
+        return on_message
+
+    @property
+    def vehicle_ids(self) -> list[str]:
+        return self._ids
+
+    @property
+    def sample_period_s(self) -> float:
+        return self.mapping.sample_period_s
+
+    @property
+    def n_samples(self) -> int:
+        return ENDLESS
+
+    def prepare(self) -> None:
+        """Wait (at most ``wait_s``) until every column has been received: the grid starts there, with seq 0."""
+        if not self._first.wait(self.wait_s):
+            missing = self.hold.sample(self._clock()).stale
+            topics = ", ".join(f"{column} ({self.keys[self.mapping.signals()[column].topic]})" for column in missing)
+            raise RecordingError(
+                f"no instant within {self.wait_s:g} s at which every signal was fresher than max_age_s = "
+                f"{self.mapping.max_age_s:g} s; missing or stale: {topics}"
+            )
+
+    def next_tick(self) -> Tick:
+        sample = self.hold.sample(self._clock())
+        k = self._k
+        self._k += 1
+        with self._lock:
+            self.stats.ticks += 1
+            if sample.values is None:
+                for column in sample.stale:
+                    self.stats.stale_ticks[column] += 1
+            else:
+                self.stats.sampled += 1
+        values = sample.values or (0.0, 0.0, 0.0, 0.0)
+        return Tick(
+            k=k,
+            y=np.array([values[:2]]),
+            u=np.array([values[2:]]),
+            active=np.array([sample.values is not None]),
+        )
+
+    def close(self) -> None:
+        for subscription in self._subscriptions:
+            subscription.close()
+        self._subscriptions.clear()
+
+    def __enter__(self) -> Ros2Source:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+
+def describe_keys(source: Ros2Source) -> list[str]:
+    """One line per subscribed topic: its columns and its exact rmw_zenoh key."""
+    lines = []
+    for topic, columns in source.mapping.topics().items():
+        names = ", ".join(column for column, _ in columns)
+        lines.append(f"  {names:<10} {source.keys[topic]}")
+    return lines
+
+
+#: The estimate's level as a diagnostic_msgs/msg/DiagnosticStatus level (OK 0, WARN 1, ERROR 2).
+DIAGNOSTIC_LEVEL = {"OK": 0, "WARN": 1, "FAULT": 2}
+DIAGNOSTIC_TYPE = "diagnostic_msgs/msg/DiagnosticStatus"
+#: rmw_zenoh's compact QoS of a publisher (reliable, volatile, keep last 7): the form of its design document's example.
+PUBLISHER_QOS = "::,7:,:,:,,"
+
+
+class EstimateRepublisher:
+    """The service's estimates of one vehicle, republished as a ROS 2 topic for the vehicle's own nodes.
+
+    Each estimate becomes a ``diagnostic_msgs/msg/DiagnosticStatus``: level OK / WARN / ERROR (FAULT) from the
+    estimate's level, name ``agv_fe/<vehicle>``, hardware_id the vehicle id, and the values (seq, vx, vy, r,
+    torque_fault, steer_fault, in_domain, gain_version) as key-value strings; it is put on the topic's rmw_zenoh key
+    with rmw_zenoh's attachment, and liveliness tokens for a node ``agv_fe_bridge`` and its publisher let the ROS 2
+    graph see the topic (``ros2 topic list``).
+    """
+
+    def __init__(
+        self, session: zenoh.Session, store: Any, domain_id: int, topic: str, vehicle_id: str, prefix: str
+    ) -> None:
+        from edge_client.transport import Publication
+        from service.protocol import vehicle_key
+
+        self.store = store
+        self.vehicle_id = vehicle_id
+        self.sent = 0
+        self.bad = 0
+        self._gid = bytes.fromhex(str(session.zid()).rjust(32, "0")[-32:])
+        type_hash = self.store.hash_rihs01(DIAGNOSTIC_TYPE)
+        self.key = topic_key(domain_id, topic, DIAGNOSTIC_TYPE, type_hash)
+        zid = str(session.zid())
+        node = f"@ros2_lv/{domain_id}/{zid}/0/0/NN/%/%/agv_fe_bridge"
+        entity = (
+            f"@ros2_lv/{domain_id}/{zid}/0/1/MP/%/%/agv_fe_bridge/{topic.replace('/', '%')}/"
+            f"{dds_type_name(DIAGNOSTIC_TYPE)}/{type_hash}/{PUBLISHER_QOS}"
+        )
+        self._publication = Publication(session, self.key, token_keys=(node, entity))
+        try:
+            self._subscription = Subscription(session, vehicle_key(vehicle_id, "estimate", prefix), self._on_estimate)
+        except BaseException:
+            self._publication.close()
+            raise
+
+    def _on_estimate(self, rx: Received) -> None:
+        from service.protocol import Estimate, ProtocolError
+
+        try:
+            estimate = Estimate.decode(rx.payload)
+        except ProtocolError:
+            self.bad += 1
+            return
+        t = self.store.types
+        values = {
+            "seq": str(estimate.seq),
+            "vx": repr(estimate.vx),
+            "vy": repr(estimate.vy),
+            "r": repr(estimate.r),
+            "torque_fault": repr(estimate.torque_fault),
+            "steer_fault": repr(estimate.steer_fault),
+            "in_domain": str(estimate.in_domain).lower(),
+            "gain_version": estimate.gain_version,
+        }
+        status = t[DIAGNOSTIC_TYPE](
+            level=DIAGNOSTIC_LEVEL.get(estimate.level, 2),
+            name=f"agv_fe/{self.vehicle_id}",
+            message=f"torque fault {estimate.torque_fault:.1f} N m, steering fault {estimate.steer_fault:.4f} rad",
+            hardware_id=self.vehicle_id,
+            values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values.items()],
+        )
+        payload = bytes(self.store.serialize_cdr(status, DIAGNOSTIC_TYPE))
+        self.sent += 1
+        self._publication.put(payload, rmw_attachment(self.sent, time.time_ns(), self._gid))
+
+    def close(self) -> None:
+        self._subscription.close()
+        self._publication.close()
+
+    def __enter__(self) -> EstimateRepublisher:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()

@@ -1,0 +1,183 @@
+"""`agv-fe ros2-bridge` (edge_client/ros2_bridge.py) against real parts: CDR messages put by a zenoh session on the
+exact rmw_zenoh key expressions (with rmw_zenoh's attachment), the bridge in its own process, the real service
+answering with estimates; bad input (malformed CDR, another type definition, a NaN, a topic that stops) counted
+while the bridge keeps running."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+pytest.importorskip("rosbags")
+
+from edge_client.ros2 import RosMapping
+from edge_client.ros2_bridge import dds_type_name, rmw_attachment, topic_key
+from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint
+from edge_client.simulation import simulate_plant
+from edge_client.transport import ChannelSubscription, close_session, open_session
+from tests.edge_client.ros2_messages import MAPPING, TOPICS, messages, store
+from tests.edge_client.test_publisher import Counter
+
+pytestmark = pytest.mark.network
+
+VEHICLE = "ros-car-1"
+GID = bytes(range(16))
+#: at most this many 10 ms periods of publishing, whatever happens (the bridge runs 6 s once every topic came)
+MAX_PERIODS = 4_000
+STATUS = "diagnostic_msgs/msg/DiagnosticStatus"
+
+
+def test_the_rmw_zenoh_key_of_a_topic():
+    """The format of rmw_zenoh's design document, with its own example: std_msgs/String on `chatter`."""
+    ts = store(RosMapping.model_validate(yaml.safe_load(MAPPING)))
+    assert dds_type_name("std_msgs/msg/String") == "std_msgs::msg::dds_::String_"
+    assert topic_key(0, "/chatter", "std_msgs/msg/String", ts.hash_rihs01("std_msgs/msg/String")) == (
+        "0/chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+    )
+    assert (
+        topic_key(2, "/robot1/odom", "nav_msgs/msg/Odometry", "H") == "2/robot1/odom/nav_msgs::msg::dds_::Odometry_/H"
+    )
+    assert rmw_attachment(7, 1_700_000_000_000_000_000, GID) == (
+        (7).to_bytes(8, "little") + (1_700_000_000_000_000_000).to_bytes(8, "little") + b"\x10" + GID
+    )
+
+
+def _drive():
+    scenario = Scenario(
+        name="ros2-live", duration_s=20.0, initial_speed_mps=12.0,
+        speed_profile=(SpeedPoint(t_s=0.0, speed_mps=12.0),),
+        manoeuvres=(Manoeuvre(kind="lane_change", start_s=3.0, duration_s=4.0, amplitude_rad=0.02),),
+        noise=REALISTIC_NOISE, seed=11,
+    )  # fmt: skip
+    result = simulate_plant([scenario])
+    return result.y[:, 0], result.u[:, 0].astype(np.float32).astype(float)
+
+
+def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_back(
+    router, estimation_service, tmp_path
+):
+    mapping = RosMapping.model_validate(yaml.safe_load(MAPPING))
+    ts = store(mapping)
+    (tmp_path / "map.yaml").write_text(MAPPING)
+    y, u = _drive()
+    vehicle = open_session(router.client())  # the ROS 2 nodes' side, and the test's eyes on the measurements
+    counter = Counter(vehicle)
+    publishers = {
+        topic: vehicle.declare_publisher(topic_key(0, topic, kind, ts.hash_rihs01(kind)))
+        for topic, kind in TOPICS.items()
+    }
+    other_definition = vehicle.declare_publisher(topic_key(0, "/imu", TOPICS["/imu"], "RIHS01_" + "0" * 64))
+    other_type = vehicle.declare_publisher(topic_key(0, "/imu", "std_msgs/msg/Float64", "RIHS01_" + "1" * 64))
+    # the vehicle's own node listening to the estimates republished as a ROS 2 topic, and to the ROS 2 graph
+    status_key = topic_key(0, "/agv_fe/status", STATUS, ts.hash_rihs01(STATUS))
+    statuses = ChannelSubscription(vehicle, status_key)
+    graph = ChannelSubscription(vehicle, "@ros2_lv/0/**", liveliness=True)
+    bridge = subprocess.Popen(
+        [sys.executable, "-m", "agv_fe", "ros2-bridge", "--map", str(tmp_path / "map.yaml"), "--vehicle", VEHICLE,
+         "--connect", router.endpoint, "--duration", "6", "--wait", "60", "--republish", "/agv_fe/status",
+         "--log", str(tmp_path / "back.jsonl")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    sent = {column: set() for column in ("vx", "r", "torque", "steer")}
+    try:
+        first_meas = None
+        deadline = time.monotonic()
+        for period in range(MAX_PERIODS):
+            if bridge.poll() is not None:
+                break
+            k = period % len(y)
+            now_ns = time.time_ns()
+            with counter.lock:
+                seen = len(counter.meas[VEHICLE])
+            first_meas = period if first_meas is None and seen else first_meas
+            since = -1 if first_meas is None else period - first_meas
+            for topic, raw in messages(ts, y[k, 0], y[k, 1], u[k, 0], u[k, 1], now_ns).items():
+                if topic == "/odom" and 200 <= since < 250:  # the odometry stops for 0.5 s
+                    continue
+                publishers[topic].put(raw, attachment=rmw_attachment(period, now_ns, GID))
+            sent["vx"].add(y[k, 0]), sent["r"].add(y[k, 1]), sent["torque"].add(u[k, 0]), sent["steer"].add(u[k, 1])
+            if since == 100:  # bad input, once each: malformed CDR, another type definition, another type, a NaN
+                publishers["/drive_torque"].put(b"\x00\x01\x00\x00\x07", attachment=rmw_attachment(0, now_ns, GID))
+                other_definition.put(messages(ts, 1.0, 1.0, 1.0, 1.0, now_ns)["/imu"])
+                other_type.put(messages(ts, 1.0, 1.0, 1.0, 1.0, now_ns)["/drive_torque"])
+                publishers["/odom"].put(messages(ts, float("nan"), 0.0, 0.0, 0.0, now_ns)["/odom"])
+            deadline += 0.01
+            time.sleep(max(deadline - time.monotonic(), 0.0))
+        out, err = bridge.communicate(timeout=60)
+    finally:
+        if bridge.poll() is None:
+            bridge.kill()
+            bridge.wait(timeout=10)
+        time.sleep(0.2)
+        received_statuses = statuses.drain()
+        tokens = [rx.key for rx in graph.drain() if rx.put]
+        statuses.close()
+        graph.close()
+        counter.close()
+        for publisher in (*publishers.values(), other_definition, other_type):
+            publisher.undeclare()
+        close_session(vehicle)
+    assert bridge.returncode == 0, err
+    assert "1 undecodable, 1 not finite, 2 of another type or type definition" in out, out
+    stale = int(out.split("ticks not sent for a stale column: vx ")[1].split()[0])
+    assert 35 <= stale <= 60, out  # 0.5 s without odometry, less the 0.1 s it may be held
+    meas = counter.meas[VEHICLE]
+    seqs = [m.seq for m in meas]
+    assert seqs[0] == 0 and seqs == sorted(seqs) and len(meas) > 400
+    assert len(meas) == seqs[-1] + 1 - stale  # every tick sent but the stale ones: a gap the service counts
+    # every value sent is one the vehicle's messages carried, sign and scale undone (torque halved, r negated)
+    assert all(m.vx_mps in sent["vx"] and m.r_radps in sent["r"] for m in meas)
+    assert all(m.torque_nm in sent["torque"] and m.steer_rad in sent["steer"] for m in meas)
+    back = [json.loads(line) for line in (tmp_path / "back.jsonl").read_text().splitlines()]
+    estimates = [b["message"] for b in back if b["type"] == "estimate"]
+    assert len(estimates) > 300 and {e["vehicle"] for e in estimates} == {VEHICLE}
+    assert {e["seq"] for e in estimates} <= set(seqs)
+    assert f"sent {len(meas)} measurements" in out
+    # the estimates as diagnostic_msgs/DiagnosticStatus on the topic's rmw_zenoh key, decoded by rosbags
+    by_seq = {e["seq"]: e for e in estimates}
+    decoded = [ts.deserialize_cdr(rx.payload, STATUS) for rx in received_statuses]
+    assert len(decoded) > 300 and f"republished {len(decoded)} estimates on {status_key}" in out
+    for status in decoded:
+        values = {kv.key: kv.value for kv in status.values}
+        estimate = by_seq[int(values["seq"])]
+        assert status.hardware_id == VEHICLE and status.level == {"OK": 0, "WARN": 1, "FAULT": 2}[estimate["level"]]
+        assert float(values["torque_fault"]) == estimate["torque_fault"]
+        assert float(values["steer_fault"]) == estimate["steer_fault"]
+    # and the ROS 2 graph sees the bridge's node and its publisher (liveliness tokens of rmw_zenoh's format)
+    assert any(key.endswith("/0/0/NN/%/%/agv_fe_bridge") for key in tokens), tokens
+    assert any(f"/0/1/MP/%/%/agv_fe_bridge/%agv_fe%status/{dds_type_name(STATUS)}/" in key for key in tokens), tokens
+
+
+def test_a_mapping_the_bridge_cannot_use_is_refused_before_it_joins_the_network(tmp_path, capsys):
+    from agv_fe.cli import main
+
+    cases = {
+        "unknown type": (MAPPING.replace("std_msgs/msg/Float64", "acme_msgs/msg/Torque"),
+                         "unknown message type acme_msgs/msg/Torque (mapped to torque)"),
+        "missing field": (MAPPING.replace("drive.steering_angle", "drive.angle"), "has no field 'angle'"),
+        "bad topic": (MAPPING.replace("/odom", "odom"), "vx.topic"),
+    }  # fmt: skip
+    for name, (text, message) in cases.items():
+        (tmp_path / "map.yaml").write_text(text)
+        code = main(["ros2-bridge", "--map", str(tmp_path / "map.yaml"), "--vehicle", VEHICLE, "--connect",
+                     "tcp/127.0.0.1:9"])  # fmt: skip
+        assert code == 2 and message in capsys.readouterr().err, name
+
+
+@pytest.mark.network
+def test_a_topic_that_never_comes_is_named(router, tmp_path, capsys):
+    """No vehicle on the network: after --wait the bridge stops, naming every signal and its exact key."""
+    from agv_fe.cli import main
+
+    (tmp_path / "map.yaml").write_text(MAPPING)
+    code = main(["ros2-bridge", "--map", str(tmp_path / "map.yaml"), "--vehicle", VEHICLE, "--connect",
+                 router.endpoint, "--wait", "0.5"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and "missing or stale: vx (0/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_" in err, err
+    assert "steer (0/cmd/ackermann_msgs::msg::dds_::AckermannDriveStamped_/RIHS01_" in err
