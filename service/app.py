@@ -33,6 +33,7 @@ from pydantic import ValidationError
 
 from service import logs
 from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine, FleetError
+from service.history import EstimateHistory
 from service.jobs import FINAL_STATES, Job, JobKind, SynthesisJobs
 from service.metrics import ServiceMetrics, service_registry
 from service.profiles import (
@@ -126,6 +127,7 @@ class Service:
         self.dashboard = DashboardHub(self.engine, settings.dashboard, self.replica_id)
         self.storage: Storage | None = None
         self.writer: StorageWriter | None = None
+        self.history: EstimateHistory | None = None
         self.transport: Transport | None = None
         self.jobs = SynthesisJobs(
             settings.synthesis_workers, self._activate_job, self._persist_job, kept=settings.jobs_kept
@@ -163,6 +165,12 @@ class Service:
         self.storage = Storage(self.settings.database_path)
         self.writer = StorageWriter(self.settings.database_path, self.settings.storage)
         await self._load_state()
+        h = self.settings.history
+        if h.enabled:
+            self.history = EstimateHistory(
+                self.settings.history_directory, self.replica_id, h.retention_h * 3600.0, h.chunk_s
+            )
+            await asyncio.to_thread(self.history.start)
         self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id)
         await asyncio.to_thread(self.transport.open)
         self.transport_up = True
@@ -198,6 +206,9 @@ class Service:
             await asyncio.to_thread(self.transport.close)
             self.transport = None
             self.transport_up = False
+        if self.history is not None:  # the estimates not yet written are written now
+            await asyncio.to_thread(self.history.close)
+            self.history = None
         if self.writer is not None:
             # the writes still queued get storage.shutdown_flush_s to land (off the loop), then are given up
             await asyncio.to_thread(self.writer.close)
@@ -450,6 +461,8 @@ class Service:
                 metrics.observe_end_to_end([b.t_ns for b in result.estimate_batches], time.time_ns())
                 metrics.estimates_out += sent
                 metrics.fleet_estimates_out += in_fleet
+                if self.history is not None:
+                    self.history.append(result.estimate_batches)
             metrics.tick_seconds.observe(time.perf_counter() - started)
             metrics.tick_batch.observe(len(batch))
             metrics.last_batch = len(batch)

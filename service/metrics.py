@@ -27,6 +27,7 @@ from service.fleet.engine import REJECT_REASONS
 
 if TYPE_CHECKING:
     from service.fleet import FleetEngine
+    from service.history import EstimateHistory
     from service.jobs import SynthesisJobs
     from service.settings import Settings
     from service.storage_writer import StorageState
@@ -112,6 +113,7 @@ class MetricsSource(Protocol):
     jobs: SynthesisJobs
     failed_profiles: dict[str, str]
     task_failures: dict[str, int]
+    history: EstimateHistory | None
 
     @property
     def ready(self) -> bool: ...
@@ -311,6 +313,25 @@ class ServiceCollector(Collector):
             ),
             storage.lost,
         )
+        yield from self._history()
+
+    def _history(self) -> Iterator[Metric]:
+        history = self.source.history
+        if history is None:
+            return
+        h = history.stats
+        yield _one(
+            CounterMetricFamily("agv_fe_history_rows_written", "estimates written to the history"), h.rows_written
+        )
+        yield _one(
+            CounterMetricFamily("agv_fe_history_write_failures", "history files that could not be written"),
+            h.write_failures,
+        )
+        yield _one(
+            CounterMetricFamily("agv_fe_history_rows_lost", "estimates of history files that could not be written"),
+            h.rows_lost,
+        )
+        yield _one(GaugeMetricFamily("agv_fe_history_bytes", "bytes of the history files kept"), h.bytes_on_disk)
 
 
 def service_registry(source: MetricsSource) -> CollectorRegistry:

@@ -216,6 +216,21 @@ class DashboardSettings(_Section):
     )
 
 
+class HistorySettings(_Section):
+    enabled: bool = Field(
+        True,
+        description="keep every published estimate on disk (Parquet, service/history.py) for GET "
+        "/vehicles/{id}/estimates?start=&end=",
+    )
+    retention_h: Annotated[float, Field(gt=0, le=24 * 366)] = Field(
+        24.0, description="how long estimates are kept; older files are deleted [h]"
+    )
+    chunk_s: Annotated[float, Field(ge=1, le=3600)] = Field(
+        60.0, description="one file per this much service time: what a crash can lose, and the write period [s]"
+    )
+    directory: Path | None = Field(None, description="where the files go (default: DATA_DIR/history)")
+
+
 class Settings(BaseSettings):
     """Everything `agv-fe serve` can be told."""
 
@@ -240,7 +255,12 @@ class Settings(BaseSettings):
     health: HealthSettings = HealthSettings()
     shard: ShardSettings = ShardSettings()
     dashboard: DashboardSettings = DashboardSettings()
+    history: HistorySettings = HistorySettings()
 
     @property
     def database_path(self) -> Path:
         return self.data_dir / "service.sqlite3"
+
+    @property
+    def history_directory(self) -> Path:
+        return self.history.directory or self.data_dir / "history"

@@ -44,4 +44,10 @@ def test_the_vehicle_view_plots_alpha_and_shows_the_effectiveness_alarm(tmp_path
         expect(alarm).to_have_count(1, timeout=UI_TIMEOUT_MS)
         expect(alarm).to_contain_text("Drive-torque effectiveness lost")
         expect(page.locator("#vehicle-level")).to_have_text("FAULT", timeout=UI_TIMEOUT_MS)
+        # the alarm links the vehicle's estimates around it, from the estimate history, as CSV
+        href = alarm.locator("a.around").get_attribute("href")
+        assert href is not None and "format=csv" in href
+        csv_text = page.request.get(srv.url + href).text()
+        header, *rows = csv_text.splitlines()
+        assert "torque_alpha" in header and len(rows) > 100
         page.screenshot(path=str(output_dir / "vehicle-effectiveness.png"), full_page=True)

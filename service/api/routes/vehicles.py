@@ -2,18 +2,27 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
+from collections.abc import Iterator
+from datetime import UTC, datetime
 from functools import partial
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
 
 import orjson
+import pyarrow as pa
+import pyarrow.csv as pa_csv
+import pyarrow.parquet as pq
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
+from fastapi.responses import StreamingResponse
 
 from service.api.deps import STORAGE_UNAVAILABLE, Operator, ServiceDep, profile_bank
 from service.api.models import AlarmInfo, EstimateHistory, VehicleAssignment, VehicleDetail, VehicleStatus
 from service.app import Service
 from service.fleet import UnknownProfile, UnknownVehicle, Vehicle
-from service.protocol import VEHICLE_ID_PATTERN, Level
+from service.history import rows_table, table_rows
+from service.protocol import VEHICLE_ID_PATTERN, EstimateRow, Level
 from service.storage import Storage
 
 router = APIRouter(prefix="/vehicles", tags=["vehicles"])
@@ -121,20 +130,112 @@ async def get_vehicle(service: ServiceDep, vehicle_id: VehicleId) -> VehicleDeta
     )
 
 
+#: Media types of GET /vehicles/{id}/estimates besides JSON.
+CSV_TYPE = "text/csv"
+PARQUET_TYPE = "application/vnd.apache.parquet"
+#: Rows of a JSON answer from the history at most (CSV and Parquet answer the whole range).
+HISTORY_JSON_MAX = 100_000
+
+
 @router.get(
     "/{vehicle_id}/estimates",
     response_model=EstimateHistory,
-    responses=NOT_FOUND,
-    summary="recent estimates of every sample, oldest first",
+    responses={
+        **NOT_FOUND,
+        200: {
+            "description": "JSON by default; with `Accept: text/csv` CSV (streamed, one row per estimate, a header "
+            "line of the record's fields), with `Accept: application/vnd.apache.parquet` a Parquet file",
+            "content": {CSV_TYPE: {"schema": {"type": "string"}}, PARQUET_TYPE: {"schema": {"type": "string"}}},
+        },
+        409: {"description": "start/end asked but this replica keeps no estimate history (setting history.enabled)"},
+    },
+    summary="a vehicle's estimates: the newest in memory, or every one in a time range from the history",
 )
 async def get_estimates(
     service: ServiceDep,
+    request: Request,
     vehicle_id: VehicleId,
-    limit: Annotated[int, Query(ge=1, le=100_000, description="at most this many (newest)")] = 100,
-) -> EstimateHistory:
+    limit: Annotated[int | None, Query(ge=1, le=HISTORY_JSON_MAX, description="at most this many")] = None,
+    start: Annotated[
+        datetime | None, Query(description="from this time on (ISO 8601 or seconds since the epoch; vehicle clock)")
+    ] = None,
+    end: Annotated[datetime | None, Query(description="before this time (default: now)")] = None,
+    output: Annotated[
+        Literal["json", "csv", "parquet"] | None,
+        Query(
+            alias="format",
+            description="instead of the Accept header (a download link): csv or parquet as an attachment",
+        ),
+    ] = None,
+) -> Response | EstimateHistory:
+    """Without start/end: the newest ``limit`` (100) of the last ``ingest.history_samples`` kept in memory. With
+    them: every estimate with start <= t < end from the estimate history (service/history.py), oldest first;
+    JSON answers at most ``limit`` (100,000) and a ``Link: rel="next"`` header when there are more."""
     vehicle = _vehicle(service, vehicle_id)
-    rows = service.engine.estimate_history(vehicle, limit)
-    return EstimateHistory(vehicle=vehicle.id, gain_version=vehicle.bank.version, estimates=rows)
+    accept = {"json": "application/json", "csv": CSV_TYPE, "parquet": PARQUET_TYPE}.get(
+        output or "", request.headers.get("accept", "")
+    )
+    if start is None and end is None:
+        rows = service.engine.estimate_history(vehicle, limit or 100)
+        if CSV_TYPE in accept or PARQUET_TYPE in accept:
+            return _export(rows_table(rows, vehicle.id), accept)
+        return EstimateHistory(vehicle=vehicle.id, gain_version=vehicle.bank.version, estimates=rows)
+    if service.history is None:
+        raise HTTPException(status.HTTP_409_CONFLICT, detail="this replica keeps no estimate history (history.enabled)")
+    start_ns = 0 if start is None else _epoch_ns(start)
+    end_ns = time.time_ns() + 1 if end is None else _epoch_ns(end)
+    if end_ns <= start_ns:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, detail="end must be after start")
+    wanted = None if (CSV_TYPE in accept or PARQUET_TYPE in accept) else (limit or HISTORY_JSON_MAX)
+    table = await asyncio.to_thread(
+        service.history.read, vehicle.id, start_ns, end_ns, None if wanted is None else wanted + 1
+    )
+    if wanted is None:
+        answer = _export(table, accept)
+        if output is not None:
+            suffix = "csv" if output == "csv" else "parquet"
+            answer.headers["Content-Disposition"] = f'attachment; filename="{vehicle.id}-estimates.{suffix}"'
+        return answer
+    headers = {}
+    if table.num_rows > wanted:
+        table = table.slice(0, wanted)
+        last = int(table["t_ns"][wanted - 1].as_py())
+        query = {**request.query_params, "start": f"{(last + 1) / 1e9:.9f}"}
+        headers["Link"] = f'<{request.url.path}?{urlencode(query)}>; rel="next"'
+    rows = [EstimateRow.model_validate(r) for r in table_rows(table)]
+    body = EstimateHistory(vehicle=vehicle.id, gain_version=vehicle.bank.version, estimates=rows)
+    return Response(body.model_dump_json(exclude_none=True), media_type="application/json", headers=headers)
+
+
+def _epoch_ns(moment: datetime) -> int:
+    """Nanoseconds since the epoch of an aware or naive (UTC) datetime."""
+    aware = moment if moment.tzinfo is not None else moment.replace(tzinfo=UTC)
+    return round(aware.timestamp() * 1e6) * 1000
+
+
+def _export(table: pa.Table, accept: str) -> Response:
+    """The table as Parquet, or as CSV streamed 10,000 rows at a time (plain columns; a column no row has, such as
+    alpha for a profile without the effectiveness stage, left out), as ``accept`` asks."""
+    if PARQUET_TYPE in accept:
+        sink = pa.BufferOutputStream()
+        pq.write_table(table, sink, compression="zstd")
+        return Response(sink.getvalue().to_pybytes(), media_type=PARQUET_TYPE)
+    keep = [n for n in table.column_names if table.num_rows == 0 or table[n].null_count < table.num_rows]
+    plain = table.select(keep)
+    plain = plain.cast(pa.schema([pa.field(f.name, _plain_type(f.type)) for f in plain.schema]))
+
+    def chunks() -> Iterator[bytes]:
+        batches = plain.to_batches(max_chunksize=10_000) or [pa.RecordBatch.from_pylist([], schema=plain.schema)]
+        for i, batch in enumerate(batches):
+            sink = pa.BufferOutputStream()
+            pa_csv.write_csv(batch, sink, pa_csv.WriteOptions(include_header=i == 0))
+            yield sink.getvalue().to_pybytes()
+
+    return StreamingResponse(chunks(), media_type=CSV_TYPE)
+
+
+def _plain_type(kind: pa.DataType) -> pa.DataType:
+    return kind.value_type if pa.types.is_dictionary(kind) else kind
 
 
 @router.put(

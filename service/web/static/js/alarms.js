@@ -55,6 +55,9 @@ export class AlarmStore {
   }
 }
 
+// Alarms on the estimates: the dashboard links the estimate history around them.
+const HISTORY_KINDS = new Set(['torque_fault', 'steer_fault', 'torque_effectiveness', 'steer_effectiveness', 'out_of_domain']);
+
 function describeValue(alarm) {
   if (alarm.value === null || alarm.value === undefined) return null;
   const digits = alarm.kind === 'steer_fault' ? 4 : alarm.kind === 'torque_fault' ? 1 : alarm.kind.endsWith('_effectiveness') ? 3 : 2;
@@ -157,6 +160,14 @@ export class AlarmList {
     button.hidden = alarm.acknowledged;
     button.setAttribute('aria-label', `Acknowledge ${kind.toLowerCase()} of ${alarm.vehicle}`);
     item.querySelector('.alarm-error').textContent = this.errors.get(alarm.id) || '';
+    const actions = item.querySelector('.alarm-actions');
+    if (HISTORY_KINDS.has(alarm.kind) && !actions.querySelector('a.around')) {
+      // the vehicle's estimates 30 s either side of the alarm, from the estimate history (vehicle clock)
+      const at = alarm.raised_t_ns / 1e9;
+      const query = `start=${(at - 30).toFixed(3)}&end=${(at + 30).toFixed(3)}&format=csv`;
+      const href = `/vehicles/${encodeURIComponent(alarm.vehicle)}/estimates?${query}`;
+      actions.prepend(el('a', { class: 'around', href, download: '' }, 'Estimates ±30 s (CSV)'));
+    }
   }
 
   async acknowledge(id, button) {

@@ -1,0 +1,173 @@
+"""The estimate history (service/history.py): every published estimate written to Parquet and read back by
+vehicle and time range, files kept for the retention only, a write that fails counted with its rows and the
+writer going on; and through a real service, GET /vehicles/{id}/estimates?start=&end= as JSON, CSV and Parquet."""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from service.history import SCHEMA, EstimateHistory, table_rows
+from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS, Estimate, EstimateBatch
+from tests.service.helpers import PERIOD_NS, T0_NS, make_settings, plant_measurements, probe, running, wait_for
+
+#: float32 history values against the float64 estimates: relative agreement
+FLOAT32_RTOL = 1e-6
+
+
+def _batch(vehicles: list[str], seq: int, with_stage: bool = False) -> EstimateBatch:
+    n = len(vehicles)
+    columns = ESTIMATE_COLUMNS if with_stage else STATE_COLUMNS
+    values = np.array([[1000.0 * i + seq + 0.25 * j for j in range(len(columns))] for i in range(n)])
+    return EstimateBatch(
+        vehicles,
+        np.full(n, seq, dtype=np.int64),
+        np.full(n, T0_NS + seq * PERIOD_NS, dtype=np.int64),
+        values,
+        np.ones(n, dtype=bool),
+        ["OK"] * n,
+        "3f9a1c0b7d2e",
+        None,
+        columns,
+    )
+
+
+def _wait_files(history: EstimateHistory, count: int) -> None:
+    wait_for(lambda: history.stats.files_written >= count, what=f"{count} history files")
+
+
+def test_the_history_keeps_every_estimate_and_reads_a_vehicle_back_by_time(tmp_path):
+    history = EstimateHistory(tmp_path / "history", "r0", retention_s=3600.0, chunk_s=1.0)
+    history.start()
+    try:
+        for seq in range(300):
+            history.append([_batch(["a", "b", "c"], seq), _batch(["staged"], seq, with_stage=True)])
+        time.sleep(1.1)
+        history.append([])  # the next tick after the interval: the chunk is written
+        _wait_files(history, 1)
+        got = history.read("b", T0_NS + 100 * PERIOD_NS, T0_NS + 200 * PERIOD_NS)
+        assert got.schema.equals(SCHEMA)
+        rows = list(table_rows(got))
+        assert [r["seq"] for r in rows] == list(range(100, 200))  # the range, oldest first, only that vehicle
+        assert {r["vehicle"] for r in rows} == {"b"} and "torque_alpha" not in rows[0]
+        np.testing.assert_allclose([r["vx"] for r in rows], [1000.0 + s for s in range(100, 200)], rtol=FLOAT32_RTOL)
+        staged = list(table_rows(history.read("staged", T0_NS, T0_NS + 10 * PERIOD_NS)))
+        assert len(staged) == 10 and staged[3]["steer_alpha"] == pytest.approx(3 + 0.25 * 8)
+        assert Estimate.model_validate({**staged[0], "v": 1}).torque_alpha is not None  # the record's fields
+        assert history.read("b", T0_NS, T0_NS + 300 * PERIOD_NS, limit=7).num_rows == 7
+        assert history.stats.rows_written == 1200 and history.stats.bytes_on_disk > 0
+        # rows not yet in a file are read too
+        history.append([_batch(["b"], seq) for seq in range(300, 305)])
+        wait_for(lambda: history.read("b", T0_NS, T0_NS + 400 * PERIOD_NS).num_rows == 305, what="pending rows read")
+    finally:
+        history.close()
+    # a restart indexes the files it finds and reads them as before
+    again = EstimateHistory(tmp_path / "history", "r0", retention_s=3600.0, chunk_s=1.0)
+    again.start()
+    try:
+        assert again.read("c", T0_NS, T0_NS + 300 * PERIOD_NS).num_rows == 300
+    finally:
+        again.close()
+
+
+def test_old_files_go_after_the_retention_and_a_failed_write_is_counted(tmp_path):
+    root = tmp_path / "history"
+    history = EstimateHistory(root, "r0", retention_s=1.0, chunk_s=1.0)
+    history.start()
+    try:
+        history.append([_batch(["a"], 0)])
+        time.sleep(1.1)
+        history.append([])
+        _wait_files(history, 1)
+        (first,) = list(root.glob("*/*.parquet"))
+        assert pq.read_table(first).num_rows == 1
+        # the next intervals: the first file is older than the retention and is deleted
+        for _ in range(3):
+            history.append([_batch(["a"], 1)])
+            time.sleep(1.1)
+        history.append([])
+        wait_for(lambda: history.stats.files_deleted >= 1, what="the expired file deleted")
+        assert not first.exists()
+        # the directory gone, a file in its place (a volume unmounted, say): the write fails, is counted with its
+        # rows, and the writer goes on to write the next interval once the directory is back
+        moved = tmp_path / "moved"
+        root.rename(moved)
+        root.write_text("not a directory")
+        history.append([_batch(["a"], 2), _batch(["b"], 2)])
+        time.sleep(1.1)
+        history.append([])
+        wait_for(lambda: history.stats.write_failures >= 1, what="the failed write counted")
+        assert history.stats.rows_lost == 2 and "not a directory" in (history.stats.last_error or "").lower()
+        root.unlink()
+        moved.rename(root)
+        written = history.stats.files_written
+        history.append([_batch(["a"], 3)])
+        time.sleep(1.1)
+        history.append([])
+        wait_for(lambda: history.stats.files_written > written, what="the next file written")
+    finally:
+        history.close()
+
+
+def test_the_service_answers_a_time_range_of_estimates_as_json_csv_and_parquet(tmp_path):
+    settings = make_settings(tmp_path, history={"chunk_s": 1.0})
+    samples = plant_measurements(["hist-1", "hist-2"], 400)
+    with running(settings) as srv, probe(settings.zenoh.endpoint) as p:
+        for row in samples:
+            for m in row:
+                p.put(m)
+        wait_for(lambda: len(p.estimates_of("hist-1")) >= 400, what="the estimates")
+        time.sleep(1.2)  # one more interval: the chunk is written at the next tick
+        p.put(plant_measurements(["hist-2"], 401)[-1][0])
+        wait_for(lambda: srv.service.history.stats.files_written >= 1, what="a history file")
+        live = {e.seq: e for e in p.estimates_of("hist-1")}
+        window = {"start": (T0_NS + 100 * PERIOD_NS) / 1e9, "end": (T0_NS + 300 * PERIOD_NS) / 1e9}
+        answer = srv.get("/vehicles/hist-1/estimates", params=window).json()
+        got = answer["estimates"]
+        assert [r["seq"] for r in got] == list(range(100, 300))
+        np.testing.assert_allclose(
+            [r["torque_fault"] for r in got], [live[r["seq"]].torque_fault for r in got], rtol=FLOAT32_RTOL, atol=1e-6
+        )
+        # paging: at most `limit`, and a Link to the rest
+        page = srv.http.get("/vehicles/hist-1/estimates", params={**window, "limit": 50})
+        assert len(page.json()["estimates"]) == 50 and 'rel="next"' in page.headers["link"]
+        # CSV, streamed: a header of the record's fields, one row per estimate
+        text = srv.http.get("/vehicles/hist-1/estimates", params=window, headers={"Accept": "text/csv"})
+        assert text.headers["content-type"].startswith("text/csv")
+        rows = list(csv.DictReader(io.StringIO(text.text)))
+        assert len(rows) == 200 and rows[0]["vehicle"] == "hist-1" and int(rows[-1]["seq"]) == 299
+        assert "torque_alpha" not in rows[0]  # no row has it: the column is left out
+        # Parquet: the same rows
+        blob = srv.http.get(
+            "/vehicles/hist-1/estimates", params=window, headers={"Accept": "application/vnd.apache.parquet"}
+        )
+        table = pq.read_table(io.BytesIO(blob.content))
+        assert table.num_rows == 200 and table["seq"].to_pylist() == list(range(100, 300))
+        # a download link: ?format=csv, as an attachment
+        link = srv.http.get("/vehicles/hist-1/estimates", params={**window, "format": "csv"})
+        assert link.headers["content-disposition"] == 'attachment; filename="hist-1-estimates.csv"'
+        assert link.text == text.text
+        # a range with end before start is refused; without a range the in-memory window answers, as before
+        bad = srv.http.get("/vehicles/hist-1/estimates", params={"start": 20.0, "end": 10.0})
+        assert bad.status_code == 422 and "end must be after start" in bad.text
+        recent = srv.get("/vehicles/hist-1/estimates", params={"limit": 5}).json()["estimates"]
+        assert [r["seq"] for r in recent] == list(range(395, 400))
+        metrics = srv.http.get("/metrics").text
+        assert "agv_fe_history_rows_written_total" in metrics and "agv_fe_history_bytes" in metrics
+
+
+def test_a_replica_without_history_says_so(tmp_path):
+    with running(make_settings(tmp_path, history={"enabled": False})) as srv:
+        for row in plant_measurements(["quiet-1"], 5):
+            with probe(srv.settings.zenoh.endpoint) as p:
+                p.put(row[0])
+        wait_for(lambda: srv.http.get("/vehicles/quiet-1").status_code == 200, what="the vehicle")
+        r = srv.http.get("/vehicles/quiet-1/estimates", params={"start": 0})
+        assert r.status_code == 409 and "history" in r.text
+    assert not Path(srv.settings.data_dir / "history").exists()
