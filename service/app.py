@@ -168,7 +168,7 @@ class Service:
         h = self.settings.history
         if h.enabled:
             self.history = EstimateHistory(
-                self.settings.history_directory, self.replica_id, h.retention_h * 3600.0, h.chunk_s
+                self.settings.history_directory, self.replica_id, h.retention_h * 3600.0, h.chunk_s, h.precision
             )
             await asyncio.to_thread(self.history.start)
         self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id)

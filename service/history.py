@@ -4,10 +4,11 @@ The ingest loop hands each tick's :class:`~service.protocol.EstimateBatch` list 
 (one queue put); a writer thread gathers them and writes one Parquet file per ``chunk_s`` of service time,
 ``DIR/YYYY-MM-DD/<start_ns>-<replica>.parquet``, rows sorted by vehicle and time, so that a query for one
 vehicle reads only the row groups that hold it. The columns are the estimate record's
-(service.protocol.Estimate): the float channels as float32 with byte-stream-split encoding and zstd
-(measured 16 bytes per estimate, 5.8 MB per vehicle-hour at 100 Hz; docs/operations.md), the rest as they
-are. Files older than the retention are deleted by the writer. A write that fails (disk full, directory
-gone) is counted, logged and its rows dropped; ingest never waits for the disk.
+(service.protocol.Estimate): the float channels as float64 (the published values exactly; 34 bytes per
+estimate, 12 MB per vehicle-hour at 100 Hz) or float32 (setting history.precision: 16 bytes, 5.8 MB), with
+byte-stream-split encoding and zstd (docs/operations.md), the rest as they are. Files older than the
+retention are deleted by the writer. A write that fails (disk full, directory gone) is counted, logged and
+its rows dropped; ingest never waits for the disk.
 
 :meth:`EstimateHistory.read` answers one vehicle's estimates in a time range from the files and from the rows
 not yet written, as one Arrow table, oldest first.
@@ -23,7 +24,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -44,9 +45,10 @@ _TYPES: dict[str, pa.DataType] = {
     "gain_version": pa.dictionary(pa.int32(), pa.string()),
     "level": pa.dictionary(pa.int8(), pa.string()),
     "gain_set": pa.dictionary(pa.int8(), pa.string()),
-} | {name: pa.float32() for name in _FLOAT_COLUMNS}
+} | {name: pa.float64() for name in _FLOAT_COLUMNS}
 _FLOAT_INDEX = {name: k for k, name in enumerate(_FLOAT_COLUMNS)}
 SCHEMA = pa.schema([pa.field(name, _TYPES[name]) for name in Estimate.model_fields if name != "v"])
+_FLOAT32_SCHEMA = pa.schema([pa.field(f.name, pa.float32()) if f.name in _FLOAT_COLUMNS else f for f in SCHEMA])
 _FILE_NAME = re.compile(r"^(\d{19})-([A-Za-z0-9_.-]+)\.parquet$")
 #: Rows per row group: small enough that a vehicle's rows are a few groups of a large fleet's file.
 ROW_GROUP_ROWS = 65_536
@@ -84,7 +86,7 @@ def batch_table(batches: Sequence[EstimateBatch]) -> pa.Table:
         return SCHEMA.empty_table()
     sizes = [len(b) for b in parts]
     n = sum(sizes)
-    floats = np.zeros((len(_FLOAT_COLUMNS), n), dtype=np.float32)
+    floats = np.zeros((len(_FLOAT_COLUMNS), n))
     present = np.zeros((len(_FLOAT_COLUMNS), n), dtype=bool)
     fast = np.zeros(n, dtype=np.int8)
     has_set = np.zeros(n, dtype=bool)
@@ -94,7 +96,7 @@ def batch_table(batches: Sequence[EstimateBatch]) -> pa.Table:
     for b, size in zip(parts, sizes, strict=True):
         rows = slice(at, at + size)
         columns = [_FLOAT_INDEX[name] for name in b.columns]
-        floats[columns, rows] = np.asarray(b.values, dtype=np.float32).T
+        floats[columns, rows] = np.asarray(b.values, dtype=np.float64).T
         present[columns, rows] = True
         if b.fast is not None:
             fast[rows] = np.where(b.fast, 0, 1)
@@ -119,8 +121,17 @@ def batch_table(batches: Sequence[EstimateBatch]) -> pa.Table:
 class EstimateHistory:
     """The history of one replica: a writer thread and the files it keeps (module docstring)."""
 
-    def __init__(self, directory: Path, replica_id: str, retention_s: float, chunk_s: float) -> None:
+    def __init__(
+        self,
+        directory: Path,
+        replica_id: str,
+        retention_s: float,
+        chunk_s: float,
+        precision: Literal["float64", "float32"] = "float64",
+    ) -> None:
         self.directory = directory
+        #: the schema files are written with: the float channels as ``precision``
+        self.file_schema = SCHEMA if precision == "float64" else _FLOAT32_SCHEMA
         self.replica_id = replica_id
         self.retention_ns = round(retention_s * 1e9)
         self.chunk_ns = round(chunk_s * 1e9)
@@ -191,7 +202,7 @@ class EstimateHistory:
         day = time.strftime("%Y-%m-%d", time.gmtime(chunk.start_ns / 1e9))
         path = self.directory / day / f"{chunk.start_ns:019d}-{self.replica_id}.parquet"
         try:
-            table = _by_vehicle_and_time(batch_table(chunk.batches))
+            table = _by_vehicle_and_time(batch_table(chunk.batches)).cast(self.file_schema)
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".parquet.tmp")
             pq.write_table(
@@ -249,7 +260,7 @@ class EstimateHistory:
         parts = []
         for path in files:
             try:
-                parts.append(pq.read_table(path, filters=predicate, schema=SCHEMA))
+                parts.append(pq.read_table(path, filters=predicate))
             except (OSError, pa.ArrowException) as exc:  # deleted by retention meanwhile, or unreadable
                 log.warning("estimate history: cannot read %s: %s", path, exc)
         own = [b for b in pending if vehicle_id in b.vehicle_ids]

@@ -17,7 +17,7 @@ from service.history import SCHEMA, EstimateHistory, table_rows
 from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS, Estimate, EstimateBatch
 from tests.service.helpers import PERIOD_NS, T0_NS, make_settings, plant_measurements, probe, running, wait_for
 
-#: float32 history values against the float64 estimates: relative agreement
+#: history.precision float32 against the float64 estimates: relative agreement (7 significant digits)
 FLOAT32_RTOL = 1e-6
 
 
@@ -56,7 +56,7 @@ def test_the_history_keeps_every_estimate_and_reads_a_vehicle_back_by_time(tmp_p
         rows = list(table_rows(got))
         assert [r["seq"] for r in rows] == list(range(100, 200))  # the range, oldest first, only that vehicle
         assert {r["vehicle"] for r in rows} == {"b"} and "torque_alpha" not in rows[0]
-        np.testing.assert_allclose([r["vx"] for r in rows], [1000.0 + s for s in range(100, 200)], rtol=FLOAT32_RTOL)
+        assert [r["vx"] for r in rows] == [1000.0 + s for s in range(100, 200)]  # float64: exactly
         staged = list(table_rows(history.read("staged", T0_NS, T0_NS + 10 * PERIOD_NS)))
         assert len(staged) == 10 and staged[3]["steer_alpha"] == pytest.approx(3 + 0.25 * 8)
         assert Estimate.model_validate({**staged[0], "v": 1}).torque_alpha is not None  # the record's fields
@@ -74,6 +74,31 @@ def test_the_history_keeps_every_estimate_and_reads_a_vehicle_back_by_time(tmp_p
         assert again.read("c", T0_NS, T0_NS + 300 * PERIOD_NS).num_rows == 300
     finally:
         again.close()
+
+
+def test_float32_precision_halves_the_file_and_keeps_seven_digits(tmp_path):
+    sizes, read_back = {}, {}
+    for precision in ("float64", "float32"):
+        history = EstimateHistory(tmp_path / precision, "r0", 3600.0, 1.0, precision)  # type: ignore[arg-type]
+        history.start()
+        try:
+            rng = np.random.default_rng(0)
+            for seq in range(500):
+                b = _batch(["a", "b"], seq)
+                b.values = rng.normal(size=b.values.shape)
+                history.append([b])
+            time.sleep(1.1)
+            history.append([])
+            _wait_files(history, 1)
+            rows = history.read("a", T0_NS, T0_NS + 500 * PERIOD_NS)
+            assert rows.num_rows == 500 and rows.schema.equals(SCHEMA)  # read back as the record's float64
+            sizes[precision] = history.stats.bytes_on_disk
+            read_back[precision] = rows["vx"].to_numpy()
+        finally:
+            history.close()
+    np.testing.assert_allclose(read_back["float32"], read_back["float64"], rtol=FLOAT32_RTOL)
+    assert not np.array_equal(read_back["float32"], read_back["float64"])  # rounded, not the same numbers
+    assert sizes["float32"] < 0.7 * sizes["float64"]
 
 
 def test_old_files_go_after_the_retention_and_a_failed_write_is_counted(tmp_path):
@@ -117,23 +142,21 @@ def test_old_files_go_after_the_retention_and_a_failed_write_is_counted(tmp_path
 
 def test_the_service_answers_a_time_range_of_estimates_as_json_csv_and_parquet(tmp_path):
     settings = make_settings(tmp_path, history={"chunk_s": 1.0})
-    samples = plant_measurements(["hist-1", "hist-2"], 400)
+    samples = plant_measurements(["hist-1", "hist-2"], 9000)  # 90 s of two vehicles
     with running(settings) as srv, probe(settings.zenoh.endpoint) as p:
         for row in samples:
             for m in row:
                 p.put(m)
-        wait_for(lambda: len(p.estimates_of("hist-1")) >= 400, what="the estimates")
+        wait_for(lambda: len(p.estimates_of("hist-1")) >= 9000, what="the estimates")
         time.sleep(1.2)  # one more interval: the chunk is written at the next tick
-        p.put(plant_measurements(["hist-2"], 401)[-1][0])
+        p.put(plant_measurements(["hist-2"], 9001)[-1][0])
         wait_for(lambda: srv.service.history.stats.files_written >= 1, what="a history file")
         live = {e.seq: e for e in p.estimates_of("hist-1")}
         window = {"start": (T0_NS + 100 * PERIOD_NS) / 1e9, "end": (T0_NS + 300 * PERIOD_NS) / 1e9}
         answer = srv.get("/vehicles/hist-1/estimates", params=window).json()
         got = answer["estimates"]
         assert [r["seq"] for r in got] == list(range(100, 300))
-        np.testing.assert_allclose(
-            [r["torque_fault"] for r in got], [live[r["seq"]].torque_fault for r in got], rtol=FLOAT32_RTOL, atol=1e-6
-        )
+        assert [r["torque_fault"] for r in got] == [live[r["seq"]].torque_fault for r in got]  # the published values
         # paging: at most `limit`, and a Link to the rest
         page = srv.http.get("/vehicles/hist-1/estimates", params={**window, "limit": 50})
         assert len(page.json()["estimates"]) == 50 and 'rel="next"' in page.headers["link"]
@@ -153,11 +176,27 @@ def test_the_service_answers_a_time_range_of_estimates_as_json_csv_and_parquet(t
         link = srv.http.get("/vehicles/hist-1/estimates", params={**window, "format": "csv"})
         assert link.headers["content-disposition"] == 'attachment; filename="hist-1-estimates.csv"'
         assert link.text == text.text
+        # the whole 90 s back as CSV and as Parquet: every estimate, the values published
+        whole = {"start": T0_NS / 1e9, "end": (T0_NS + 9000 * PERIOD_NS) / 1e9}
+        table = pq.read_table(
+            io.BytesIO(
+                srv.http.get(
+                    "/vehicles/hist-1/estimates", params=whole, headers={"Accept": "application/vnd.apache.parquet"}
+                ).content
+            )
+        )
+        assert table["seq"].to_pylist() == list(range(9000))
+        for name in STATE_COLUMNS:
+            assert table[name].to_pylist() == [getattr(live[k], name) for k in range(9000)], name
+        full_csv = srv.http.get("/vehicles/hist-1/estimates", params=whole, headers={"Accept": "text/csv"}).text
+        csv_rows = list(csv.DictReader(io.StringIO(full_csv)))
+        assert [int(r["seq"]) for r in csv_rows] == list(range(9000))
+        assert [float(r["steer_fault"]) for r in csv_rows] == [live[k].steer_fault for k in range(9000)]
         # a range with end before start is refused; without a range the in-memory window answers, as before
         bad = srv.http.get("/vehicles/hist-1/estimates", params={"start": 20.0, "end": 10.0})
         assert bad.status_code == 422 and "end must be after start" in bad.text
         recent = srv.get("/vehicles/hist-1/estimates", params={"limit": 5}).json()["estimates"]
-        assert [r["seq"] for r in recent] == list(range(395, 400))
+        assert [r["seq"] for r in recent] == list(range(8995, 9000))
         metrics = srv.http.get("/metrics").text
         assert "agv_fe_history_rows_written_total" in metrics and "agv_fe_history_bytes" in metrics
 
