@@ -1,8 +1,10 @@
-# Every target bootstraps .venv when it is missing or older than pyproject.toml.
+# Every target bootstraps .venv when it is missing or older than pyproject.toml: `make demo` with the runtime
+# dependencies only (no test, lint or browser tooling), the other targets with the dev extras.
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+RUNTIME_STAMP := $(VENV)/.installed-runtime
 DEMO_ARGS ?=
 # the secure Zenoh deployment (docs/deployment.md): where make certs writes, and the vehicle list of the ACL
 CERTS_DIR ?= secrets/zenoh
@@ -18,12 +20,19 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	@touch $(STAMP)
 
+# the runtime dependencies only; a venv that already has the dev extras (and is up to date) has them too
+$(RUNTIME_STAMP): pyproject.toml
+	@if [ ! -x "$(BIN)/python" ]; then $(PYTHON) -m venv --clear $(VENV); fi
+	@if [ ! -f "$(STAMP)" ] || [ pyproject.toml -nt "$(STAMP)" ]; then \
+		$(BIN)/python -m pip install --quiet --upgrade pip && $(BIN)/python -m pip install --quiet -e .; fi
+	@touch $(RUNTIME_STAMP)
+
 # pytest exits 5 when it collects no tests; that is not a failure of the suite.
 test: $(STAMP)
 	@$(BIN)/python -m pytest $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 0; fi; exit $$rc
 
-demo: $(STAMP)
+demo: $(RUNTIME_STAMP)
 	$(BIN)/agv-fe demo $(DEMO_ARGS)
 
 bench: $(STAMP)

@@ -67,13 +67,15 @@ def dockerfile_env() -> dict[str, str]:
     return env
 
 
-def test_compose_has_the_four_roles_on_one_image_and_monitoring_behind_a_profile():
+def test_compose_runs_router_and_service_and_puts_the_demo_and_monitoring_behind_profiles():
     default = {name for name, spec in SERVICES.items() if "profiles" not in spec}
-    assert default == {"router", "service", "fleet", "dashboard"}
+    assert default == {"router", "service"}  # production: no simulated vehicles
     for name in ("service", "fleet", "dashboard"):
         assert SERVICES[name]["image"] == "agv-fe:latest" and SERVICES[name]["build"] == "."
-    # docker compose --profile monitoring up adds Prometheus and Grafana (tests/test_monitoring.py checks them)
-    assert {name for name in SERVICES if name not in default} == {"prometheus", "grafana"}
+    # docker compose --profile demo adds the simulated fleet and the terminal dashboard; --profile monitoring adds
+    # Prometheus and Grafana (tests/test_monitoring.py checks them)
+    assert {name for name in SERVICES if name not in default} == {"fleet", "dashboard", "prometheus", "grafana"}
+    assert all(SERVICES[name]["profiles"] == ["demo"] for name in ("fleet", "dashboard"))
     assert all(SERVICES[name]["profiles"] == ["monitoring"] for name in ("prometheus", "grafana"))
     assert COMPOSE["volumes"] == {"agv-data": None, "prometheus-data": None, "grafana-data": None}
 
@@ -134,7 +136,11 @@ def test_start_order_is_health_based():
     for name in ("fleet", "dashboard"):
         assert SERVICES[name]["depends_on"] == {"service": {"condition": "service_healthy"}}
         assert SERVICES[name]["healthcheck"] == {"disable": True}  # no HTTP in these roles
-    assert "healthcheck" not in SERVICES["service"]  # the image's HEALTHCHECK applies
+    # the service is healthy when /ready answers 200 on its own port: what depends on it waits for readiness
+    check = SERVICES["service"]["healthcheck"]["test"]
+    port = Settings(**_nested(environment_of("service"))).http.port
+    assert check[:3] == ["CMD", "python", "-c"] and f"http://127.0.0.1:{port}/ready" in check[3]
+    compile(check[3], "healthcheck", "exec")  # the command is valid Python
     assert int(command_of("fleet", {"FLEET_VEHICLES": "7"})[2]) == 7
 
 
@@ -206,6 +212,9 @@ def test_compose_topology_as_local_processes(tmp_path):
             time.sleep(0.25)
         else:
             pytest.fail("the service never became ready")
+        # the compose healthcheck's command, on this service's port: exit status 0 once it is ready
+        probe_code = SERVICES["service"]["healthcheck"]["test"][3].replace(":8000/", f":{http_port}/")
+        assert subprocess.run([sys.executable, "-c", probe_code], timeout=30).returncode == 0
         fleet_cmd = localise(command_of("fleet", {"FLEET_VEHICLES": "4", "FLEET_DURATION_S": "6"}))
         fleet = subprocess.run(
             [sys.executable, "-m", "agv_fe", *fleet_cmd], capture_output=True, text=True, timeout=120
@@ -345,3 +354,15 @@ def test_secure_compose_mounts_only_what_make_certs_issues():
             if certs_dir() in host.parents:
                 assert host.parent == certs_dir() and host.name in identities_issued() | {"router"}
     assert "/secrets/" in (ROOT / ".gitignore").read_text().splitlines()
+
+
+def test_make_demo_installs_the_runtime_dependencies_only(tmp_path):
+    """`make demo` on a fresh machine bootstraps a venv with `pip install -e .` (no dev extras: no pytest,
+    Playwright, linters); `make test` with the dev extras. Checked on make's dry run for a venv not yet made."""
+    venv = tmp_path / "venv"
+    demo = subprocess.run(["make", "-n", "demo", f"VENV={venv}"], cwd=ROOT, capture_output=True, text=True, check=True)
+    installs = [line for line in demo.stdout.splitlines() if "pip install" in line and "-e" in line]
+    assert installs and all("-e ." in line and "[dev]" not in line for line in installs), demo.stdout
+    assert f"{venv}/bin/agv-fe demo" in demo.stdout
+    test = subprocess.run(["make", "-n", "test", f"VENV={venv}"], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert "-e '.[dev]'" in test.stdout
