@@ -20,6 +20,7 @@ COMMANDS = {
     "dashboard": "agv_fe.commands.dashboard",
     "publish-csv": "agv_fe.commands.publish_csv",
     "ros2-bridge": "agv_fe.commands.ros2_bridge",
+    "can-bridge": "agv_fe.commands.can_bridge",
     "zenoh-acl": "agv_fe.commands.zenoh_acl",
     "demo": "agv_fe.commands.demo",
     "bench": "agv_fe.commands.bench",

@@ -107,3 +107,54 @@ class ProgressPrinter:
     def finish(self) -> None:
         if self.tty and self.printed:
             print()
+
+
+# ---------------------------------------------------------------------------------------------- live bridges
+
+
+def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags every live bridge (ros2-bridge, can-bridge) has besides its own and the zenoh ones."""
+    parser.add_argument("--vehicle", required=True, metavar="ID", help="vehicle id (1-64 of A-Z a-z 0-9 _ . -)")
+    parser.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)"
+    )
+    parser.add_argument(
+        "--wait", type=float, default=30.0, metavar="S", help="how long to wait for every signal at start (default 30)"
+    )
+    parser.add_argument("--log", metavar="FILE.jsonl", help="write every estimate and alarm received, one JSON a line")
+    parser.add_argument(
+        "--progress", type=float, default=5.0, metavar="S", help="seconds between progress lines (default 5)"
+    )
+
+
+def check_bridge_arguments(args: argparse.Namespace) -> None:
+    """A CommandError naming the flag of :func:`add_bridge_arguments` at fault."""
+    from service.protocol import ProtocolError, check_vehicle_id
+
+    try:
+        check_vehicle_id(args.vehicle)
+    except ProtocolError as exc:
+        raise CommandError(f"--vehicle: {exc}") from exc
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise CommandError(f"--duration: expected seconds > 0, got {args.duration}")
+    if not (math.isfinite(args.wait) and args.wait >= 0):
+        raise CommandError(f"--wait: expected seconds >= 0, got {args.wait}")
+    if not (math.isfinite(args.progress) and args.progress > 0):
+        raise CommandError(f"--progress: expected seconds > 0, got {args.progress}")
+
+
+def print_bridge_report(lines: list[str], report: Any) -> None:
+    """What a bridge read and refused (``lines``), then what it sent and what came back (the publisher's report)."""
+    print("\n".join(lines))
+    print(
+        f"sent {report.sent} measurements in {report.elapsed_s:.2f} s; estimates received {report.estimates}, "
+        f"alarms {report.alarms}; round trip p50 {report.rtt_p50_ms:.2f} ms, p99 {report.rtt_p99_ms:.2f} ms"
+    )
+    last = report.vehicles[0].last_estimate
+    if last is not None:
+        print(
+            f"last estimate (seq {last.seq}): v_y {last.vy:.3f} m/s, T_f {last.torque_fault:.1f} N m, "
+            f"delta_f {last.steer_fault:.4f} rad, level {last.level}"
+        )
+    if report.estimates == 0:
+        print("no estimate came back: is the service running and connected to the same router?")

@@ -91,14 +91,9 @@ def load_mapping(path: str | Path) -> CanMapping:
 def read_can_log(log: str | Path, dbc: str | Path, mapping: CanMapping) -> tuple[Recording, CanStats]:
     """Decode ``log`` with ``dbc`` and resample the mapped signals onto the grid (module docstring)."""
     import can
-    import cantools
-    from cantools.database.errors import UnsupportedDatabaseFormatError
 
-    try:
-        database = cantools.database.load_file(str(dbc))
-    except (OSError, UnsupportedDatabaseFormatError) as exc:
-        raise RecordingError(f"{dbc}: cannot read the DBC file: {exc}") from exc
-    wanted = _resolve(database, mapping, dbc)
+    database = load_dbc(dbc)
+    wanted = resolve(database, mapping, dbc)
     try:
         messages: Iterable[Any] = can.LogReader(str(log))
         samples, stats = _decode(messages, database, wanted)
@@ -108,7 +103,7 @@ def read_can_log(log: str | Path, dbc: str | Path, mapping: CanMapping) -> tuple
     return recording, stats
 
 
-def _resolve(database: Any, mapping: CanMapping, dbc: str | Path) -> dict[int, list[tuple[str, CanSignal]]]:
+def resolve(database: Any, mapping: CanMapping, dbc: str | Path) -> dict[int, list[tuple[str, CanSignal]]]:
     """Frame id -> the columns it carries; every mapped message and signal must exist in the DBC."""
     wanted: dict[int, list[tuple[str, CanSignal]]] = {}
     for column, signal in mapping.signals().items():
@@ -128,8 +123,6 @@ def _decode(
     messages: Iterable[Any], database: Any, wanted: dict[int, list[tuple[str, CanSignal]]]
 ) -> tuple[dict[str, tuple[list[float], list[float]]], CanStats]:
     """Per column: (time stamps [s], values in the protocol's unit), in log order."""
-    from cantools.database.errors import DecodeError
-
     stats = CanStats()
     samples: dict[str, tuple[list[float], list[float]]] = {column: ([], []) for column in COLUMNS}
     for frame in messages:
@@ -138,18 +131,42 @@ def _decode(
         if columns is None:
             stats.other += 1
             continue
-        try:
-            decoded = database.decode_message(frame.arbitration_id, bytes(frame.data), decode_choices=False)
-        except (DecodeError, ValueError, KeyError, IndexError):  # a frame too short, a bad multiplexer: count it
+        decoded = decode_frame(database, frame, columns)
+        if decoded is None:
             stats.undecodable += 1
             continue
-        for column, signal in columns:
-            value = decoded.get(signal.signal)
-            if value is None:
-                stats.undecodable += 1
-                continue
+        for column, value in decoded:
             times, values = samples[column]
             times.append(float(frame.timestamp))
-            values.append(signal.scale * float(value) + signal.offset)
+            values.append(value)
             stats.used[column] += 1
     return samples, stats
+
+
+def decode_frame(database: Any, frame: Any, columns: list[tuple[str, CanSignal]]) -> list[tuple[str, float]] | None:
+    """The mapped columns a frame carries, in the protocol's units; None when it does not decode (a frame too short,
+    a bad multiplexer, a mapped signal missing from it)."""
+    from cantools.database.errors import DecodeError
+
+    try:
+        decoded = database.decode_message(frame.arbitration_id, bytes(frame.data), decode_choices=False)
+    except (DecodeError, ValueError, KeyError, IndexError):
+        return None
+    out = []
+    for column, signal in columns:
+        value = decoded.get(signal.signal)
+        if value is None:
+            return None
+        out.append((column, signal.scale * float(value) + signal.offset))
+    return out
+
+
+def load_dbc(dbc: str | Path) -> Any:
+    """The DBC file as a cantools database; a :class:`RecordingError` says why it cannot be read."""
+    import cantools
+    from cantools.database.errors import UnsupportedDatabaseFormatError
+
+    try:
+        return cantools.database.load_file(str(dbc))
+    except (OSError, UnsupportedDatabaseFormatError) as exc:
+        raise RecordingError(f"{dbc}: cannot read the DBC file: {exc}") from exc

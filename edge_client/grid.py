@@ -16,11 +16,13 @@ and the live ROS 2 bridge (edge_client/ros2_bridge.py) put them on the grid by o
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from edge_client.recording import Recording, RecordingError
+from edge_client.sources import Tick
 from synth.model import FloatArray
 
 COLUMNS = ("vx", "r", "torque", "steer")
@@ -103,3 +105,81 @@ class LiveHold:
                 return GridSample(None, stale)
             v = self._value
             return GridSample((v["vx"], v["r"], v["torque"], v["steer"]))
+
+
+#: A live source runs until stopped: the publisher is told it has this many samples.
+ENDLESS = 2**62
+
+
+class LiveSource:
+    """One vehicle's live signals as a :class:`~edge_client.sources.SampleSource` on the grid (the module's rule).
+
+    A bridge (ROS 2, CAN) feeds :attr:`hold` from its transport's threads and counts what it refused; this class
+    samples the hold at each of the publisher's ticks: a tick with every column fresh is a measurement, one with a
+    stale column is not sent (its sequence number is skipped, so the service counts the gap) and is counted under
+    that column's name. :meth:`prepare` waits for the first instant every column is fresh.
+    """
+
+    def __init__(
+        self, vehicle_id: str, sample_period_s: float, max_age_s: float, wait_s: float, clock: Callable[[], int]
+    ) -> None:
+        self.hold = LiveHold(max_age_s)
+        self.wait_s = wait_s
+        self.ticks = 0
+        self.sampled = 0
+        self.stale_ticks = dict.fromkeys(COLUMNS, 0)
+        self._ids = [vehicle_id]
+        self._period = sample_period_s
+        self._clock = clock
+        self._k = 0
+        self._first = threading.Event()
+
+    def received(self, column: str, value: float) -> None:
+        """A fresh value of ``column`` (from a transport's thread), at the source's clock now."""
+        self.hold.update(column, value, self._clock())
+        if not self._first.is_set() and self.hold.sample(self._clock()).values is not None:
+            self._first.set()
+
+    @property
+    def vehicle_ids(self) -> list[str]:
+        return self._ids
+
+    @property
+    def sample_period_s(self) -> float:
+        return self._period
+
+    @property
+    def n_samples(self) -> int:
+        return ENDLESS
+
+    def describe_missing(self, columns: tuple[str, ...]) -> str:
+        """Where the stale ``columns`` come from, for the error of :meth:`prepare` (a bridge says more)."""
+        return ", ".join(columns)
+
+    def prepare(self) -> None:
+        """Wait (at most ``wait_s``) until every column has been received fresh: the grid starts there, with seq 0."""
+        if not self._first.wait(self.wait_s):
+            missing = self.hold.sample(self._clock()).stale
+            raise RecordingError(
+                f"no instant within {self.wait_s:g} s at which every signal was fresher than max_age_s = "
+                f"{self.hold.max_age_ns / 1e9:g} s; missing or stale: {self.describe_missing(missing)}"
+            )
+
+    def next_tick(self) -> Tick:
+        sample = self.hold.sample(self._clock())
+        k = self._k
+        self._k += 1
+        self.ticks += 1
+        if sample.values is None:
+            for column in sample.stale:
+                self.stale_ticks[column] += 1
+        else:
+            self.sampled += 1
+        values = sample.values or (0.0, 0.0, 0.0, 0.0)
+        return Tick(
+            k=k, y=np.array([values[:2]]), u=np.array([values[2:]]), active=np.array([sample.values is not None])
+        )
+
+    def describe_grid(self) -> str:
+        stale = ", ".join(f"{column} {count}" for column, count in self.stale_ticks.items() if count) or "none"
+        return f"grid: {self.sampled} of {self.ticks} ticks sampled; ticks not sent for a stale column: {stale}"

@@ -27,19 +27,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from edge_client.grid import COLUMNS, LiveHold
-from edge_client.recording import RecordingError
+from edge_client.grid import COLUMNS, LiveSource
 from edge_client.ros2 import RosMapping, RosSignal, field_value, typestore_for
-from edge_client.sources import Tick
 from edge_client.transport import Received, Subscription
 
 if TYPE_CHECKING:
     import zenoh
-
-#: The bridge runs until stopped: the publisher is told it has this many samples.
-ENDLESS = 2**62
 
 
 def dds_type_name(type_name: str) -> str:
@@ -64,28 +57,23 @@ def rmw_attachment(seq: int, source_timestamp_ns: int, gid: bytes) -> bytes:
 
 @dataclass
 class BridgeStats:
-    """What the bridge received, used and refused, and the ticks it could not send, by stale column."""
+    """What the bridge received, used and refused."""
 
     messages: int = 0
     used: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COLUMNS, 0))
     undecodable: int = 0
     non_finite: int = 0
     other_type: int = 0
-    stale_ticks: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COLUMNS, 0))
-    ticks: int = 0
-    sampled: int = 0
 
-    def describe(self) -> list[str]:
+    def describe(self) -> str:
         used = ", ".join(f"{column} {count}" for column, count in self.used.items())
-        stale = ", ".join(f"{column} {count}" for column, count in self.stale_ticks.items() if count) or "none"
-        return [
+        return (
             f"received {self.messages} messages: used {used}; refused {self.undecodable} undecodable, "
-            f"{self.non_finite} not finite, {self.other_type} of another type or type definition (type hash)",
-            f"grid: {self.sampled} of {self.ticks} ticks sampled; ticks not sent for a stale column: {stale}",
-        ]
+            f"{self.non_finite} not finite, {self.other_type} of another type or type definition (type hash)"
+        )
 
 
-class Ros2Source:
+class Ros2Source(LiveSource):
     """One ROS 2 vehicle's mapped topics over Zenoh as a one-vehicle sample source (module docstring)."""
 
     def __init__(
@@ -97,16 +85,11 @@ class Ros2Source:
         wait_s: float = 30.0,
         clock: Callable[[], int] = time.monotonic_ns,
     ) -> None:
+        super().__init__(vehicle_id, mapping.sample_period_s, mapping.max_age_s, wait_s, clock)
         self.mapping = mapping
         self.store = typestore_for(mapping)
-        self.hold = LiveHold(mapping.max_age_s)
         self.stats = BridgeStats()
-        self.wait_s = wait_s
-        self._ids = [vehicle_id]
-        self._clock = clock
-        self._k = 0
         self._lock = threading.Lock()
-        self._first = threading.Event()
         self.keys: dict[str, str] = {}
         self._subscriptions: list[Subscription] = []
         try:
@@ -148,52 +131,16 @@ class Ros2Source:
                         self.stats.non_finite += 1
                         continue
                     self.stats.used[column] += 1
-                self.hold.update(column, value, rx.received_ns)
-            if self.hold.sample(self._clock()).values is not None:
-                self._first.set()
+                self.received(column, value)
 
         return on_message
 
-    @property
-    def vehicle_ids(self) -> list[str]:
-        return self._ids
+    def describe_missing(self, columns: tuple[str, ...]) -> str:
+        return ", ".join(f"{column} ({self.keys[self.mapping.signals()[column].topic]})" for column in columns)
 
-    @property
-    def sample_period_s(self) -> float:
-        return self.mapping.sample_period_s
-
-    @property
-    def n_samples(self) -> int:
-        return ENDLESS
-
-    def prepare(self) -> None:
-        """Wait (at most ``wait_s``) until every column has been received: the grid starts there, with seq 0."""
-        if not self._first.wait(self.wait_s):
-            missing = self.hold.sample(self._clock()).stale
-            topics = ", ".join(f"{column} ({self.keys[self.mapping.signals()[column].topic]})" for column in missing)
-            raise RecordingError(
-                f"no instant within {self.wait_s:g} s at which every signal was fresher than max_age_s = "
-                f"{self.mapping.max_age_s:g} s; missing or stale: {topics}"
-            )
-
-    def next_tick(self) -> Tick:
-        sample = self.hold.sample(self._clock())
-        k = self._k
-        self._k += 1
+    def describe(self) -> list[str]:
         with self._lock:
-            self.stats.ticks += 1
-            if sample.values is None:
-                for column in sample.stale:
-                    self.stats.stale_ticks[column] += 1
-            else:
-                self.stats.sampled += 1
-        values = sample.values or (0.0, 0.0, 0.0, 0.0)
-        return Tick(
-            k=k,
-            y=np.array([values[:2]]),
-            u=np.array([values[2:]]),
-            active=np.array([sample.values is not None]),
-        )
+            return [self.stats.describe(), self.describe_grid()]
 
     def close(self) -> None:
         for subscription in self._subscriptions:

@@ -4,14 +4,21 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import re
 import textwrap
 from pathlib import Path
 from typing import Any
 
 from agv_fe.common import CommandError, fail
-from agv_fe.edge_args import ProgressPrinter, add_transport_arguments, stop_on_interrupt, transport_options
+from agv_fe.edge_args import (
+    ProgressPrinter,
+    add_bridge_arguments,
+    add_transport_arguments,
+    check_bridge_arguments,
+    print_bridge_report,
+    stop_on_interrupt,
+    transport_options,
+)
 
 
 def register(sub: Any) -> None:
@@ -26,22 +33,12 @@ def register(sub: Any) -> None:
         "tcp/127.0.0.1:7447 by default) and that the service reaches. Needs the 'ros2' extra (rosbags).",
     )
     parser.add_argument("--map", required=True, metavar="MAPPING.yaml", help="which topic field is which signal")
-    parser.add_argument("--vehicle", required=True, metavar="ID", help="vehicle id (1-64 of A-Z a-z 0-9 _ . -)")
-    parser.add_argument(
-        "--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)"
-    )
-    parser.add_argument(
-        "--wait", type=float, default=30.0, metavar="S", help="how long to wait for every topic at start (default 30)"
-    )
+    add_bridge_arguments(parser)
     parser.add_argument(
         "--republish",
         metavar="TOPIC",
         help="also republish the vehicle's estimates as this ROS 2 topic (diagnostic_msgs/msg/DiagnosticStatus, "
         "level OK / WARN / ERROR), for the vehicle's own nodes",
-    )
-    parser.add_argument("--log", metavar="FILE.jsonl", help="write every estimate and alarm received, one JSON a line")
-    parser.add_argument(
-        "--progress", type=float, default=5.0, metavar="S", help="seconds between progress lines (default 5)"
     )
     add_transport_arguments(parser)
     parser.set_defaults(handler=run)
@@ -50,22 +47,12 @@ def register(sub: Any) -> None:
 def _check(args: argparse.Namespace) -> tuple[Any, Any]:
     """The mapping and the transport options, or a CommandError naming the flag at fault."""
     from edge_client.recording import RecordingError
-    from service.protocol import ProtocolError, check_vehicle_id
 
-    try:
-        check_vehicle_id(args.vehicle)
-    except ProtocolError as exc:
-        raise CommandError(f"--vehicle: {exc}") from exc
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise CommandError(f"--duration: expected seconds > 0, got {args.duration}")
-    if not (math.isfinite(args.wait) and args.wait >= 0):
-        raise CommandError(f"--wait: expected seconds >= 0, got {args.wait}")
+    check_bridge_arguments(args)
     if args.republish is not None and not re.fullmatch(r"(/[A-Za-z_][A-Za-z0-9_]*)+", args.republish):
         raise CommandError(
             f"--republish: expected a fully qualified topic name such as /agv_fe/status, got {args.republish!r}"
         )
-    if not (math.isfinite(args.progress) and args.progress > 0):
-        raise CommandError(f"--progress: expected seconds > 0, got {args.progress}")
     try:
         from edge_client.ros2 import load_ros_mapping, typestore_for
     except ImportError as exc:
@@ -113,24 +100,12 @@ def run(args: argparse.Namespace) -> int:
             report = publisher.run(
                 args.duration, stop=stop, on_progress=progress, progress_period_s=args.progress, drain_s=1.0
             )
-            lines = source.stats.describe()
+            lines = source.describe()
             if republisher is not None:
                 lines.append(f"republished {republisher.sent} estimates on {republisher.key}")
     except RecordingError as exc:
         return fail(CommandError(str(exc)))
     except OSError as exc:
         return fail(CommandError(f"{args.log}: cannot write: {exc.strerror}"))
-    print("\n".join(lines))
-    print(
-        f"sent {report.sent} measurements in {report.elapsed_s:.2f} s; estimates received {report.estimates}, "
-        f"alarms {report.alarms}; round trip p50 {report.rtt_p50_ms:.2f} ms, p99 {report.rtt_p99_ms:.2f} ms"
-    )
-    last = report.vehicles[0].last_estimate
-    if last is not None:
-        print(
-            f"last estimate (seq {last.seq}): v_y {last.vy:.3f} m/s, T_f {last.torque_fault:.1f} N m, "
-            f"delta_f {last.steer_fault:.4f} rad, level {last.level}"
-        )
-    if report.estimates == 0:
-        print("no estimate came back: is the service running and connected to the same router?")
+    print_bridge_report(lines, report)
     return 0
