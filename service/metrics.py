@@ -23,7 +23,7 @@ from prometheus_client import CollectorRegistry, GCCollector, PlatformCollector,
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.registry import Collector
 
-from service.fleet.engine import REJECT_REASONS
+from service.fleet.vehicle import REJECT_REASONS
 
 if TYPE_CHECKING:
     from service.fleet import FleetEngine

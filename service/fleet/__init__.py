@@ -2,17 +2,10 @@
 
 from service.fleet.alarms import AlarmBook, AlarmChange, AlarmRecord, LevelDetector, UnknownAlarm
 from service.fleet.bank import ProfileBank
-from service.fleet.engine import (
-    REJECT_REASONS,
-    EngineConfig,
-    FleetEngine,
-    FleetError,
-    TickResult,
-    UnknownProfile,
-    UnknownVehicle,
-    Vehicle,
-)
+from service.fleet.engine import EngineConfig, FleetEngine, FleetError, UnknownProfile, UnknownVehicle
 from service.fleet.events import EventBus, FleetEvent, Subscription
+from service.fleet.tick import TickResult
+from service.fleet.vehicle import REJECT_REASONS, Vehicle
 
 __all__ = [
     "REJECT_REASONS",

@@ -42,16 +42,17 @@ its last-seen time change.
 from __future__ import annotations
 
 import time
-from collections import deque
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
-from typing import Any, Literal, get_args
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 
 from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange, seconds_to_ns
 from service.fleet.bank import ALPHAS, FAULTS, ProfileBank, StepOutput
 from service.fleet.events import EventBus, FleetEvent
+from service.fleet.tick import Checked, Rows, TickResult
+from service.fleet.vehicle import BURST_REASONS, REJECT_REASONS, SEQUENCE_REASONS, RejectReason, Vehicle
 from service.profiles import ProfileSpec
 from service.protocol import (
     FLAG_SEQUENCE_RESTART,
@@ -70,7 +71,6 @@ from service.protocol import (
     bucket_of,
     parse_vehicle_key,
     unpack_measurement_sequence,
-    vehicle_key,
 )
 from synth.gains import ObserverGains
 from synth.model import FloatArray
@@ -78,24 +78,6 @@ from synth.observer import RuntimeGains
 
 #: Sequence numbers at or above this take the one-by-one path of a tick (exact Python integers there).
 _FAST_SEQ_LIMIT = 1 << 62
-
-RejectReason = Literal[
-    "malformed",
-    "id_mismatch",
-    "unknown_vehicle",
-    "duplicate",
-    "out_of_order",
-    "implausible_seq",
-    "reserved_bits",
-    "non_finite",
-    "out_of_range",
-    "no_gains",
-]
-REJECT_REASONS: tuple[RejectReason, ...] = get_args(RejectReason)
-#: Rejects that count towards a vehicle's rejected-input burst alarm (duplicates and late samples do not).
-BURST_REASONS = frozenset({"malformed", "id_mismatch", "reserved_bits", "non_finite", "out_of_range"})
-#: Rejects of samples whose sequence number is not believed; enough in a row raise ``sequence_rejected``.
-SEQUENCE_REASONS = frozenset({"out_of_order", "implausible_seq"})
 
 
 def _limits_row(spec: ProfileSpec) -> tuple[float, float, float, float, float]:
@@ -136,97 +118,6 @@ class EngineConfig:
     estimate_every_n: int = 1
     history_samples: int = 500
     prefix: str = "agv"
-
-
-class Vehicle:
-    """What the engine knows of one vehicle; its observer state lives in its profile's bank."""
-
-    __slots__ = (
-        "alive",
-        "announced",
-        "bank",
-        "base_counters",
-        "id",
-        "id_bytes",
-        "last_seen_mono",
-        "last_seen_ns",
-        "last_seq",
-        "last_seq_t_ns",
-        "meas_key",
-        "payload_len",
-        "pending",
-        "registered_t_ns",
-        "reject_times",
-        "rejected",
-        "seq_rejects",
-        "slot",
-        "stale",
-    )
-
-    def __init__(self, vehicle_id: str, bank: ProfileBank, slot: int, prefix: str, registered_t_ns: int) -> None:
-        self.id = vehicle_id
-        self.bank = bank
-        self.slot = slot
-        self.meas_key = vehicle_key(vehicle_id, "meas", prefix)
-        self.id_bytes = vehicle_id.encode()
-        self.payload_len = MEASUREMENT_HEADER_SIZE + len(self.id_bytes)
-        self.last_seq = -1
-        self.last_seq_t_ns = 0  # the time stamp of the sample at last_seq [ns, vehicle clock]
-        self.seq_rejects = 0  # samples refused as late or implausible since the last one accepted in sequence
-        self.last_seen_mono: float | None = None
-        self.last_seen_ns: int | None = None
-        self.registered_t_ns = registered_t_ns
-        #: Event counts kept per vehicle; the per-sample counts (accepted, estimates, published) live in
-        #: the bank's arrays and are added here when the vehicle moves to another profile.
-        self.base_counters = {"accepted": 0, "estimates": 0, "published": 0, "missing": 0, "gaps": 0, "restarts": 0}
-        self.rejected: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
-        self.pending = 0
-        self.reject_times: deque[float] = deque()
-        self.stale = False
-        self.alive: bool | None = None
-        #: registered through the API before its first measurement: not STALE until it has sent one
-        self.announced = False
-
-    @property
-    def profile(self) -> str:
-        return self.bank.name
-
-    @property
-    def counters(self) -> dict[str, int]:
-        """Samples accepted, estimates made and published, samples missing, gaps, restarts (a copy)."""
-        out = dict(self.base_counters)
-        for name, value in self.bank.sample_counts(self.slot).items():
-            out[name] += value
-        return out
-
-
-@dataclass
-class TickResult:
-    """What one tick produced: estimates to publish, alarm changes to store then publish, new vehicles to store."""
-
-    estimate_batches: list[EstimateBatch] = field(default_factory=list)
-    alarms: list[AlarmChange] = field(default_factory=list)
-    new_vehicles: list[Vehicle] = field(default_factory=list)
-    received: int = 0
-    accepted: int = 0
-
-    @property
-    def estimates(self) -> list[tuple[str, bytes]]:
-        """(vehicle id, Estimate document) of every estimate of the tick."""
-        return [pair for b in self.estimate_batches for pair in zip(b.vehicle_ids, b.documents(), strict=True)]
-
-
-class _Rows:
-    """Samples of one profile collected during a tick, in arrival order."""
-
-    __slots__ = ("later", "positions", "restart", "slots", "vehicles")
-
-    def __init__(self) -> None:
-        self.vehicles: list[Vehicle] = []
-        self.slots: list[int] = []
-        self.positions: list[int] = []  # where each sample sits in the tick's decoded headers
-        self.later: list[tuple[int, int]] = []  # (position, round) of a vehicle's 2nd, 3rd... sample this tick
-        self.restart: list[int] = []  # positions of the samples that restart their observer
 
 
 class FleetEngine:
@@ -369,17 +260,39 @@ class FleetEngine:
     # ------------------------------------------------------------------ ingest
 
     def process(self, batch: Iterable[tuple[str, bytes]]) -> TickResult:
-        """Validate, step and alarm on one tick's measurements (any order, any mix of vehicles)."""
+        """Validate, step and alarm on one tick's measurements (any order, any mix of vehicles).
+
+        The tick is a pipeline of named stages: :meth:`_decode` (well-formed frames of known vehicles),
+        :meth:`_plausibility` (every frame's values against its profile's limits, at once), sequencing
+        (:meth:`_sequence_in_order` takes the common case at once, :meth:`_sequence_one_by_one` the rest in
+        arrival order), then per profile :meth:`_step_bank` (the observer step), :meth:`_detectors` and
+        :meth:`_publish_selection`. Each stage keeps its fast path as a guard inside it.
+        """
         result = TickResult()
         now_mono = self._monotonic()
         now_ns = self._clock_ns()
-        per_bank: dict[str, _Rows] = {}
-        touched: list[Vehicle] = []
+        frames, headers = self._decode(batch, result, now_mono)
+        if not frames:
+            return result
+        tick = self._plausibility(frames, headers)
+        per_bank: dict[str, Rows] = {}
+        in_order = self._sequence_in_order(tick, per_bank, now_mono, now_ns, result)
+        self._sequence_one_by_one(tick, ~in_order, per_bank, now_mono, now_ns, result)
+        seq_all = tick.header["seq"].astype(np.int64)
+        t_ns_all = tick.header["t_ns"].astype(np.int64)
+        for name, rows in per_bank.items():
+            self._step_bank(self.banks[name], rows, tick.values, seq_all, t_ns_all, now_mono, now_ns, result)
+        return result
+
+    def _decode(
+        self, batch: Iterable[tuple[str, bytes]], result: TickResult, now_mono: float
+    ) -> tuple[list[tuple[Vehicle, int, int]], list[bytes]]:
+        """Stage 1: the well-formed frames of known (or newly registered) vehicles, in arrival order, as (vehicle,
+        seq, flags) and their 64-byte headers; every other payload is rejected with its reason."""
         received = 0
         unpack = unpack_measurement_sequence
         header_size = MEASUREMENT_HEADER_SIZE
-        # pass 1: well-formed frames of known vehicles, in arrival order
-        frames: list[tuple[Vehicle, int, int]] = []  # (vehicle, seq, flags)
+        frames: list[tuple[Vehicle, int, int]] = []
         headers: list[bytes] = []
         for key, payload in batch:
             received += 1
@@ -402,9 +315,11 @@ class FleetEngine:
             headers.append(payload[:header_size])
         self.stats["received"] += received
         result.received = received
-        if not frames:
-            return result
-        # the values of every frame at once, checked against its profile's limits before its seq is believed
+        return frames, headers
+
+    def _plausibility(self, frames: list[tuple[Vehicle, int, int]], headers: list[bytes]) -> Checked:
+        """Stage 2: the values of every frame at once, checked against its profile's limits before its sequence
+        number is believed: finite, within limits, flag bits this version defines and zero reserved bytes."""
         header = np.frombuffer(b"".join(headers), dtype=MEASUREMENT_HEADER_DTYPE)
         values = np.column_stack([header["vx"], header["r"], header["torque"], header["steer"]])
         ordinal = self._ordinal
@@ -412,7 +327,6 @@ class FleetEngine:
         bank_of = np.array([ordinal[v.bank.name] for v in frame_vehicles], dtype=np.intp)
         lim = self._limits[bank_of]
         finite = np.isfinite(values).all(axis=1)
-        # flag bits this version does not define and the reserved bytes are zero in a v1 measurement
         conforming = ((header["flags"] & ~np.uint8(KNOWN_FLAGS)) == 0) & (header["reserved"] == 0)
         with np.errstate(invalid="ignore"):
             ok = (
@@ -424,37 +338,61 @@ class FleetEngine:
                 & (np.abs(values[:, 2]) <= lim[:, 3])
                 & (np.abs(values[:, 3]) <= lim[:, 4])
             )
-        good = ok.tolist()
-        # pass 2a, the common case at once: a plausible sample, the vehicle's only one in this tick and the
-        # next in its sequence (or its first), of a vehicle that is not stale and whose profile has gains
-        fast = self._in_sequence(frame_vehicles, header["seq"], ok, bank_of)
+        return Checked(frames, frame_vehicles, header, values, bank_of, ok, conforming, finite)
+
+    def _sequence_in_order(
+        self, tick: Checked, per_bank: dict[str, Rows], now_mono: float, now_ns: int, result: TickResult
+    ) -> np.ndarray:
+        """Stage 3a, the common case at once: a plausible sample, the vehicle's only one in this tick and the next
+        in its sequence (or its first), of a vehicle that is not stale and whose profile has gains. Returns which
+        frames it took."""
+        frame_vehicles = tick.vehicles
+        fast = self._in_sequence(frame_vehicles, tick.header["seq"], tick.ok, tick.bank_of)
         fast_at = np.flatnonzero(fast)
-        if len(fast_at):
-            at_list = fast_at.tolist()
-            fast_seq, fast_t = header["seq"][fast_at].tolist(), header["t_ns"][fast_at].tolist()
-            for position, seq, t in zip(at_list, fast_seq, fast_t, strict=True):
-                vehicle = frame_vehicles[position]
-                vehicle.last_seen_mono = now_mono
-                vehicle.last_seen_ns = now_ns
-                vehicle.last_seq = seq
-                vehicle.last_seq_t_ns = t
-                if vehicle.seq_rejects:
-                    self._sequence_resumed(vehicle, now_ns, result)
-            names = list(self.banks)
-            fast_banks = bank_of[fast_at]
-            for o in [0] if len(names) == 1 else np.unique(fast_banks).tolist():
-                at = at_list if len(names) == 1 else fast_at[fast_banks == o].tolist()
-                rows = per_bank.get(names[o])
-                if rows is None:
-                    rows = per_bank[names[o]] = _Rows()
-                rows.vehicles.extend([frame_vehicles[i] for i in at])
-                rows.slots.extend([frame_vehicles[i].slot for i in at])
-                rows.positions.extend(at)
-        # pass 2b: every other sample, one by one in arrival order
-        slow_at = np.flatnonzero(~fast).tolist()
-        t_list = header["t_ns"].tolist() if slow_at else []
+        if not len(fast_at):
+            return fast
+        at_list = fast_at.tolist()
+        fast_seq, fast_t = tick.header["seq"][fast_at].tolist(), tick.header["t_ns"][fast_at].tolist()
+        for position, seq, t in zip(at_list, fast_seq, fast_t, strict=True):
+            vehicle = frame_vehicles[position]
+            vehicle.last_seen_mono = now_mono
+            vehicle.last_seen_ns = now_ns
+            vehicle.last_seq = seq
+            vehicle.last_seq_t_ns = t
+            if vehicle.seq_rejects:
+                self._sequence_resumed(vehicle, now_ns, result)
+        names = list(self.banks)
+        fast_banks = tick.bank_of[fast_at]
+        for o in [0] if len(names) == 1 else np.unique(fast_banks).tolist():
+            at = at_list if len(names) == 1 else fast_at[fast_banks == o].tolist()
+            rows = per_bank.get(names[o])
+            if rows is None:
+                rows = per_bank[names[o]] = Rows()
+            rows.vehicles.extend([frame_vehicles[i] for i in at])
+            rows.slots.extend([frame_vehicles[i].slot for i in at])
+            rows.positions.extend(at)
+        return fast
+
+    def _sequence_one_by_one(
+        self,
+        tick: Checked,
+        pending: np.ndarray,
+        per_bank: dict[str, Rows],
+        now_mono: float,
+        now_ns: int,
+        result: TickResult,
+    ) -> None:
+        """Stage 3b: every other sample, one by one in arrival order: rejects with their reasons, duplicates and
+        late samples, sequence restarts and gaps (a long one restarts the observer), several samples of a vehicle
+        in one tick (one round each)."""
+        slow_at = np.flatnonzero(pending).tolist()
+        if not slow_at:
+            return
+        good = tick.ok.tolist()
+        t_list = tick.header["t_ns"].tolist()
+        touched: list[Vehicle] = []
         for position in slow_at:
-            vehicle, seq, flags = frames[position]
+            vehicle, seq, flags = tick.frames[position]
             vehicle.last_seen_mono = now_mono
             vehicle.last_seen_ns = now_ns
             if vehicle.stale:
@@ -462,35 +400,16 @@ class FleetEngine:
             if not good[position]:
                 reason: RejectReason = (
                     "reserved_bits"
-                    if not conforming[position]
+                    if not tick.conforming[position]
                     else "non_finite"
-                    if not finite[position]
+                    if not tick.finite[position]
                     else "out_of_range"
                 )
                 self._reject(vehicle, reason, now_mono, result)
                 continue
-            last = vehicle.last_seq
-            restart = False
-            if seq <= last:
-                if flags & FLAG_SEQUENCE_RESTART and seq != last:
-                    restart = True
-                elif seq == last:
-                    self._reject(vehicle, "duplicate", now_mono, result)
-                    continue
-                else:
-                    self._reject(vehicle, "out_of_order", now_mono, result)
-                    continue
-            elif last >= 0 and seq > last + 1:
-                if not self._believable_jump(vehicle, seq - last, t_list[position]):
-                    self._reject(vehicle, "implausible_seq", now_mono, result)
-                    continue
-                missing = seq - last - 1
-                vehicle.base_counters["missing"] += missing
-                vehicle.base_counters["gaps"] += 1
-                self.stats["missing"] += missing
-                self.stats["gaps"] += 1
-                if missing * vehicle.bank.spec.params.sample_period_s >= self.config.long_gap_s:
-                    restart = True
+            restart = self._sequenced(vehicle, seq, flags, t_list[position], now_mono, result)
+            if restart is None:
+                continue
             vehicle.last_seq = seq
             vehicle.last_seq_t_ns = t_list[position]
             if vehicle.seq_rejects:
@@ -500,7 +419,7 @@ class FleetEngine:
                 continue
             rows = per_bank.get(vehicle.bank.name)
             if rows is None:
-                rows = per_bank[vehicle.bank.name] = _Rows()
+                rows = per_bank[vehicle.bank.name] = Rows()
             rnd = vehicle.pending
             if rnd == 0:
                 touched.append(vehicle)
@@ -514,11 +433,29 @@ class FleetEngine:
             rows.positions.append(position)
         for vehicle in touched:
             vehicle.pending = 0
-        seq_all = header["seq"].astype(np.int64)
-        t_ns_all = header["t_ns"].astype(np.int64)
-        for name, rows in per_bank.items():
-            self._step_bank(self.banks[name], rows, values, seq_all, t_ns_all, now_mono, now_ns, result)
-        return result
+
+    def _sequenced(
+        self, vehicle: Vehicle, seq: int, flags: int, t_ns: int, now_mono: float, result: TickResult
+    ) -> bool | None:
+        """Whether a plausible sample's sequence number is believed: None (rejected, with its reason), or whether
+        its observer must restart (a sequence restart the vehicle flagged, or a gap longer than long_gap_s)."""
+        last = vehicle.last_seq
+        if seq <= last:
+            if flags & FLAG_SEQUENCE_RESTART and seq != last:
+                return True
+            self._reject(vehicle, "duplicate" if seq == last else "out_of_order", now_mono, result)
+            return None
+        if last >= 0 and seq > last + 1:
+            if not self._believable_jump(vehicle, seq - last, t_ns):
+                self._reject(vehicle, "implausible_seq", now_mono, result)
+                return None
+            missing = seq - last - 1
+            vehicle.base_counters["missing"] += missing
+            vehicle.base_counters["gaps"] += 1
+            self.stats["missing"] += missing
+            self.stats["gaps"] += 1
+            return missing * vehicle.bank.spec.params.sample_period_s >= self.config.long_gap_s
+        return False
 
     def _in_sequence(
         self, vehicles: list[Vehicle], seq: np.ndarray, plausible: np.ndarray, bank_of: np.ndarray
@@ -641,7 +578,7 @@ class FleetEngine:
     def _step_bank(
         self,
         bank: ProfileBank,
-        rows: _Rows,
+        rows: Rows,
         tick_values: FloatArray,
         tick_seq: np.ndarray,
         tick_t_ns: np.ndarray,
@@ -685,7 +622,7 @@ class FleetEngine:
     def _after_step(
         self,
         bank: ProfileBank,
-        rows: _Rows,
+        rows: Rows,
         idx: np.ndarray,
         slots: np.ndarray,
         out: StepOutput,
@@ -694,12 +631,28 @@ class FleetEngine:
         values: np.ndarray,
         result: TickResult,
     ) -> None:
-        est, in_domain, vy_in_bounds, finite = out.values, out.in_domain, out.vy_in_bounds, out.finite
+        """Stages 5-6 after one observer step of a profile's rows: the detectors, then what to publish."""
         t = t_ns[idx]
-        all_finite = bool(finite.all())  # the common case: no row needs picking out
+        all_finite = bool(out.finite.all())  # the common case: no row needs picking out
         if not all_finite:
-            self.stats["numerical_restarts"] += int((~finite).sum())
-        # alarms: fault channels after the warm-up (FaultLevels, as `agv-fe replay` runs them), domain always
+            self.stats["numerical_restarts"] += int((~out.finite).sum())
+        self._detectors(bank, rows, idx, slots, out, t, all_finite, result)
+        self._publish_selection(bank, rows, idx, slots, out, seq, t, values, all_finite, result)
+
+    def _detectors(
+        self,
+        bank: ProfileBank,
+        rows: Rows,
+        idx: np.ndarray,
+        slots: np.ndarray,
+        out: StepOutput,
+        t: np.ndarray,
+        all_finite: bool,
+        result: TickResult,
+    ) -> None:
+        """Stage 5: the fault channels after the warm-up (FaultLevels, as `agv-fe replay` runs them), the domain
+        always, the effectiveness when the profile runs its stage; alarm records follow the rows that changed."""
+        est, in_domain, vy_in_bounds, finite = out.values, out.in_domain, out.vy_in_bounds, out.finite
         usable = None if self._shortcuts and all_finite else finite
         changed: set[int] = set(bank.faults.update(slots, est[:, FAULTS], t, usable).tolist())
         if self._shortcuts and all_finite:
@@ -713,7 +666,23 @@ class FleetEngine:
             changed.update(f[bank.effectiveness.update(slots[f], est[f, ALPHAS], t[f])].tolist())
         for j in sorted(changed):
             self._alarm_transitions(bank, rows.vehicles[idx[j]], int(t[j]), est[j], result)
-        # counts, and which estimates to publish: every n-th finite estimate of each vehicle
+
+    def _publish_selection(
+        self,
+        bank: ProfileBank,
+        rows: Rows,
+        idx: np.ndarray,
+        slots: np.ndarray,
+        out: StepOutput,
+        seq: np.ndarray,
+        t: np.ndarray,
+        values: np.ndarray,
+        all_finite: bool,
+        result: TickResult,
+    ) -> None:
+        """Stage 6: the counts, and which estimates to publish (every n-th finite estimate of each vehicle) as the
+        tick's batch of this profile, with the estimate events of the vehicles someone follows."""
+        est, in_domain, finite = out.values, out.in_domain, out.finite
         bank.accepted[slots] += 1
         every_n = self.config.estimate_every_n
         if self._shortcuts and all_finite and every_n == 1:  # every row's estimate, as it is
@@ -737,7 +706,7 @@ class FleetEngine:
         at = pub_idx.tolist()
         vehicles = rows.vehicles
         ids = [vehicles[i].id for i in at]
-        # every vehicle of the tick had its STALE state cleared before it was stepped (process, pass 2)
+        # every vehicle of the tick had its STALE state cleared before it was stepped (stage 3)
         names = [LEVEL_NAMES[lvl] for lvl in level.tolist()]
         batch = EstimateBatch(
             ids, seq[pub_idx], pub_t, pub_est, pub_in_domain, names, bank.version or "", fast, bank.columns
@@ -749,14 +718,7 @@ class FleetEngine:
         for j, vehicle_id in enumerate(ids):
             if audience is not None and vehicle_id not in audience:
                 continue
-            self.events.publish(
-                FleetEvent(
-                    "estimate",
-                    vehicle_id,
-                    batch.estimate(j),
-                    tuple(values[at[j]].tolist()),
-                )
-            )
+            self.events.publish(FleetEvent("estimate", vehicle_id, batch.estimate(j), tuple(values[at[j]].tolist())))
 
     def _alarm_transitions(
         self, bank: ProfileBank, vehicle: Vehicle, t_ns: int, x5: np.ndarray, result: TickResult

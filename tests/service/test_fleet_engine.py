@@ -11,7 +11,7 @@ import pytest
 
 from edge_client.library import paper_1
 from service.fleet import EngineConfig, FleetEngine
-from service.fleet.engine import REJECT_REASONS
+from service.fleet.vehicle import REJECT_REASONS
 from service.profiles import ProfileSpec
 from service.protocol import (
     FLAG_SEQUENCE_RESTART,
