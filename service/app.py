@@ -44,7 +44,7 @@ from service.profiles import (
 )
 from service.protocol import all_buckets, shard_buckets
 from service.settings import Settings
-from service.storage import Storage, StorageError, StoredProfile
+from service.storage import Storage, StorageError, StoredProfile, open_storage
 from service.storage_writer import StorageState, StorageUnavailable, StorageWriter, Write
 from service.transport import Transport
 from service.web.hub import DashboardHub
@@ -160,8 +160,8 @@ class Service:
 
     async def start(self) -> None:
         self.token = load_or_create_token(self.settings)
-        self.storage = Storage(self.settings.database_path)
-        self.writer = StorageWriter(self.settings.database_path, self.settings.storage)
+        self.storage = self._open_storage()
+        self.writer = StorageWriter(self._open_storage(), self.settings.storage)
         await self._load_state()
         self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id)
         await asyncio.to_thread(self.transport.open)
@@ -182,6 +182,11 @@ class Service:
             self.settings.zenoh.mode,
             self.settings.zenoh.endpoint,
         )
+
+    def _open_storage(self) -> Storage:
+        """A connection to the database: PostgreSQL when a URL is set, else the SQLite file in the data directory."""
+        settings = self.settings
+        return open_storage(settings.database_url, settings.database_path, settings.storage.busy_timeout_s)
 
     async def stop(self) -> None:
         self._running = False

@@ -158,6 +158,21 @@ class StorageSettings(_Section):
     )
 
 
+class DatabaseSettings(_Section):
+    url: SecretStr | None = Field(
+        None,
+        description="PostgreSQL database shared by the replicas, postgresql://USER[:PASSWORD]@HOST[:PORT]/DATABASE "
+        "(libpq's URI; its schema is migrated at start). Unset: the embedded SQLite file DATA_DIR/service.sqlite3",
+    )
+
+    @field_validator("url")
+    @classmethod
+    def _postgresql_url(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is not None and not value.get_secret_value().startswith(("postgresql://", "postgres://")):
+            raise ValueError("expected a PostgreSQL URL, postgresql://USER@HOST:PORT/DATABASE")
+        return value
+
+
 class HealthSettings(_Section):
     heartbeat_timeout_s: Annotated[float, Field(gt=0, le=600)] = Field(
         5.0, description="/ready answers 503 when the ingest loop has not completed an iteration for this long [s]"
@@ -221,7 +236,9 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="AGV_FE_", env_nested_delimiter="__", extra="forbid", frozen=True)
 
-    data_dir: Path = Field(Path("data"), description="SQLite database and generated API token live here")
+    data_dir: Path = Field(
+        Path("data"), description="the generated API token and, without a database URL, the SQLite database live here"
+    )
     profiles_file: Path | None = Field(
         None, description="JSON or YAML file of initial profiles, used when the database has none"
     )
@@ -237,10 +254,16 @@ class Settings(BaseSettings):
     zenoh: ZenohSettings = ZenohSettings()
     ingest: IngestSettings = IngestSettings()
     storage: StorageSettings = StorageSettings()
+    database: DatabaseSettings = DatabaseSettings()
     health: HealthSettings = HealthSettings()
     shard: ShardSettings = ShardSettings()
     dashboard: DashboardSettings = DashboardSettings()
 
     @property
     def database_path(self) -> Path:
+        """The SQLite file, used when no database URL is set."""
         return self.data_dir / "service.sqlite3"
+
+    @property
+    def database_url(self) -> str | None:
+        return None if self.database.url is None else self.database.url.get_secret_value()
