@@ -18,15 +18,18 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import json
 import logging
 import os
+import re
 import secrets
+import socket
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine
 from concurrent.futures import Future
 from contextlib import asynccontextmanager, suppress
 from functools import partial
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI
 from pydantic import ValidationError
@@ -42,7 +45,7 @@ from service.profiles import (
     load_profiles_file,
     valid_profile_name,
 )
-from service.protocol import all_buckets, shard_buckets
+from service.protocol import all_buckets, bucket_of, shard_buckets
 from service.settings import Settings
 from service.storage import Storage, StorageError, StoredProfile, open_storage
 from service.storage_writer import StorageState, StorageUnavailable, StorageWriter, Write
@@ -50,6 +53,9 @@ from service.transport import Transport
 from service.web.hub import DashboardHub
 from synth.gains import ObserverGains
 from synth.observer import RuntimeGains
+
+if TYPE_CHECKING:  # psycopg is imported only by a replica that uses PostgreSQL
+    from service.bucket_leases import BucketLeases, LeaseState
 
 log = logging.getLogger("agv_fe.service")
 
@@ -102,12 +108,16 @@ class Service:
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
-        self.replica_id = settings.shard.name
-        self.buckets = (
-            all_buckets()
+        self.replica_id = replica_name(settings)
+        #: the buckets this replica serves now: static (--shard), or those its leases hold (none before start)
+        self.buckets: list[str] = (
+            []
+            if settings.bucket_leases
+            else all_buckets()
             if settings.shard.replicas == 1
             else shard_buckets(settings.shard.index, settings.shard.replicas)
         )
+        self.leases: BucketLeases | None = None
         ingest = settings.ingest
         self.events = EventBus()
         self.engine = FleetEngine(
@@ -163,9 +173,20 @@ class Service:
         self.storage = self._open_storage()
         self.writer = StorageWriter(self._open_storage(), self.settings.storage)
         await self._load_state()
-        self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id)
+        self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id, self.settings.bucket_leases)
         await asyncio.to_thread(self.transport.open)
         self.transport_up = True
+        if self.settings.bucket_leases and self.settings.database_url is not None:
+            from service.bucket_leases import BucketLeases
+
+            loop = asyncio.get_running_loop()
+            self.leases = BucketLeases(
+                self.settings.database_url,
+                self.settings.shard.lease_interval_s,
+                on_gain=lambda buckets: asyncio.run_coroutine_threadsafe(self._gain_buckets(buckets), loop),
+                on_lose=lambda buckets: asyncio.run_coroutine_threadsafe(self._lose_buckets(buckets), loop),
+            )
+            await asyncio.to_thread(self.leases.start)
         self._running = True
         self.ingest_heartbeat = time.monotonic()
         for name in self._loops:
@@ -178,7 +199,7 @@ class Service:
         log.info(
             "replica %s serving buckets %s on zenoh %s %s",
             self.replica_id,
-            ",".join(self.buckets),
+            "by leases in the shared database" if self.leases is not None else ",".join(self.buckets),
             self.settings.zenoh.mode,
             self.settings.zenoh.endpoint,
         )
@@ -190,6 +211,8 @@ class Service:
 
     async def stop(self) -> None:
         self._running = False
+        if self.leases is not None:  # no more buckets taken or given; the locks stay until the writes are stored
+            await asyncio.to_thread(self.leases.halt)
         tasks = list(self._tasks.values())
         for task in tasks:
             task.cancel()
@@ -210,6 +233,9 @@ class Service:
         if self.storage is not None:
             self.storage.close()
             self.storage = None
+        if self.leases is not None:  # the session ends: every bucket lock is released for the other replicas
+            self.leases.close()
+            self.leases = None
 
     async def _load_state(self) -> None:
         """Profiles, gains, vehicles and latched alarms from the database; seed profiles on first start."""
@@ -252,12 +278,16 @@ class Service:
                 self.jobs.submit(profile.name, resumed, earlier.kind, resumes=earlier.id)
             elif self.engine.banks[profile.name].gains is None:
                 self.jobs.submit(profile.name, spec, "initial")
+        served = set(self.buckets)  # a shared database holds the whole fleet: only this replica's share runs here
         for vehicle_id, profile_name, registered in storage.vehicles():
+            if bucket_of(vehicle_id) not in served:
+                continue
             if profile_name in self.engine.banks:
                 self.engine.register(vehicle_id, profile_name, registered)
             elif profile_name in self.failed_profiles:  # kept for its profile, not moved to the default one
                 self.engine.hold(vehicle_id, profile_name, registered)
-        self.engine.alarms.load([AlarmRecord.from_dict(r) for r in storage.latched_alarms()])
+        latched = [AlarmRecord.from_dict(r) for r in storage.latched_alarms() if bucket_of(r["vehicle"]) in served]
+        self.engine.alarms.load(latched)
 
     def _add_stored_profile(self, profile: StoredProfile) -> ProfileSpec:
         """Validate a stored profile as a request body would be and add it to the fleet, or say why not."""
@@ -319,6 +349,9 @@ class Service:
         storage = self.storage_state()
         if storage.degraded:
             causes.append(f"storage degraded: {storage.reason} ({storage.pending} writes queued)")
+        leases = self.lease_state()
+        if leases is not None and leases.rounds == 0:
+            causes.append("the bucket leases have not completed their first round: the buckets served are not known")
         if not self.engine.ready:
             causes.append("not every profile has active gains")
         return causes
@@ -602,6 +635,72 @@ class Service:
             "buckets": self.buckets,
             "uptime_s": round(time.monotonic() - self.started_mono, 3),
         }
+
+    # ------------------------------------------------------------------ bucket leases
+
+    def lease_state(self) -> LeaseState | None:
+        """The leases' view (owned buckets, live replicas, hand-overs), None with a static shard."""
+        return None if self.leases is None else self.leases.snapshot()
+
+    async def _gain_buckets(self, buckets: list[str]) -> None:
+        """Serve ``buckets``, whose locks this replica holds now: their vehicles' registry and latched alarms from
+        the shared database, then their subscriptions; each observer starts at the vehicle's next measurement."""
+        wanted = set(buckets)
+        rows = [row for row in self.db.vehicles() if bucket_of(row[0]) in wanted]
+        latched = [AlarmRecord.from_dict(r) for r in self.db.latched_alarms() if bucket_of(r["vehicle"]) in wanted]
+        adopted = self.engine.adopt(rows, latched)
+        transport = self._require_transport()
+        transport.add_buckets(buckets)
+        self.buckets = list(transport.buckets)
+        self._announce_ownership(buckets, [], len(adopted), len(latched))
+
+    async def _lose_buckets(self, buckets: list[str]) -> None:
+        """Stop serving ``buckets`` and store what is queued, before their locks go to another replica."""
+        gone = set(buckets)
+        if self.transport is not None:
+            self.transport.remove_buckets(buckets)
+            self.buckets = list(self.transport.buckets)
+        ids = [v for v in [*self.engine.vehicles, *self.engine.held] if bucket_of(v) in gone]
+        self.engine.forget(ids)
+        if self.writer is not None:
+            await self.stored(f"the hand-over of buckets {', '.join(buckets)}")
+        self._announce_ownership([], buckets, len(ids), 0)
+
+    def _announce_ownership(self, gained: list[str], lost: list[str], vehicles: int, alarms: int) -> None:
+        """An ownership change: logged, counted (/metrics) and published on Zenoh (protocol.ownership_key)."""
+        verb, which = ("took", gained) if gained else ("handed over", lost)
+        log.warning(
+            "replica %s %s buckets %s (%d vehicles, %d latched alarms); it serves %s now",
+            self.replica_id,
+            verb,
+            ",".join(which),
+            vehicles,
+            alarms,
+            ",".join(self.buckets) or "no bucket",
+        )
+        document = {
+            "replica": self.replica_id,
+            "gained": gained,
+            "lost": lost,
+            "buckets": self.buckets,
+            "vehicles": vehicles,
+            "t_ns": time.time_ns(),
+        }
+        if self.transport is not None:
+            try:
+                self.transport.publish_ownership(json.dumps(document).encode())
+            except Exception:  # the change stands; only its announcement failed
+                log.exception("the ownership change could not be published on Zenoh")
+
+
+def replica_name(settings: Settings) -> str:
+    """The replica's name: the setting, else replica-INDEX (static shard), else HOST-PID (bucket leases, where
+    replicas have no index and each name must differ)."""
+    shard = settings.shard
+    if shard.replica_id is not None or not settings.bucket_leases:
+        return shard.name
+    host = re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname())[:40] or "host"
+    return f"{host}-{os.getpid()}"
 
 
 def _same_design(gains: ObserverGains, spec: ProfileSpec) -> bool:

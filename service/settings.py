@@ -192,7 +192,20 @@ class HealthSettings(_Section):
 class ShardSettings(_Section):
     replicas: Annotated[int, Field(ge=1, le=N_BUCKETS)] = Field(1, description="number of replicas sharing the fleet")
     index: Annotated[int, Field(ge=0)] = Field(0, description="this replica's index, 0..replicas-1")
-    replica_id: str | None = Field(None, description="name in the liveliness key (default: replica-INDEX)")
+    replica_id: str | None = Field(
+        None, description="name in the liveliness key (default: replica-INDEX; with bucket leases, HOST-PID)"
+    )
+    mode: Literal["auto", "static", "leases"] = Field(
+        "auto",
+        description="'static': this replica serves shard INDEX of REPLICAS; 'leases': the replicas sharing a "
+        "PostgreSQL database share the buckets through advisory locks, balanced among the live ones, and take over "
+        "a dead replica's; 'auto': leases with a database URL and REPLICAS = 1, static otherwise",
+    )
+    lease_interval_s: Annotated[float, Field(gt=0, le=60)] = Field(
+        0.5,
+        description="with bucket leases: how often a replica looks at the live replicas and takes or gives buckets; "
+        "a dead replica's buckets are taken within about one interval of its database session ending [s]",
+    )
 
     @model_validator(mode="after")
     def _index_in_range(self) -> ShardSettings:
@@ -263,6 +276,20 @@ class Settings(BaseSettings):
     def database_path(self) -> Path:
         """The SQLite file, used when no database URL is set."""
         return self.data_dir / "service.sqlite3"
+
+    @model_validator(mode="after")
+    def _leases_need_postgresql(self) -> Settings:
+        if self.shard.mode == "leases" and self.database.url is None:
+            raise ValueError("shard.mode 'leases' needs a PostgreSQL database (database.url, --database-url)")
+        if self.shard.mode == "leases" and self.shard.replicas != 1:
+            raise ValueError("shard.mode 'leases' shares every bucket among the live replicas: leave replicas at 1")
+        return self
+
+    @property
+    def bucket_leases(self) -> bool:
+        """Whether this replica's buckets come from leases in the shared database rather than a static shard."""
+        mode = self.shard.mode
+        return mode == "leases" or (mode == "auto" and self.database.url is not None and self.shard.replicas == 1)
 
     @property
     def database_url(self) -> str | None:

@@ -55,7 +55,8 @@ def register(sub: Any) -> None:
         "--shard",
         default=None,
         metavar="INDEX/REPLICAS",
-        help="serve shard INDEX of REPLICAS, e.g. 0/2 (AGV_FE_SHARD__INDEX, AGV_FE_SHARD__REPLICAS)",
+        help="serve shard INDEX of REPLICAS, e.g. 0/2 (AGV_FE_SHARD__INDEX, AGV_FE_SHARD__REPLICAS); without it, "
+        "replicas sharing a --database-url share the buckets by leases (AGV_FE_SHARD__MODE)",
     )
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
     parser.add_argument(
@@ -97,7 +98,7 @@ def build_settings(args: argparse.Namespace) -> Any:
             index, replicas = (int(x) for x in args.shard.split("/"))
         except ValueError:
             raise CommandError(f"--shard: expected INDEX/REPLICAS such as 0/2, got {args.shard!r}") from None
-        overrides["shard"] = {"index": index, "replicas": replicas}
+        overrides["shard"] = {"index": index, "replicas": replicas, "mode": "static"}
     try:
         base = Settings()
         merged = base.model_dump()
