@@ -56,6 +56,7 @@ from synth.observer import RuntimeGains
 
 if TYPE_CHECKING:  # psycopg is imported only by a replica that uses PostgreSQL
     from service.bucket_leases import BucketLeases, LeaseState
+    from service.shared_config import SharedConfig
 
 log = logging.getLogger("agv_fe.service")
 
@@ -118,6 +119,8 @@ class Service:
             else shard_buckets(settings.shard.index, settings.shard.replicas)
         )
         self.leases: BucketLeases | None = None
+        #: with a shared database: profile changes heard from the other replicas, and design claims
+        self.shared: SharedConfig | None = None
         ingest = settings.ingest
         self.events = EventBus()
         self.engine = FleetEngine(
@@ -172,6 +175,15 @@ class Service:
         self.token = load_or_create_token(self.settings)
         self.storage = self._open_storage()
         self.writer = StorageWriter(self._open_storage(), self.settings.storage)
+        loop = asyncio.get_running_loop()
+        if self.settings.database_url is not None:
+            from service.shared_config import SharedConfig
+
+            self.shared = SharedConfig(
+                self.settings.database_url,
+                on_change=lambda name: asyncio.run_coroutine_threadsafe(self._config_changed(name), loop),
+            )
+            await asyncio.to_thread(self.shared.open)
         await self._load_state()
         self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id, self.settings.bucket_leases)
         await asyncio.to_thread(self.transport.open)
@@ -179,7 +191,6 @@ class Service:
         if self.settings.bucket_leases and self.settings.database_url is not None:
             from service.bucket_leases import BucketLeases
 
-            loop = asyncio.get_running_loop()
             self.leases = BucketLeases(
                 self.settings.database_url,
                 self.settings.shard.lease_interval_s,
@@ -193,6 +204,8 @@ class Service:
             self._spawn(name)
         if self.settings.dashboard.enabled:
             self.dashboard.start(truth=self.transport)
+        if self.shared is not None:
+            self.shared.start_listening()
         if self.settings.ingest.gc_freeze:
             gc.collect()
             gc.freeze()
@@ -213,6 +226,9 @@ class Service:
         self._running = False
         if self.leases is not None:  # no more buckets taken or given; the locks stay until the writes are stored
             await asyncio.to_thread(self.leases.halt)
+        if self.shared is not None:  # its claims go: another replica designs what this one leaves unfinished
+            await asyncio.to_thread(self.shared.close)
+            self.shared = None
         tasks = list(self._tasks.values())
         for task in tasks:
             task.cancel()
@@ -255,6 +271,8 @@ class Service:
         resume: dict[str, Job] = {}
         for interrupted in (j for j in storage.jobs(limit=1000) if j["status"] in ("queued", "running")):
             job = Job.from_dict(interrupted)
+            if not self._claim(job.profile):
+                continue  # another replica of the shared database is running this design
             job.status, job.error, job.reason = "interrupted", "restart", "the service restarted during the design"
             storage.put_job(job.to_dict())
             if job.profile not in resume or job.created_t_ns > resume[job.profile].created_t_ns:
@@ -277,7 +295,11 @@ class Service:
                 )
                 self.jobs.submit(profile.name, resumed, earlier.kind, resumes=earlier.id)
             elif self.engine.banks[profile.name].gains is None:
-                self.jobs.submit(profile.name, spec, "initial")
+                if self._claim(profile.name):
+                    self.jobs.submit(profile.name, spec, "initial")
+                else:
+                    log.info("profile %s: another replica designs its gains; this one activates them", profile.name)
+            self._release_claim(profile.name)  # unless a design of the profile is pending here
         served = set(self.buckets)  # a shared database holds the whole fleet: only this replica's share runs here
         for vehicle_id, profile_name, registered in storage.vehicles():
             if bucket_of(vehicle_id) not in served:
@@ -566,6 +588,58 @@ class Service:
             return None
         return self.jobs.submit(name, spec, "update")
 
+    # ------------------------------------------------------------------ one configuration for every replica
+
+    def _claim(self, profile: str) -> bool:
+        """Claim the design of ``profile`` for this replica (always granted without a shared database)."""
+        return self.shared is None or self.shared.claim(profile)
+
+    def _release_claim(self, profile: str) -> None:
+        if self.shared is not None and self.jobs.pending_for(profile) is None:
+            self.shared.release(profile)
+
+    async def _config_changed(self, name: str | None) -> None:
+        """Another replica changed profile ``name`` (None: any may have changed): follow the shared database."""
+        for stored in self.db.profiles():
+            if name is None or stored.name == name:
+                await self._follow_stored_profile(stored)
+        if name is None:
+            self._design_unclaimed()
+
+    async def _follow_stored_profile(self, stored: StoredProfile) -> None:
+        """Run the profile as stored: the same spec and the same active gain version (verified here again)."""
+        bank = self.engine.banks.get(stored.name)
+        if bank is None:
+            if stored.name in self.failed_profiles:
+                return
+            try:
+                self._add_stored_profile(stored)
+            except ProfileLoadError as exc:
+                self.failed_profiles[stored.name] = str(exc)
+                log.error("profile %r from the shared database cannot be loaded and does not run: %s", stored.name, exc)
+                return
+            self.engine.release_held(stored.name)
+            log.info("profile %s: created through another replica", stored.name)
+        elif self.jobs.pending_for(stored.name) is not None:
+            return  # a design of the profile runs here: it activates its own gains (the latest request wins)
+        else:
+            spec = _valid_spec(stored.spec)
+            if spec is not None and spec != bank.spec:
+                self.engine.update_profile_spec(stored.name, spec)
+                log.info("profile %s: spec changed through another replica", stored.name)
+        bank = self.engine.banks[stored.name]
+        if stored.active_version and stored.active_version != bank.version:
+            await self._activate_stored_gains(stored.name, stored.active_version)
+            if bank.version == stored.active_version:
+                log.info("profile %s: gains %s activated through another replica", stored.name, bank.version)
+
+    def _design_unclaimed(self) -> None:
+        """Profiles still without gains whose design nobody runs (its replica died): design them here."""
+        for name, bank in self.engine.banks.items():
+            if bank.gains is None and self.jobs.pending_for(name) is None and self._claim(name):
+                log.warning("profile %s: no replica designs its gains; designing them here", name)
+                self.jobs.submit(name, bank.spec, "initial")
+
     def _store_profile(self, name: str, spec: ProfileSpec) -> None:
         self.store(f"profile {name}", partial(Storage.put_profile, name=name, spec=spec.stored(), t_ns=time.time_ns()))
 
@@ -586,6 +660,9 @@ class Service:
 
     def _persist_job(self, job: Job) -> None:
         """Store a job at each change of state; time and report how it ended."""
+        if job.status in FINAL_STATES and self.shared is not None:
+            with suppress(RuntimeError):  # after the loop: the claims session ends with the service anyway
+                asyncio.get_running_loop().call_soon(self._release_claim, job.profile)
         if self.writer is not None:
             self.writer.submit(f"job {job.id} ({job.status})", partial(Storage.put_job, record=job.to_dict()))
             if job.status in FINAL_STATES:  # the newest jobs_kept stay in the database

@@ -131,6 +131,11 @@ class Storage(ABC):
     def _rows(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
         """The rows of one read query, outside any transaction."""
 
+    def _profile_changed(self, db: Cursor, name: str) -> None:
+        """Called in the transaction that changed a profile or its active gains (PostgreSQL tells the other
+        replicas; an embedded database has none)."""
+        return None
+
     def _row(self, sql: str, params: Sequence[Any] = ()) -> tuple[Any, ...] | None:
         rows = self._rows(sql, params)
         return rows[0] if rows else None
@@ -162,6 +167,7 @@ class Storage(ABC):
                 "active_version = COALESCE(excluded.active_version, profiles.active_version)",
                 (name, json.dumps(spec), active_version, t_ns, t_ns),
             )
+            self._profile_changed(db, name)
 
     def activate_gains(self, name: str, spec: dict[str, Any], gains: dict[str, Any], t_ns: int) -> None:
         """Store a gain version and make it the profile's active one, with the spec it was designed for."""
@@ -178,6 +184,7 @@ class Storage(ABC):
                 "updated_t_ns = excluded.updated_t_ns",
                 (name, json.dumps(spec), version, t_ns, t_ns),
             )
+            self._profile_changed(db, name)
 
     def gains(self, profile: str, version: str) -> dict[str, Any] | None:
         row = self._row("SELECT gains FROM gain_versions WHERE profile = ? AND version = ?", (profile, version))

@@ -34,6 +34,8 @@ MIGRATION_LOCK = 0x41_47_56_00
 RECONNECT_INTERVAL_S = 1.0
 #: libpq's connect_timeout is whole seconds, at least 2
 CONNECT_TIMEOUT_S = 5
+#: the NOTIFY channel of profile changes: the payload is the profile's name (service/shared_config.py)
+PROFILE_CHANNEL = "agv_fe_profiles"
 
 
 def redacted(url: str) -> str:
@@ -125,6 +127,10 @@ class PostgresStorage(Storage):
         conn = self._connection()
         with conn.transaction(), conn.cursor() as cursor:
             yield _PgCursor(cursor)
+
+    def _profile_changed(self, db: Cursor, name: str) -> None:
+        """Tell the other replicas, when the transaction commits (NOTIFY is transactional)."""
+        db.execute("SELECT pg_notify(?, ?)", (PROFILE_CHANNEL, name))
 
     def _rows(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
         conn = self._connection()
