@@ -6,10 +6,10 @@ from collections.abc import Iterator
 
 import pytest
 
+from agv_fe.pg_cluster import PostgresServer
 from synth.design import synthesize
 from synth.gains import ObserverGains
 from synth.options import DesignOptions
-from tests.postgres import PostgresServer
 
 
 @pytest.fixture(scope="session")

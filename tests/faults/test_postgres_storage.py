@@ -1,4 +1,4 @@
-"""The service on a shared PostgreSQL server (a real one, tests/postgres.py) behaves as on SQLite when the
+"""The service on a shared PostgreSQL server (a real one, agv_fe/pg_cluster.py) behaves as on SQLite when the
 database fails: the server stops as if it crashed, ingest goes on, /ready answers 503 naming the storage, a
 change is refused rather than acknowledged and lost, and what was registered meanwhile is stored once the server
 is back (and survives a restart of the service). The service runs as `agv-fe serve --database-url` in its own
@@ -11,9 +11,9 @@ from pathlib import Path
 import psycopg
 import pytest
 
+from agv_fe.pg_cluster import PostgresServer
 from tests.faults.helpers import Stream, ready_body
 from tests.faults.test_storage import BEFORE, DURING, ingest_survives_a_storage_fault
-from tests.postgres import PostgresServer
 from tests.service.helpers import make_settings, probe, running, service_process, wait_for
 
 pytestmark = pytest.mark.network

@@ -1,5 +1,5 @@
 """The storage interface, the same tests on both implementations: SQLite (a real file) and PostgreSQL (a real
-server, tests/postgres.py). Then what only PostgreSQL has: Alembic migrations applied at start, a database of a
+server, agv_fe/pg_cluster.py). Then what only PostgreSQL has: Alembic migrations applied at start, a database of a
 newer version refused, and a connection lost and found again."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ from typing import Any
 import psycopg
 import pytest
 
+from agv_fe.pg_cluster import PostgresServer
 from service.storage import SqliteStorage, Storage, StorageError, StorageUnavailable, open_storage
 from service.storage_postgres import PostgresStorage, migrate, redacted
-from tests.postgres import PostgresServer
 
 Open = Callable[[], Storage]
 

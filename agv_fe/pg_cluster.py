@@ -1,12 +1,14 @@
-"""A real PostgreSQL server for the tests: Debian's binaries, a fresh cluster in a temporary directory.
+"""A throwaway PostgreSQL server: Debian's binaries, a fresh cluster in a temporary directory.
+
+What the tests (tests/conftest.py) and the failover benchmark run the shared storage on; not for production.
 
 The server listens on 127.0.0.1 (a free port) and on a Unix socket in its directory, with trust
 authentication for the one user ``agv`` and fsync off (a test's data need not survive a power cut). PostgreSQL
 refuses to run as root: as root, every command runs as the ``postgres`` system user (the one Debian's package
 creates) through ``runuser``, and the directory belongs to that user.
 
-Missing binaries are an error, not a skip: `.ci/install-system-deps` installs the package, and a suite that
-silently skipped the PostgreSQL tests would claim what it did not check.
+Missing binaries are an error, not a reason to skip: `.ci/install-system-deps` installs the package, and a suite
+that silently skipped the PostgreSQL tests would claim what it did not check.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import os
 import pwd
 import shutil
+import socket
 import subprocess
 import tempfile
 import uuid
@@ -21,11 +24,15 @@ from pathlib import Path
 
 import psycopg
 
-from tests.service.helpers import free_port
-
 USER = "agv"
 #: where Debian's postgresql package puts the server's binaries (the newest major version is used)
 BIN_GLOB = "/usr/lib/postgresql/*/bin"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def find_bin_dir() -> Path:
