@@ -16,6 +16,7 @@ BENCHMARKS = {
     "soak": "agv_fe.benchmarks.soak",
     "real_vehicle": "agv_fe.benchmarks.real_vehicle",
     "detection": "agv_fe.benchmarks.detection",
+    "failover": "agv_fe.benchmarks.failover",
 }
 
 
