@@ -88,6 +88,8 @@ class BucketLeases:
         self._on_gain, self._on_lose = on_gain, on_lose
         self._conn: psycopg.Connection[Any] | None = None
         self._owned: set[str] = set()
+        #: buckets locked whose serving failed: tried again each round
+        self._unserved: set[str] = set()
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self.state = LeaseState()
@@ -169,6 +171,7 @@ class BucketLeases:
 
     def _round(self) -> None:
         conn = self._require()
+        retry = sorted(self._unserved & self._owned, key=self._index.__getitem__)
         members = sorted(pid for _, pid in conn.execute(_LOCKS_HELD, (MEMBER_LOCKS,)).fetchall())
         me = conn.execute("SELECT pg_backend_pid()").fetchone()
         rank = members.index(me[0]) if me is not None and me[0] in members else len(members)
@@ -189,8 +192,18 @@ class BucketLeases:
                 self._owned.update(gained)
                 self._set(gained=self.state.gained + len(gained))
                 log.info("leases: gained buckets %s (%d of %d live replicas)", gained, rank + 1, len(members))
-                if not self._wait(self._on_gain(gained), "serving", gained):
-                    self._give_up(gained, wait=True)  # not served: let another replica have them
+                self._serve(gained)
+        self._serve([b for b in retry if b in self._owned])
+
+    def _serve(self, buckets: list[str]) -> None:
+        """Have the service serve buckets whose locks this replica holds; those it could not (the database failed
+        while it read their vehicles) are tried again next round."""
+        if not buckets:
+            return
+        if self._wait(self._on_gain(buckets), "serving", buckets):
+            self._unserved.difference_update(buckets)
+        else:
+            self._unserved.update(buckets)
 
     def _try_lock(self, conn: psycopg.Connection[Any], bucket: str) -> bool:
         row = conn.execute("SELECT pg_try_advisory_lock(%s, %s)", (BUCKET_LOCKS, self._index[bucket])).fetchone()
@@ -207,6 +220,7 @@ class BucketLeases:
             for bucket in buckets:
                 conn.execute("SELECT pg_advisory_unlock(%s, %s)", (BUCKET_LOCKS, self._index[bucket]))
         self._owned.difference_update(buckets)
+        self._unserved.difference_update(buckets)
         self._set(lost=self.state.lost + len(buckets))
         log.info("leases: gave up buckets %s", buckets)
 
