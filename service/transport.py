@@ -53,6 +53,7 @@ from service.protocol import (
     ownership_key,
     parse_vehicle_key,
     service_liveliness_key,
+    service_liveliness_selector,
     vehicle_key,
 )
 from service.settings import ZenohSettings
@@ -273,6 +274,17 @@ class Transport:
                     with contextlib.suppress(zenoh.ZError):
                         entity.undeclare()
         self.buckets = [b for b in self.buckets if b not in buckets]
+
+    def replicas(self, timeout_s: float = 1.0) -> list[str]:
+        """The replicas whose liveliness token the Zenoh network holds now (this one included), by name; a replica
+        that dies loses its token when its session ends (blocks up to ``timeout_s``: call it off the loop)."""
+        names = set()
+        for reply in self.session.liveliness().get(service_liveliness_selector(self.prefix), timeout=timeout_s):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                if len(parts) == 5:
+                    names.add(parts[3])
+        return sorted(names)
 
     def publish_ownership(self, payload: bytes) -> None:
         """Announce the buckets this replica gained or gave up (a JSON document, see ownership_key)."""

@@ -166,6 +166,8 @@ def test_a_killed_replicas_buckets_are_taken_over_and_rebalanced_when_it_returns
 ) -> None:
     with cluster(tmp_path, postgres_url) as (router, replicas):
         shares = wait_for(lambda: balanced(replicas), what="the 16 buckets shared 6/5/5 by three replicas")
+        answer = replicas["r0"].get("/replicas").json()
+        assert answer["replicas"] == ["r0", "r1", "r2"] and answer["lease_replicas"] == 3
         assert sorted(len(s) for s in shares.values()) == [5, 5, 6]
         fleet = Fleet(router.endpoint).start()
         try:
@@ -197,6 +199,10 @@ def check_the_takeover(
     print(
         f"\ntakeover of {len(delays)} vehicles after SIGKILL: p50 {statistics.median(delays):.2f} s, "
         f"max {delays[-1]:.2f} s"
+    )
+    wait_for(  # the dead replica's liveliness token went with its session
+        lambda: survivors["r0"].get("/replicas").json()["replicas"] == ["r0", "r2"],
+        what="/replicas without the dead replica",
     )
     after = wait_for(lambda: balanced(survivors), what="the survivors to share the 16 buckets 8/8")
     assert sorted(len(s) for s in after.values()) == [8, 8]
