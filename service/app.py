@@ -121,6 +121,7 @@ class Service:
         self.leases: BucketLeases | None = None
         #: with a shared database: profile changes heard from the other replicas, and design claims
         self.shared: SharedConfig | None = None
+        self._config_lock = asyncio.Lock()
         ingest = settings.ingest
         self.events = EventBus()
         self.engine = FleetEngine(
@@ -599,15 +600,17 @@ class Service:
             self.shared.release(profile)
 
     async def _config_changed(self, name: str | None) -> None:
-        """Another replica changed profile ``name`` (None: any may have changed): follow the shared database."""
-        for stored in self.db.profiles():
-            if name is None or stored.name == name:
-                await self._follow_stored_profile(stored)
-        if name is None:
-            self._design_unclaimed()
+        """Another replica changed profile ``name`` (None: any may have changed): follow the shared database.
+        One change at a time: a resync that comes while gains are being verified waits for them."""
+        async with self._config_lock:
+            for stored in self.db.profiles():
+                if name is None or stored.name == name:
+                    await self._follow_stored_profile(stored)
+            if name is None:
+                self._design_unclaimed()
 
     async def _follow_stored_profile(self, stored: StoredProfile) -> None:
-        """Run the profile as stored: the same spec and the same active gain version (verified here again)."""
+        """Run the profile as stored: the same active gain version (verified here again), then the same spec."""
         bank = self.engine.banks.get(stored.name)
         if bank is None:
             if stored.name in self.failed_profiles:
@@ -622,16 +625,16 @@ class Service:
             log.info("profile %s: created through another replica", stored.name)
         elif self.jobs.pending_for(stored.name) is not None:
             return  # a design of the profile runs here: it activates its own gains (the latest request wins)
-        else:
-            spec = _valid_spec(stored.spec)
-            if spec is not None and spec != bank.spec:
-                self.engine.update_profile_spec(stored.name, spec)
-                log.info("profile %s: spec changed through another replica", stored.name)
         bank = self.engine.banks[stored.name]
         if stored.active_version and stored.active_version != bank.version:
             await self._activate_stored_gains(stored.name, stored.active_version)
-            if bank.version == stored.active_version:
-                log.info("profile %s: gains %s activated through another replica", stored.name, bank.version)
+            if bank.version != stored.active_version:
+                return  # unusable (logged): the spec stays with the gains that run
+            log.info("profile %s: gains %s activated through another replica", stored.name, bank.version)
+        spec = _valid_spec(stored.spec)
+        if spec is not None and spec != bank.spec:
+            self.engine.update_profile_spec(stored.name, spec)
+            log.info("profile %s: spec changed through another replica", stored.name)
 
     def _design_unclaimed(self) -> None:
         """Profiles still without gains whose design nobody runs (its replica died): design them here."""
