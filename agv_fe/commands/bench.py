@@ -17,6 +17,7 @@ BENCHMARKS = {
     "real_vehicle": "agv_fe.benchmarks.real_vehicle",
     "detection": "agv_fe.benchmarks.detection",
     "failover": "agv_fe.benchmarks.failover",
+    "storage_capacity": "agv_fe.benchmarks.storage_capacity",
 }
 
 
