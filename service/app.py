@@ -18,15 +18,18 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import json
 import logging
 import os
+import re
 import secrets
+import socket
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine
 from concurrent.futures import Future
 from contextlib import asynccontextmanager, suppress
 from functools import partial
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI
 from pydantic import ValidationError
@@ -43,14 +46,18 @@ from service.profiles import (
     load_profiles_file,
     valid_profile_name,
 )
-from service.protocol import all_buckets, shard_buckets
+from service.protocol import all_buckets, bucket_of, shard_buckets
 from service.settings import Settings
-from service.storage import Storage, StorageError, StoredProfile
+from service.storage import Storage, StorageError, StoredProfile, open_storage
 from service.storage_writer import StorageState, StorageUnavailable, StorageWriter, Write
 from service.transport import Transport
 from service.web.hub import DashboardHub
 from synth.gains import ObserverGains
 from synth.observer import RuntimeGains
+
+if TYPE_CHECKING:  # psycopg is imported only by a replica that uses PostgreSQL
+    from service.bucket_leases import BucketLeases, LeaseState
+    from service.shared_config import SharedConfig
 
 log = logging.getLogger("agv_fe.service")
 
@@ -103,12 +110,19 @@ class Service:
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
-        self.replica_id = settings.shard.name
-        self.buckets = (
-            all_buckets()
+        self.replica_id = replica_name(settings)
+        #: the buckets this replica serves now: static (--shard), or those its leases hold (none before start)
+        self.buckets: list[str] = (
+            []
+            if settings.bucket_leases
+            else all_buckets()
             if settings.shard.replicas == 1
             else shard_buckets(settings.shard.index, settings.shard.replicas)
         )
+        self.leases: BucketLeases | None = None
+        #: with a shared database: profile changes heard from the other replicas, and design claims
+        self.shared: SharedConfig | None = None
+        self._config_lock = asyncio.Lock()
         ingest = settings.ingest
         self.events = EventBus()
         self.engine = FleetEngine(
@@ -162,8 +176,17 @@ class Service:
 
     async def start(self) -> None:
         self.token = load_or_create_token(self.settings)
-        self.storage = Storage(self.settings.database_path)
-        self.writer = StorageWriter(self.settings.database_path, self.settings.storage)
+        self.storage = self._open_storage()
+        self.writer = StorageWriter(self._open_storage(), self.settings.storage)
+        loop = asyncio.get_running_loop()
+        if self.settings.database_url is not None:
+            from service.shared_config import SharedConfig
+
+            self.shared = SharedConfig(
+                self.settings.database_url,
+                on_change=lambda name: asyncio.run_coroutine_threadsafe(self._config_changed(name), loop),
+            )
+            await asyncio.to_thread(self.shared.open)
         await self._load_state()
         h = self.settings.history
         if h.enabled:
@@ -171,28 +194,50 @@ class Service:
                 self.settings.history_directory, self.replica_id, h.retention_h * 3600.0, h.chunk_s, h.precision
             )
             await asyncio.to_thread(self.history.start)
-        self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id)
+        self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id, self.settings.bucket_leases)
         await asyncio.to_thread(self.transport.open)
         self.transport_up = True
+        if self.settings.bucket_leases and self.settings.database_url is not None:
+            from service.bucket_leases import BucketLeases
+
+            self.leases = BucketLeases(
+                self.settings.database_url,
+                self.settings.shard.lease_interval_s,
+                on_gain=lambda buckets: asyncio.run_coroutine_threadsafe(self._gain_buckets(buckets), loop),
+                on_lose=lambda buckets: asyncio.run_coroutine_threadsafe(self._lose_buckets(buckets), loop),
+            )
+            await asyncio.to_thread(self.leases.start)
         self._running = True
         self.ingest_heartbeat = time.monotonic()
         for name in self._loops:
             self._spawn(name)
         if self.settings.dashboard.enabled:
             self.dashboard.start(truth=self.transport)
+        if self.shared is not None:
+            self.shared.start_listening()
         if self.settings.ingest.gc_freeze:
             gc.collect()
             gc.freeze()
         log.info(
             "replica %s serving buckets %s on zenoh %s %s",
             self.replica_id,
-            ",".join(self.buckets),
+            "by leases in the shared database" if self.leases is not None else ",".join(self.buckets),
             self.settings.zenoh.mode,
             self.settings.zenoh.endpoint,
         )
 
+    def _open_storage(self) -> Storage:
+        """A connection to the database: PostgreSQL when a URL is set, else the SQLite file in the data directory."""
+        settings = self.settings
+        return open_storage(settings.database_url, settings.database_path, settings.storage.busy_timeout_s)
+
     async def stop(self) -> None:
         self._running = False
+        if self.leases is not None:  # no more buckets taken or given; the locks stay until the writes are stored
+            await asyncio.to_thread(self.leases.halt)
+        if self.shared is not None:  # its claims go: another replica designs what this one leaves unfinished
+            await asyncio.to_thread(self.shared.close)
+            self.shared = None
         tasks = list(self._tasks.values())
         for task in tasks:
             task.cancel()
@@ -216,6 +261,9 @@ class Service:
         if self.storage is not None:
             self.storage.close()
             self.storage = None
+        if self.leases is not None:  # the session ends: every bucket lock is released for the other replicas
+            self.leases.close()
+            self.leases = None
 
     async def _load_state(self) -> None:
         """Profiles, gains, vehicles and latched alarms from the database; seed profiles on first start."""
@@ -235,6 +283,8 @@ class Service:
         resume: dict[str, Job] = {}
         for interrupted in (j for j in storage.jobs(limit=1000) if j["status"] in ("queued", "running")):
             job = Job.from_dict(interrupted)
+            if not self._claim(job.profile):
+                continue  # another replica of the shared database is running this design
             job.status, job.error, job.reason = "interrupted", "restart", "the service restarted during the design"
             storage.put_job(job.to_dict())
             if job.profile not in resume or job.created_t_ns > resume[job.profile].created_t_ns:
@@ -257,13 +307,21 @@ class Service:
                 )
                 self.jobs.submit(profile.name, resumed, earlier.kind, resumes=earlier.id)
             elif self.engine.banks[profile.name].gains is None:
-                self.jobs.submit(profile.name, spec, "initial")
+                if self._claim(profile.name):
+                    self.jobs.submit(profile.name, spec, "initial")
+                else:
+                    log.info("profile %s: another replica designs its gains; this one activates them", profile.name)
+            self._release_claim(profile.name)  # unless a design of the profile is pending here
+        served = set(self.buckets)  # a shared database holds the whole fleet: only this replica's share runs here
         for vehicle_id, profile_name, registered in storage.vehicles():
+            if bucket_of(vehicle_id) not in served:
+                continue
             if profile_name in self.engine.banks:
                 self.engine.register(vehicle_id, profile_name, registered)
             elif profile_name in self.failed_profiles:  # kept for its profile, not moved to the default one
                 self.engine.hold(vehicle_id, profile_name, registered)
-        self.engine.alarms.load([AlarmRecord.from_dict(r) for r in storage.latched_alarms()])
+        latched = [AlarmRecord.from_dict(r) for r in storage.latched_alarms() if bucket_of(r["vehicle"]) in served]
+        self.engine.alarms.load(latched)
 
     def _add_stored_profile(self, profile: StoredProfile) -> ProfileSpec:
         """Validate a stored profile as a request body would be and add it to the fleet, or say why not."""
@@ -325,6 +383,9 @@ class Service:
         storage = self.storage_state()
         if storage.degraded:
             causes.append(f"storage degraded: {storage.reason} ({storage.pending} writes queued)")
+        leases = self.lease_state()
+        if leases is not None and leases.rounds == 0:
+            causes.append("the bucket leases have not completed their first round: the buckets served are not known")
         if not self.engine.ready:
             causes.append("not every profile has active gains")
         return causes
@@ -541,6 +602,60 @@ class Service:
             return None
         return self.jobs.submit(name, spec, "update")
 
+    # ------------------------------------------------------------------ one configuration for every replica
+
+    def _claim(self, profile: str) -> bool:
+        """Claim the design of ``profile`` for this replica (always granted without a shared database)."""
+        return self.shared is None or self.shared.claim(profile)
+
+    def _release_claim(self, profile: str) -> None:
+        if self.shared is not None and self.jobs.pending_for(profile) is None:
+            self.shared.release(profile)
+
+    async def _config_changed(self, name: str | None) -> None:
+        """Another replica changed profile ``name`` (None: any may have changed): follow the shared database.
+        One change at a time: a resync that comes while gains are being verified waits for them."""
+        async with self._config_lock:
+            for stored in self.db.profiles():
+                if name is None or stored.name == name:
+                    await self._follow_stored_profile(stored)
+            if name is None:
+                self._design_unclaimed()
+
+    async def _follow_stored_profile(self, stored: StoredProfile) -> None:
+        """Run the profile as stored: the same active gain version (verified here again), then the same spec."""
+        bank = self.engine.banks.get(stored.name)
+        if bank is None:
+            if stored.name in self.failed_profiles:
+                return
+            try:
+                self._add_stored_profile(stored)
+            except ProfileLoadError as exc:
+                self.failed_profiles[stored.name] = str(exc)
+                log.error("profile %r from the shared database cannot be loaded and does not run: %s", stored.name, exc)
+                return
+            self.engine.release_held(stored.name)
+            log.info("profile %s: created through another replica", stored.name)
+        elif self.jobs.pending_for(stored.name) is not None:
+            return  # a design of the profile runs here: it activates its own gains (the latest request wins)
+        bank = self.engine.banks[stored.name]
+        if stored.active_version and stored.active_version != bank.version:
+            await self._activate_stored_gains(stored.name, stored.active_version)
+            if bank.version != stored.active_version:
+                return  # unusable (logged): the spec stays with the gains that run
+            log.info("profile %s: gains %s activated through another replica", stored.name, bank.version)
+        spec = _valid_spec(stored.spec)
+        if spec is not None and spec != bank.spec:
+            self.engine.update_profile_spec(stored.name, spec)
+            log.info("profile %s: spec changed through another replica", stored.name)
+
+    def _design_unclaimed(self) -> None:
+        """Profiles still without gains whose design nobody runs (its replica died): design them here."""
+        for name, bank in self.engine.banks.items():
+            if bank.gains is None and self.jobs.pending_for(name) is None and self._claim(name):
+                log.warning("profile %s: no replica designs its gains; designing them here", name)
+                self.jobs.submit(name, bank.spec, "initial")
+
     def _store_profile(self, name: str, spec: ProfileSpec) -> None:
         self.store(f"profile {name}", partial(Storage.put_profile, name=name, spec=spec.stored(), t_ns=time.time_ns()))
 
@@ -561,6 +676,9 @@ class Service:
 
     def _persist_job(self, job: Job) -> None:
         """Store a job at each change of state; time and report how it ended."""
+        if job.status in FINAL_STATES and self.shared is not None:
+            with suppress(RuntimeError):  # after the loop: the claims session ends with the service anyway
+                asyncio.get_running_loop().call_soon(self._release_claim, job.profile)
         if self.writer is not None:
             self.writer.submit(f"job {job.id} ({job.status})", partial(Storage.put_job, record=job.to_dict()))
             if job.status in FINAL_STATES:  # the newest jobs_kept stay in the database
@@ -610,6 +728,72 @@ class Service:
             "buckets": self.buckets,
             "uptime_s": round(time.monotonic() - self.started_mono, 3),
         }
+
+    # ------------------------------------------------------------------ bucket leases
+
+    def lease_state(self) -> LeaseState | None:
+        """The leases' view (owned buckets, live replicas, hand-overs), None with a static shard."""
+        return None if self.leases is None else self.leases.snapshot()
+
+    async def _gain_buckets(self, buckets: list[str]) -> None:
+        """Serve ``buckets``, whose locks this replica holds now: their vehicles' registry and latched alarms from
+        the shared database, then their subscriptions; each observer starts at the vehicle's next measurement."""
+        wanted = set(buckets)
+        rows = [row for row in self.db.vehicles() if bucket_of(row[0]) in wanted]
+        latched = [AlarmRecord.from_dict(r) for r in self.db.latched_alarms() if bucket_of(r["vehicle"]) in wanted]
+        adopted = self.engine.adopt(rows, latched)
+        transport = self._require_transport()
+        transport.add_buckets(buckets)
+        self.buckets = list(transport.buckets)
+        self._announce_ownership(buckets, [], len(adopted), len(latched))
+
+    async def _lose_buckets(self, buckets: list[str]) -> None:
+        """Stop serving ``buckets`` and store what is queued, before their locks go to another replica."""
+        gone = set(buckets)
+        if self.transport is not None:
+            self.transport.remove_buckets(buckets)
+            self.buckets = list(self.transport.buckets)
+        ids = [v for v in [*self.engine.vehicles, *self.engine.held] if bucket_of(v) in gone]
+        self.engine.forget(ids)
+        if self.writer is not None:
+            await self.stored(f"the hand-over of buckets {', '.join(buckets)}")
+        self._announce_ownership([], buckets, len(ids), 0)
+
+    def _announce_ownership(self, gained: list[str], lost: list[str], vehicles: int, alarms: int) -> None:
+        """An ownership change: logged, counted (/metrics) and published on Zenoh (protocol.ownership_key)."""
+        verb, which = ("took", gained) if gained else ("handed over", lost)
+        log.warning(
+            "replica %s %s buckets %s (%d vehicles, %d latched alarms); it serves %s now",
+            self.replica_id,
+            verb,
+            ",".join(which),
+            vehicles,
+            alarms,
+            ",".join(self.buckets) or "no bucket",
+        )
+        document = {
+            "replica": self.replica_id,
+            "gained": gained,
+            "lost": lost,
+            "buckets": self.buckets,
+            "vehicles": vehicles,
+            "t_ns": time.time_ns(),
+        }
+        if self.transport is not None:
+            try:
+                self.transport.publish_ownership(json.dumps(document).encode())
+            except Exception:  # the change stands; only its announcement failed
+                log.exception("the ownership change could not be published on Zenoh")
+
+
+def replica_name(settings: Settings) -> str:
+    """The replica's name: the setting, else replica-INDEX (static shard), else HOST-PID (bucket leases, where
+    replicas have no index and each name must differ)."""
+    shard = settings.shard
+    if shard.replica_id is not None or not settings.bucket_leases:
+        return shard.name
+    host = re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname())[:40] or "host"
+    return f"{host}-{os.getpid()}"
 
 
 def _same_design(gains: ObserverGains, spec: ProfileSpec) -> bool:

@@ -26,6 +26,7 @@ from prometheus_client.registry import Collector
 from service.fleet.vehicle import REJECT_REASONS
 
 if TYPE_CHECKING:
+    from service.bucket_leases import LeaseState
     from service.fleet import FleetEngine
     from service.history import EstimateHistory
     from service.jobs import SynthesisJobs
@@ -114,6 +115,7 @@ class MetricsSource(Protocol):
     failed_profiles: dict[str, str]
     task_failures: dict[str, int]
     history: EstimateHistory | None
+    buckets: list[str]
 
     @property
     def ready(self) -> bool: ...
@@ -123,6 +125,8 @@ class MetricsSource(Protocol):
     def ingest_heartbeat_age_s(self) -> float: ...
 
     def router_connected(self) -> bool | None: ...
+
+    def lease_state(self) -> LeaseState | None: ...
 
 
 def _version(distribution: str) -> str:
@@ -157,6 +161,36 @@ class ServiceCollector(Collector):
         yield from self._ingest()
         yield from self._fleet()
         yield from self._jobs_and_storage()
+        yield from self._leases()
+
+    def _leases(self) -> Iterator[Metric]:
+        """Bucket ownership: what this replica serves (static shard or leases) and, with leases, the hand-overs."""
+        yield _one(
+            GaugeMetricFamily("agv_fe_buckets_owned", "key-expression buckets this replica serves now"),
+            len(self.source.buckets),
+        )
+        state = self.source.lease_state()
+        if state is None:
+            return
+        changes = CounterMetricFamily(
+            "agv_fe_bucket_ownership_changes",
+            "buckets this replica took (gained) or handed over (lost) through the leases",
+            labels=["change"],
+        )
+        changes.add_metric(["gained"], state.gained)
+        changes.add_metric(["lost"], state.lost)
+        yield changes
+        yield _one(
+            GaugeMetricFamily("agv_fe_lease_replicas", "live replicas sharing the buckets (members in the database)"),
+            state.members,
+        )
+        yield _one(
+            GaugeMetricFamily(
+                "agv_fe_lease_connected",
+                "1 while the lease connection to the database works (0: the buckets held are kept, none change)",
+            ),
+            int(state.connected),
+        )
 
     def _build_and_state(self) -> Iterator[Metric]:
         labels = self.build_labels

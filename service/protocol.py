@@ -12,6 +12,7 @@ version; ``bucket`` is the shard bucket of the vehicle, see :func:`bucket_of`):
     {prefix}/v1/{bucket}/{vehicle_id}/alarm     service -> anyone, JSON Alarm
     {prefix}/v1/{bucket}/{vehicle_id}/alive     liveliness token of a vehicle
     {prefix}/v1/service/{replica_id}/alive      liveliness token of a service replica
+    {prefix}/v1/service/{replica_id}/ownership  service -> anyone, JSON: buckets a replica gained or gave up
 
 A Measurement is 64 bytes plus the vehicle id; little-endian:
 
@@ -139,6 +140,17 @@ def fleet_estimates_key(replica_id: str, prefix: str = DEFAULT_PREFIX) -> str:
     """Where a replica publishes each tick's estimates as one :class:`FleetEstimates` message."""
     check_vehicle_id(replica_id)
     return f"{prefix}/v{PROTOCOL_VERSION}/service/{replica_id}/estimates"
+
+
+def ownership_key(replica_id: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Where a replica announces the buckets it gained or gave up (bucket leases), a JSON object."""
+    check_vehicle_id(replica_id)
+    return f"{prefix}/v{PROTOCOL_VERSION}/service/{replica_id}/ownership"
+
+
+def ownership_selector(prefix: str = DEFAULT_PREFIX) -> str:
+    """Key expression matching every replica's ownership announcements."""
+    return f"{prefix}/v{PROTOCOL_VERSION}/service/*/ownership"
 
 
 def fleet_estimates_selector(prefix: str = DEFAULT_PREFIX) -> str:

@@ -158,6 +158,21 @@ class StorageSettings(_Section):
     )
 
 
+class DatabaseSettings(_Section):
+    url: SecretStr | None = Field(
+        None,
+        description="PostgreSQL database shared by the replicas, postgresql://USER[:PASSWORD]@HOST[:PORT]/DATABASE "
+        "(libpq's URI; its schema is migrated at start). Unset: the embedded SQLite file DATA_DIR/service.sqlite3",
+    )
+
+    @field_validator("url")
+    @classmethod
+    def _postgresql_url(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is not None and not value.get_secret_value().startswith(("postgresql://", "postgres://")):
+            raise ValueError("expected a PostgreSQL URL, postgresql://USER@HOST:PORT/DATABASE")
+        return value
+
+
 class HealthSettings(_Section):
     heartbeat_timeout_s: Annotated[float, Field(gt=0, le=600)] = Field(
         5.0, description="/ready answers 503 when the ingest loop has not completed an iteration for this long [s]"
@@ -177,7 +192,20 @@ class HealthSettings(_Section):
 class ShardSettings(_Section):
     replicas: Annotated[int, Field(ge=1, le=N_BUCKETS)] = Field(1, description="number of replicas sharing the fleet")
     index: Annotated[int, Field(ge=0)] = Field(0, description="this replica's index, 0..replicas-1")
-    replica_id: str | None = Field(None, description="name in the liveliness key (default: replica-INDEX)")
+    replica_id: str | None = Field(
+        None, description="name in the liveliness key (default: replica-INDEX; with bucket leases, HOST-PID)"
+    )
+    mode: Literal["auto", "static", "leases"] = Field(
+        "auto",
+        description="'static': this replica serves shard INDEX of REPLICAS; 'leases': the replicas sharing a "
+        "PostgreSQL database share the buckets through advisory locks, balanced among the live ones, and take over "
+        "a dead replica's; 'auto': leases with a database URL and REPLICAS = 1, static otherwise",
+    )
+    lease_interval_s: Annotated[float, Field(gt=0, le=60)] = Field(
+        0.5,
+        description="with bucket leases: how often a replica looks at the live replicas and takes or gives buckets; "
+        "a dead replica's buckets are taken within about one interval of its database session ending [s]",
+    )
 
     @model_validator(mode="after")
     def _index_in_range(self) -> ShardSettings:
@@ -241,7 +269,9 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="AGV_FE_", env_nested_delimiter="__", extra="forbid", frozen=True)
 
-    data_dir: Path = Field(Path("data"), description="SQLite database and generated API token live here")
+    data_dir: Path = Field(
+        Path("data"), description="the generated API token and, without a database URL, the SQLite database live here"
+    )
     profiles_file: Path | None = Field(
         None, description="JSON or YAML file of initial profiles, used when the database has none"
     )
@@ -257,6 +287,7 @@ class Settings(BaseSettings):
     zenoh: ZenohSettings = ZenohSettings()
     ingest: IngestSettings = IngestSettings()
     storage: StorageSettings = StorageSettings()
+    database: DatabaseSettings = DatabaseSettings()
     health: HealthSettings = HealthSettings()
     shard: ShardSettings = ShardSettings()
     dashboard: DashboardSettings = DashboardSettings()
@@ -264,8 +295,27 @@ class Settings(BaseSettings):
 
     @property
     def database_path(self) -> Path:
+        """The SQLite file, used when no database URL is set."""
         return self.data_dir / "service.sqlite3"
 
     @property
     def history_directory(self) -> Path:
         return self.history.directory or self.data_dir / "history"
+
+    @model_validator(mode="after")
+    def _leases_need_postgresql(self) -> Settings:
+        if self.shard.mode == "leases" and self.database.url is None:
+            raise ValueError("shard.mode 'leases' needs a PostgreSQL database (database.url, --database-url)")
+        if self.shard.mode == "leases" and self.shard.replicas != 1:
+            raise ValueError("shard.mode 'leases' shares every bucket among the live replicas: leave replicas at 1")
+        return self
+
+    @property
+    def bucket_leases(self) -> bool:
+        """Whether this replica's buckets come from leases in the shared database rather than a static shard."""
+        mode = self.shard.mode
+        return mode == "leases" or (mode == "auto" and self.database.url is not None and self.shard.replicas == 1)
+
+    @property
+    def database_url(self) -> str | None:
+        return None if self.database.url is None else self.database.url.get_secret_value()

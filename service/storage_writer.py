@@ -3,9 +3,10 @@
 The event loop queues a write (a vehicle registration, alarm changes, a job
 record, a profile or gain activation) and goes on at once; the writer thread
 applies the writes one by one on its own connection. A write that fails
-because the database is locked, full or cannot be written (``sqlite3.OperationalError``,
-``OSError``) stays at the head of the queue and is retried with exponential
-backoff, so the writes land in the order they were made once the database
+because the database is locked, full, unreachable or cannot be written (the
+storage's ``transient_errors``: ``sqlite3.OperationalError`` or a lost
+PostgreSQL connection, ``OSError``) stays at the head of the queue and is
+retried with exponential backoff, so the writes land in the order they were made once the database
 recovers. Until then the writer is *degraded* and says why; the queue is
 bounded (a write beyond it is lost, counted and logged).
 
@@ -16,25 +17,22 @@ fail again: it is dropped, counted as lost and logged, and the queue goes on.
 from __future__ import annotations
 
 import logging
-import sqlite3
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from pathlib import Path
 
 from service.settings import StorageSettings
-from service.storage import Storage, StorageError
+from service.storage import Storage, StorageUnavailable
 
 log = logging.getLogger("agv_fe.service.storage")
 
 Write = Callable[[Storage], None]
 
 
-class StorageUnavailable(StorageError):
-    """A write could not be stored (yet): the queue is full, the writer stopped, or the database fails."""
+__all__ = ["StorageState", "StorageUnavailable", "StorageWriter", "Write"]
 
 
 @dataclass(frozen=True)
@@ -61,10 +59,10 @@ class _Pending:
 class StorageWriter:
     """Writes queued by the event loop, applied in order on one thread, retried while the database fails."""
 
-    def __init__(self, path: Path, settings: StorageSettings) -> None:
+    def __init__(self, storage: Storage, settings: StorageSettings) -> None:
+        """``storage``: a connection of the writer's own (a lock wait or a failing fsync blocks this thread only)."""
         self.settings = settings
-        # its own connection: a lock wait or a failing fsync blocks this thread only
-        self._storage = Storage(path, busy_timeout_s=settings.busy_timeout_s)
+        self._storage = storage
         self._queue: deque[_Pending] = deque()
         self._cond = threading.Condition()
         self._closing = False
@@ -142,7 +140,7 @@ class StorageWriter:
                 head = self._queue[0]
             try:
                 head.apply(self._storage)
-            except (sqlite3.OperationalError, OSError) as exc:
+            except self._storage.transient_errors as exc:
                 self._failed(head, exc)
                 with self._cond:
                     wait = min(backoff, max(0.0, self._deadline - time.monotonic()))

@@ -44,13 +44,16 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from service.protocol import (
+    N_BUCKETS,
     all_buckets,
     bucket_selector,
     encode_fleet_estimates,
     fleet_estimates_key,
     fleet_selector,
+    ownership_key,
     parse_vehicle_key,
     service_liveliness_key,
+    service_liveliness_selector,
     vehicle_key,
 )
 from service.settings import ZenohSettings
@@ -198,14 +201,19 @@ def open_session(
 class Transport:
     """The service's Zenoh session: measurement and liveliness subscriptions, estimate and alarm publication."""
 
-    def __init__(self, settings: ZenohSettings, buckets: list[str], replica_id: str) -> None:
+    def __init__(self, settings: ZenohSettings, buckets: list[str], replica_id: str, dynamic: bool = False) -> None:
+        """``dynamic``: the buckets change while the service runs (bucket leases): one subscription per bucket,
+        each declared and undeclared on its own (:meth:`add_buckets`, :meth:`remove_buckets`)."""
         self.settings = settings
         self.prefix = settings.prefix
-        self.buckets = buckets
+        self.buckets = list(buckets)
         self.replica_id = replica_id
+        self.dynamic = dynamic
         self._session: zenoh.Session | None = None
-        self._meas: list[Any] = []
-        self._alive: list[Any] = []
+        # by bucket, or one entry '*' for the whole fleet
+        self._meas: dict[str, Any] = {}
+        self._alive: dict[str, Any] = {}
+        self._ownership_pub: Any = None
         self._token: Any = None
         self._estimate_pubs: dict[str, Any] = {}
         # with vehicle_estimates='subscribed': each estimate publisher's matching listener, the changes they
@@ -229,9 +237,64 @@ class Transport:
 
     def selectors(self, kind: str) -> list[str]:
         """Key expressions of this replica's share of the fleet for ``kind`` (one per bucket, or one for all)."""
-        if sorted(self.buckets) == all_buckets():
-            return [fleet_selector(kind, self.prefix)]  # type: ignore[arg-type]
-        return [bucket_selector(b, kind, self.prefix) for b in self.buckets]  # type: ignore[arg-type]
+        return list(self._selectors(kind, self.buckets).values())
+
+    def _selectors(self, kind: str, buckets: list[str]) -> dict[str, str]:
+        if not self.dynamic and sorted(buckets) == all_buckets():
+            return {"*": fleet_selector(kind, self.prefix)}  # type: ignore[arg-type]
+        return {b: bucket_selector(b, kind, self.prefix) for b in buckets}  # type: ignore[arg-type]
+
+    def _subscribe(self, buckets: list[str]) -> None:
+        session = self.session
+        meas = self._selectors("meas", buckets)
+        # a bucket's share of the channel capacity (16 buckets with leases, whatever this replica serves)
+        capacity = max(16, self.settings.channel_capacity // (N_BUCKETS if self.dynamic else len(meas)))
+        for name, key in meas.items():
+            self._meas[name] = session.declare_subscriber(key, zenoh.handlers.FifoChannel(capacity))
+        for name, key in self._selectors("alive", buckets).items():
+            self._alive[name] = session.liveliness().declare_subscriber(
+                key, zenoh.handlers.FifoChannel(4096), history=True
+            )
+
+    def add_buckets(self, buckets: list[str]) -> None:
+        """Serve ``buckets`` too: their measurements and their vehicles' liveliness (current tokens included)."""
+        new = [b for b in buckets if b not in self._meas]
+        try:
+            self._subscribe(new)
+        except zenoh.ZError as exc:
+            raise TransportError(f"zenoh: cannot subscribe to buckets {new}: {exc}") from exc
+        self.buckets = sorted({*self.buckets, *new})
+
+    def remove_buckets(self, buckets: list[str]) -> None:
+        """Stop serving ``buckets``: what their subscriptions still hold is dropped with them."""
+        for bucket in buckets:
+            for entities in (self._meas, self._alive):
+                entity = entities.pop(bucket, None)
+                if entity is not None:
+                    with contextlib.suppress(zenoh.ZError):
+                        entity.undeclare()
+        self.buckets = [b for b in self.buckets if b not in buckets]
+
+    def replicas(self, timeout_s: float = 1.0) -> list[str]:
+        """The replicas whose liveliness token the Zenoh network holds now (this one included), by name; a replica
+        that dies loses its token when its session ends (blocks up to ``timeout_s``: call it off the loop)."""
+        names = set()
+        for reply in self.session.liveliness().get(service_liveliness_selector(self.prefix), timeout=timeout_s):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                if len(parts) == 5:
+                    names.add(parts[3])
+        return sorted(names)
+
+    def publish_ownership(self, payload: bytes) -> None:
+        """Announce the buckets this replica gained or gave up (a JSON document, see ownership_key)."""
+        if self._ownership_pub is None:
+            self._ownership_pub = self.session.declare_publisher(
+                ownership_key(self.replica_id, self.prefix),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                encoding=zenoh.Encoding.APPLICATION_JSON,
+            )
+        self._ownership_pub.put(payload)
 
     def open(self) -> None:
         s = self.settings
@@ -240,13 +303,7 @@ class Transport:
         )
         try:
             session = self._session
-            meas = self.selectors("meas")
-            capacity = max(16, s.channel_capacity // len(meas))
-            self._meas = [session.declare_subscriber(k, zenoh.handlers.FifoChannel(capacity)) for k in meas]
-            self._alive = [
-                session.liveliness().declare_subscriber(k, zenoh.handlers.FifoChannel(4096), history=True)
-                for k in self.selectors("alive")
-            ]
+            self._subscribe(self.buckets)
             self._token = session.liveliness().declare_token(service_liveliness_key(self.replica_id, self.prefix))
             self._fleet_pub = session.declare_publisher(
                 fleet_estimates_key(self.replica_id, self.prefix),
@@ -261,7 +318,7 @@ class Transport:
         """Measurements waiting in the channels, (key expression, payload), at most ``max_samples``."""
         out: list[tuple[str, bytes]] = []
         append = out.append
-        for sub in self._meas:
+        for sub in self._meas.values():
             try_recv = sub.try_recv
             while len(out) < max_samples:
                 sample = try_recv()
@@ -273,7 +330,7 @@ class Transport:
     def drain_liveliness(self) -> list[tuple[str, bool]]:
         """Vehicle liveliness changes since the last call: (vehicle id, alive)."""
         out: list[tuple[str, bool]] = []
-        for sub in self._alive:
+        for sub in self._alive.values():
             while (sample := sub.try_recv()) is not None:
                 try:
                     vehicle_id, _ = parse_vehicle_key(str(sample.key_expr))
@@ -406,15 +463,15 @@ class Transport:
 
     def close(self) -> None:
         """Undeclare everything and close the session (an unclosed session can hang the process at exit)."""
-        entities = [*self._meas, *self._alive, *self._truth.values()]
-        fleet = [self._fleet_pub] if self._fleet_pub is not None else []
+        entities = [*self._meas.values(), *self._alive.values(), *self._truth.values()]
+        fleet = [p for p in (self._fleet_pub, self._ownership_pub) if p is not None]
         for entity in [*entities, *fleet, *self._listeners, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         if self._token is not None:
             with contextlib.suppress(zenoh.ZError):
                 self._token.undeclare()
-        self._meas, self._alive, self._token = [], [], None
+        self._meas, self._alive, self._token, self._ownership_pub = {}, {}, None, None
         self._estimate_pubs, self._alarm_pubs, self._truth = {}, {}, {}
         self._listeners, self._settling, self._unmatched, self._fleet_pub = [], {}, set(), None
         self._match_events.clear()

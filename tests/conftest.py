@@ -1,9 +1,12 @@
-"""Designs shared by the whole suite: each synthesis runs once per session."""
+"""Shared by the whole suite: designs, each synthesised once per session, and a real PostgreSQL server."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
 
+from agv_fe.pg_cluster import PostgresServer
 from synth.design import synthesize
 from synth.gains import ObserverGains
 from synth.options import DesignOptions
@@ -25,3 +28,20 @@ def paper_gains_order1() -> ObserverGains:
 def robust_gains_default() -> ObserverGains:
     """The product's default design (robust H2, fault order 1, with the filtered fault output)."""
     return synthesize(options=DesignOptions())
+
+
+@pytest.fixture(scope="session")
+def postgres_server() -> Iterator[PostgresServer]:
+    """A real PostgreSQL server (Debian's binaries, a temporary cluster), started once per session when needed."""
+    server = PostgresServer()
+    try:
+        server.init()
+        yield server
+    finally:
+        server.close()
+
+
+@pytest.fixture
+def postgres_url(postgres_server: PostgresServer) -> str:
+    """A fresh, empty database on the session's PostgreSQL server."""
+    return postgres_server.database()

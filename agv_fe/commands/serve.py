@@ -43,12 +43,20 @@ def register(sub: Any) -> None:
         help="USER:PASSWORD for Zenoh's user/password authentication (AGV_FE_ZENOH__CREDENTIALS_FILE)",
     )
     parser.add_argument("--data-dir", default=None, metavar="DIR", help="database directory (AGV_FE_DATA_DIR)")
+    parser.add_argument(
+        "--database-url",
+        default=None,
+        metavar="URL",
+        help="PostgreSQL shared by the replicas, postgresql://USER@HOST:PORT/DATABASE, instead of the SQLite file "
+        "in --data-dir (AGV_FE_DATABASE__URL; give a password there, not on the command line)",
+    )
     parser.add_argument("--profiles", default=None, metavar="FILE", help="initial profiles (AGV_FE_PROFILES_FILE)")
     parser.add_argument(
         "--shard",
         default=None,
         metavar="INDEX/REPLICAS",
-        help="serve shard INDEX of REPLICAS, e.g. 0/2 (AGV_FE_SHARD__INDEX, AGV_FE_SHARD__REPLICAS)",
+        help="serve shard INDEX of REPLICAS, e.g. 0/2 (AGV_FE_SHARD__INDEX, AGV_FE_SHARD__REPLICAS); without it, "
+        "replicas sharing a --database-url share the buckets by leases (AGV_FE_SHARD__MODE)",
     )
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
     parser.add_argument(
@@ -83,12 +91,14 @@ def build_settings(args: argparse.Namespace) -> Any:
         overrides["data_dir"] = args.data_dir
     if args.profiles is not None:
         overrides["profiles_file"] = args.profiles
+    if args.database_url is not None:
+        overrides["database"] = {"url": args.database_url}
     if args.shard is not None:
         try:
             index, replicas = (int(x) for x in args.shard.split("/"))
         except ValueError:
             raise CommandError(f"--shard: expected INDEX/REPLICAS such as 0/2, got {args.shard!r}") from None
-        overrides["shard"] = {"index": index, "replicas": replicas}
+        overrides["shard"] = {"index": index, "replicas": replicas, "mode": "static"}
     try:
         base = Settings()
         merged = base.model_dump()
@@ -99,6 +109,8 @@ def build_settings(args: argparse.Namespace) -> Any:
                 merged[key] = value
         if base.auth.token is not None:
             merged["auth"]["token"] = base.auth.token.get_secret_value()
+        if "database" not in overrides and base.database.url is not None:
+            merged["database"]["url"] = base.database.url.get_secret_value()
         return Settings.model_validate(merged)
     except ValidationError as exc:
         raise CommandError(f"invalid settings:\n{validation_message(exc, '')}") from exc

@@ -64,6 +64,20 @@ class Health(BaseModel):
     )
 
 
+class Replicas(BaseModel):
+    """The service replicas of the Zenoh network, by their liveliness tokens."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"replica": "r0", "replicas": ["r0", "r1"], "lease_replicas": 2}]}
+    )
+
+    replica: str = Field(description="the replica that answers")
+    replicas: list[str] = Field(description="every replica whose liveliness token is alive now, by name")
+    lease_replicas: int | None = Field(
+        None, description="with bucket leases: the live replicas the shared database counts (null otherwise)"
+    )
+
+
 class MissingGains(BaseModel):
     """Why a profile has no active gains."""
 

@@ -379,6 +379,12 @@ class AlarmBook:
     def latched(self) -> list[AlarmRecord]:
         return list(self._by_id.values())
 
+    def forget(self, vehicles: set[str]) -> None:
+        """Drop the latched alarms of ``vehicles`` from memory (another replica serves them now)."""
+        for key in [k for k in self._by_key if k[0] in vehicles]:
+            record = self._by_key.pop(key)
+            self._by_id.pop(record.id, None)
+
     def for_vehicle(self, vehicle: str) -> list[AlarmRecord]:
         return [r for r in self._by_id.values() if r.vehicle == vehicle]
 

@@ -48,7 +48,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange, seconds_to_ns
+from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange, AlarmRecord, seconds_to_ns
 from service.fleet.bank import ALPHAS, FAULTS, ProfileBank, StepOutput
 from service.fleet.events import EventBus, FleetEvent
 from service.fleet.tick import Checked, Rows, TickResult
@@ -239,6 +239,46 @@ class FleetEngine:
         if self.events.wants("vehicle"):
             self.events.publish(FleetEvent("vehicle", vehicle_id, {"event": "registered", "profile": profile}))
         return vehicle
+
+    def adopt(self, vehicles: Iterable[tuple[str, str, int]], latched: Iterable[AlarmRecord]) -> list[str]:
+        """Serve vehicles another replica served until now (bucket leases): their registry rows and latched
+        alarms, as the shared database has them. Each observer starts at the vehicle's next measurement (as after
+        a long gap), and a vehicle that sends nothing is STALE ``stale_after_s`` from now; one whose STALE alarm
+        is still raised is stale already, so that its next measurement clears it. Returns the vehicles adopted."""
+        now_mono = self._monotonic()
+        adopted = []
+        for vehicle_id, profile, registered_t_ns in vehicles:
+            if vehicle_id in self.vehicles:
+                continue
+            if profile not in self.banks:
+                self.hold(vehicle_id, profile, registered_t_ns)
+                continue
+            self.register(vehicle_id, profile, registered_t_ns).last_seen_mono = now_mono
+            adopted.append(vehicle_id)
+        records = list(latched)
+        self.alarms.load(records)
+        for record in records:
+            vehicle = self.vehicles.get(record.vehicle)
+            if vehicle is not None and record.kind == "stale" and record.state == "raised" and not vehicle.stale:
+                vehicle.stale = True
+                self._stale_count += 1
+        return adopted
+
+    def forget(self, vehicle_ids: Iterable[str]) -> None:
+        """Stop serving vehicles another replica serves now (bucket leases): their observers, counters and
+        latched alarms leave this replica's memory; the database keeps them for the next owner."""
+        ids = set(vehicle_ids)
+        for vehicle_id in ids:
+            self.held.pop(vehicle_id, None)
+            self._presence.pop(vehicle_id, None)
+            vehicle = self.vehicles.pop(vehicle_id, None)
+            if vehicle is None:
+                continue
+            self._by_key.pop(vehicle.meas_key, None)
+            if vehicle.stale:
+                self._stale_count -= 1
+            vehicle.bank.release(vehicle.slot)
+        self.alarms.forget(ids)
 
     def _stagger(self, vehicle: Vehicle) -> None:
         """Spread the published estimates of vehicles that register together over the N ticks of

@@ -14,7 +14,7 @@ from typing import Any
 import httpx
 import pytest
 
-from service.storage import Storage
+from service.storage import SqliteStorage
 from tests.faults.helpers import ready_body
 from tests.service.helpers import (
     FAST_DESIGN,
@@ -34,7 +34,7 @@ EXIT_SERVICE_FAILED = 4
 
 def store_a_corrupt_stale_alarm(database: Path) -> None:
     """A registered vehicle and a latched STALE alarm of it whose level is not a level."""
-    storage = Storage(database)
+    storage = SqliteStorage(database)
     try:
         storage.put_vehicles([(GHOST, "default", 1)])
         record = {

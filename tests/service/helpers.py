@@ -78,9 +78,11 @@ def make_settings(tmp_path: Path, profiles: dict[str, dict[str, Any]] | None = N
 def settings_env(settings: Settings) -> dict[str, str]:
     """The environment that makes ``agv-fe serve`` build ``settings``: AGV_FE_* variables, nested with ``__``."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("AGV_FE_")}
-    dumped = settings.model_dump(mode="json", exclude={"auth": {"token"}})
+    dumped = settings.model_dump(mode="json", exclude={"auth": {"token"}, "database": {"url"}})
     if settings.auth.token is not None:
         dumped["auth"]["token"] = settings.auth.token.get_secret_value()
+    if settings.database_url is not None:
+        dumped["database"]["url"] = settings.database_url
 
     def text(value: Any) -> str:
         return json.dumps(value) if isinstance(value, bool | list | dict) else str(value)

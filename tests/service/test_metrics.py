@@ -104,6 +104,7 @@ class _Source:
     jobs: SynthesisJobs = field(default_factory=lambda: SynthesisJobs(1, _never, _ignore))
     failed_profiles: dict[str, str] = field(default_factory=dict)
     task_failures: dict[str, int] = field(default_factory=dict)
+    buckets: list[str] = field(default_factory=list)
     ready: bool = True
 
     def storage_state(self) -> StorageState:
@@ -113,6 +114,9 @@ class _Source:
         return 0.0
 
     def router_connected(self) -> bool | None:
+        return None
+
+    def lease_state(self) -> None:
         return None
 
 

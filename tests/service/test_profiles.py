@@ -11,7 +11,7 @@ from pydantic import TypeAdapter
 
 from service.api.models import VehicleStatus
 from service.protocol import Measurement
-from service.storage import Storage
+from service.storage import SqliteStorage
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver
 from tests.service.helpers import (
@@ -163,7 +163,7 @@ def test_a_stored_profile_that_cannot_be_loaded_is_reported_and_the_others_run(t
     default profile (its unusable gains resynthesised, as the log says), reports the two others as failed in
     GET /profiles, /ready and /metrics, keeps their vehicles for them, and a valid PUT replaces a failed one."""
     settings = make_settings(tmp_path)
-    db = Storage(settings.database_path)
+    db = SqliteStorage(settings.database_path)
     db.activate_gains("default", {"design": FAST_DESIGN}, {"version": "garbled", "certificate": {}}, 1)
     db.put_profile("poison", {"alarms": {"clear_after_s": 1e300}}, 1)
     db.put_profile("garbled", {}, 1)

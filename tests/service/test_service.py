@@ -250,6 +250,10 @@ def test_rest_errors_say_what_is_wrong(server):
     assert server.get("/health").json()["status"] == "ok"
 
 
+def test_replicas_lists_the_live_ones_by_their_liveliness_tokens(server):
+    assert server.get("/replicas").json() == {"replica": "replica-0", "replicas": ["replica-0"], "lease_replicas": None}
+
+
 def test_openapi_documents_every_route_with_examples(server):
     spec = server.get("/openapi.json").json()
     paths = set(spec["paths"])
@@ -289,7 +293,7 @@ def test_openapi_marks_only_what_needs_the_token_as_secured(server, tmp_path):
     assert ("get", "/vehicles") in secured and ("put", "/profiles/{name}") in secured
     closed = create_app(make_settings(tmp_path, auth={"open_reads": False}))
     closed_secured = _secured(closed.openapi())
-    health = {"/health", "/ready", "/metrics", "/"}
+    health = {"/health", "/ready", "/replicas", "/metrics", "/"}
     for (method, path), needs_token in closed_secured.items():
         assert needs_token == (path not in health), (method, path)
 

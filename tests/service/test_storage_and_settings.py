@@ -1,4 +1,5 @@
-"""SQLite storage (a real file) and the settings (environment variables, nested with __)."""
+"""SQLite's own storage behaviour (a real file) and the settings (environment variables, nested with __); the
+storage interface is tested on SQLite and PostgreSQL alike in test_storage.py."""
 
 from __future__ import annotations
 
@@ -16,35 +17,17 @@ from service.profiles import (
     valid_profile_name,
 )
 from service.settings import Settings
-from service.storage import Storage, StorageError
+from service.storage import SqliteStorage, StorageError
 
 
-def test_storage_round_trip_in_wal_mode(tmp_path):
+def test_sqlite_storage_journals_in_wal_mode(tmp_path):
+    """SQLite's own settings; what is stored and read back is tested on both databases in test_storage.py."""
     path = tmp_path / "db.sqlite3"
-    db = Storage(path)
-    db.put_profile("van", ProfileSpec.model_validate({"design": {"fault_order": 1}}).stored(), 1)
-    db.activate_gains("van", {"design": {"fault_order": 1}}, {"version": "abc", "certificate": {}}, 2)
+    db = SqliteStorage(path)
     db.put_vehicles([("v1", "van", 3)])
-    record = {
-        "id": "al-1",
-        "vehicle": "v1",
-        "kind": "stale",
-        "state": "raised",
-        "acknowledged": False,
-        "updated_t_ns": 4,
-    }
-    db.record_alarm_changes([(record, {"t_ns": 4, "state": "raised"})])
     db.close()
     assert sqlite3.connect(path).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-    again = Storage(path)
-    (profile,) = again.profiles()
-    assert profile.name == "van" and profile.active_version == "abc" and profile.spec == {"design": {"fault_order": 1}}
-    assert again.gains("van", "abc") == {"version": "abc", "certificate": {}}
-    assert again.vehicles() == [("v1", "van", 3)]
-    assert [a["id"] for a in again.latched_alarms()] == ["al-1"]
-    acked = {**record, "state": "cleared", "acknowledged": True, "updated_t_ns": 5}
-    again.record_alarm_changes([(acked, {"t_ns": 5, "state": "acknowledged"})])
-    assert again.latched_alarms() == [] and len(again.alarm_events("al-1")) == 2
+    assert sqlite3.connect(path).execute("SELECT id FROM vehicles").fetchall() == [("v1",)]
 
 
 def test_profile_spec_keeps_only_what_was_set_so_defaults_propagate():
@@ -157,40 +140,40 @@ def test_an_empty_database_file_is_refused_not_taken_for_a_new_database(tmp_path
     path = tmp_path / "service.sqlite3"
     path.touch()
     with pytest.raises(StorageError, match="empty"):
-        Storage(path)
+        SqliteStorage(path)
     assert path.stat().st_size == 0  # left as it was found
     fresh = tmp_path / "new" / "service.sqlite3"
-    Storage(fresh).close()  # a file that does not exist yet is created
-    Storage(fresh).close()  # and opens again
+    SqliteStorage(fresh).close()  # a file that does not exist yet is created
+    SqliteStorage(fresh).close()  # and opens again
     assert fresh.stat().st_size > 0
 
 
 def test_a_foreign_schema_version_is_a_storage_error_naming_it(tmp_path):
     path = tmp_path / "db.sqlite3"
-    Storage(path).close()
+    SqliteStorage(path).close()
     for stored in ("abc", "", "2"):  # not even a number: once a ValueError with a traceback
         with sqlite3.connect(path) as db:
             db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (stored,))
         with pytest.raises(StorageError, match=f"schema version '{stored}', this service reads 1"):
-            Storage(path)
-
-
-def test_stored_documents_that_are_not_json_are_reported_not_raised_as_decoder_errors(tmp_path):
-    path = tmp_path / "db.sqlite3"
-    db = Storage(path)
-    db.put_profile("good", {"design": {"fault_order": 1}}, 1)
-    db.activate_gains("bad", {}, {"version": "abc", "certificate": {}}, 2)
-    with sqlite3.connect(path) as raw:
-        raw.execute("UPDATE profiles SET spec = '{not json' WHERE name = 'bad'")
-        raw.execute("UPDATE gain_versions SET gains = '[1, 2' WHERE version = 'abc'")
-    bad, good = db.profiles()
-    assert good.problem is None and good.spec == {"design": {"fault_order": 1}}
-    assert bad.name == "bad" and bad.spec == {} and "not JSON" in str(bad.problem)
-    with pytest.raises(StorageError, match="gains abc of profile bad are not JSON"):
-        db.gains("bad", "abc")
+            SqliteStorage(path)
 
 
 def test_a_zenoh_endpoint_is_the_whole_setting_not_a_prefix_before_a_newline():
     with pytest.raises(ValidationError, match="PROTOCOL/HOST:PORT"):
         Settings.model_validate({"zenoh": {"endpoint": "tcp/127.0.0.1:7447\n"}})
     assert Settings.model_validate({"zenoh": {"endpoint": "tcp/127.0.0.1:7447"}}).zenoh.endpoint.endswith(":7447")
+
+
+def test_the_database_url_from_the_environment_or_the_flag_and_never_shown(monkeypatch, tmp_path):
+    from agv_fe.cli import build_parser
+    from agv_fe.commands.serve import build_settings
+
+    assert Settings().database_url is None  # the embedded SQLite file by default
+    monkeypatch.setenv("AGV_FE_DATABASE__URL", "postgresql://agv:s3cret@db:5432/fleet")
+    from_env = build_settings(build_parser().parse_args(["serve"]))
+    assert from_env.database_url == "postgresql://agv:s3cret@db:5432/fleet" and "s3cret" not in repr(from_env)
+    flagged = build_settings(build_parser().parse_args(["serve", "--database-url", "postgresql://agv@other/fleet"]))
+    assert flagged.database_url == "postgresql://agv@other/fleet"
+    monkeypatch.setenv("AGV_FE_DATABASE__URL", "mysql://agv@db/fleet")
+    with pytest.raises(ValidationError, match="expected a PostgreSQL URL"):
+        Settings()

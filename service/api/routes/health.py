@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 
 from fastapi import APIRouter, Response, status
 
 from service.api.deps import ServiceDep
-from service.api.models import Health, MissingGains, Readiness, StorageStatus
+from service.api.models import Health, MissingGains, Readiness, Replicas, StorageStatus
 from service.app import Service
 from service.metrics import CONTENT_TYPE, exposition
 
@@ -45,6 +46,23 @@ async def health(service: ServiceDep, response: Response) -> Health:
     if service.fatal is not None:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
     return answer
+
+
+@router.get(
+    "/replicas",
+    response_model=Replicas,
+    summary="the live service replicas, by their Zenoh liveliness tokens (a dead replica's goes with its session)",
+    responses={503: {"description": "the Zenoh transport is not open"}},
+)
+async def replicas(service: ServiceDep, response: Response) -> Replicas:
+    transport = service.transport
+    leases = service.lease_state()
+    members = None if leases is None else leases.members
+    if transport is None:
+        response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
+        return Replicas(replica=service.replica_id, replicas=[], lease_replicas=members)
+    names = await asyncio.to_thread(transport.replicas)
+    return Replicas(replica=service.replica_id, replicas=names, lease_replicas=members)
 
 
 @router.get(

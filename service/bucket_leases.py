@@ -1,0 +1,247 @@
+"""Bucket ownership by leases in the shared PostgreSQL database: session advisory locks, one per bucket.
+
+Replicas started without a static shard share the key-expression buckets among the live ones. Each replica
+holds, on a connection of its own, one *member* lock (keyed by its backend pid, so two replicas never share
+one) and one lock per bucket it serves. PostgreSQL releases a session's locks when the session ends, so when a
+replica dies its buckets become free as soon as the server sees its connection close, and the survivors take
+them at their next round.
+
+Every ``lease_interval_s`` a replica counts the live members (``pg_locks``), computes its fair share of the
+buckets (16 // n, one more for the first 16 % n by pid), then
+
+* gives up what it holds beyond its share: the service stops serving the bucket and flushes its writes
+  first (``on_lose`` completes), and only then is the lock released, so no bucket ever has two owners;
+* takes free buckets up to its share with ``pg_try_advisory_lock``: the lock is held before the service is
+  told to serve it (``on_gain``).
+
+When the lease connection fails (the database is unreachable) the replica keeps serving what it holds, since
+no other replica can take a lock meanwhile, and tries again each interval; once connected it locks its buckets
+again and gives up at once any it cannot lock (another replica took it first).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass, field
+from typing import Any
+
+import psycopg
+
+from service.protocol import all_buckets
+from service.storage import StorageError
+from service.storage_postgres import CONNECT_TIMEOUT_S, redacted
+
+log = logging.getLogger("agv_fe.service.leases")
+
+#: first key of the advisory locks of buckets and of members (the second is the bucket's index or the pid)
+BUCKET_LOCKS = 0x41475601
+MEMBER_LOCKS = 0x41475602
+#: how long a replica waits for the service to stop serving a bucket (and flush its writes) before releasing it
+HANDOVER_TIMEOUT_S = 30.0
+
+#: called on the service's side with the buckets gained or lost; the future completes once it is done
+Handover = Callable[[list[str]], "Future[None]"]
+
+_LOCKS_HELD = """
+SELECT objid::bigint, pid FROM pg_locks
+WHERE locktype = 'advisory' AND classid = %s AND objsubid = 2 AND granted
+  AND database = (SELECT oid FROM pg_database WHERE datname = current_database())
+"""
+
+
+def fair_share(rank: int, members: int, n_buckets: int) -> int:
+    """Buckets the member of rank ``rank`` (0-based, of ``members``) should hold: balanced within one."""
+    base, extra = divmod(n_buckets, max(1, members))
+    return base + (1 if rank < extra else 0)
+
+
+@dataclass
+class LeaseState:
+    """What /metrics and the status endpoint show about the leases."""
+
+    owned: list[str] = field(default_factory=list)
+    members: int = 0
+    connected: bool = False
+    gained: int = 0
+    lost: int = 0
+    #: rounds completed (taking and giving buckets); 0: the replica does not know its share yet
+    rounds: int = 0
+    #: why the lease connection failed, while it does
+    problem: str | None = None
+
+
+class BucketLeases:
+    """This replica's share of the buckets, held as session advisory locks on a connection of its own."""
+
+    def __init__(
+        self, url: str, interval_s: float, on_gain: Handover, on_lose: Handover, buckets: list[str] | None = None
+    ) -> None:
+        self.url = url
+        self.location = redacted(url)
+        self.interval_s = interval_s
+        self.buckets = buckets if buckets is not None else all_buckets()
+        self._index = {b: int(b[1:], 16) for b in self.buckets}
+        self._on_gain, self._on_lose = on_gain, on_lose
+        self._conn: psycopg.Connection[Any] | None = None
+        self._owned: set[str] = set()
+        #: buckets locked whose serving failed: tried again each round
+        self._unserved: set[str] = set()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self.state = LeaseState()
+        self._thread = threading.Thread(target=self._run, name="bucket-leases", daemon=True)
+
+    def start(self) -> None:
+        try:
+            self._connect()
+        except psycopg.Error as exc:
+            raise StorageError(f"{self.location}: cannot open the lease connection: {exc}") from exc
+        self._thread.start()
+
+    def halt(self) -> None:
+        """Stop taking and giving buckets (the locks stay held)."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(HANDOVER_TIMEOUT_S + self.interval_s + 10)
+
+    def close(self) -> None:
+        """Halt, then end the session: PostgreSQL releases every lock of this replica at once."""
+        self.halt()
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    # ------------------------------------------------------------------ the lease thread
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                if self._conn is None or self._conn.closed or self._conn.broken:
+                    self._reconnect()
+                self._round()
+                self._set(connected=True, problem=None, rounds=self.state.rounds + 1)
+            except psycopg.Error as exc:
+                self._connection_failed(exc)
+            self._stop.wait(self.interval_s)
+
+    def _connect(self) -> None:
+        conn = psycopg.connect(
+            self.url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S, application_name="agv-fe-leases"
+        )
+        conn.execute("SELECT pg_advisory_lock(%s, pg_backend_pid())", (MEMBER_LOCKS,))
+        self._conn = conn
+        self._set(connected=True, problem=None)
+
+    def _reconnect(self) -> None:
+        """A new session: lock the buckets served until now again; give up at once those another replica took."""
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        self._connect()
+        conn = self._require()
+        kept = {b for b in sorted(self._owned) if self._try_lock(conn, b)}
+        taken = sorted(self._owned - kept)
+        if taken:
+            log.warning("leases: buckets %s were taken by another replica while the database was away", taken)
+            self._give_up(taken, wait=False)
+        log.warning("leases: connected to %s again, serving %d buckets", self.location, len(self._owned))
+
+    def _connection_failed(self, exc: BaseException) -> None:
+        problem = f"{type(exc).__name__}: {str(exc).strip()}"
+        if self.state.problem is None:
+            log.error(
+                "leases: the lease connection to %s failed (%s); serving the %d buckets held until it is back",
+                self.location,
+                problem,
+                len(self._owned),
+            )
+        self._set(connected=False, problem=problem)
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def _require(self) -> psycopg.Connection[Any]:
+        if self._conn is None:
+            raise psycopg.OperationalError("the lease connection is closed")
+        return self._conn
+
+    def _round(self) -> None:
+        conn = self._require()
+        retry = sorted(self._unserved & self._owned, key=self._index.__getitem__)
+        members = sorted(pid for _, pid in conn.execute(_LOCKS_HELD, (MEMBER_LOCKS,)).fetchall())
+        me = conn.execute("SELECT pg_backend_pid()").fetchone()
+        rank = members.index(me[0]) if me is not None and me[0] in members else len(members)
+        share = fair_share(rank, len(members), len(self.buckets))
+        self._set(members=len(members))
+        if len(self._owned) > share:
+            # the highest buckets go, so that shares settle the same way on every replica
+            extra = sorted(self._owned, key=self._index.__getitem__)[share:]
+            self._give_up(extra, wait=True)
+        elif len(self._owned) < share:
+            held = {int(objid) for objid, _ in conn.execute(_LOCKS_HELD, (BUCKET_LOCKS,)).fetchall()}
+            free = [b for b in self.buckets if self._index[b] not in held and b not in self._owned]
+            gained = []
+            for bucket in free[: share - len(self._owned)]:
+                if self._try_lock(conn, bucket):
+                    gained.append(bucket)
+            if gained:
+                self._owned.update(gained)
+                self._set(gained=self.state.gained + len(gained))
+                log.info("leases: gained buckets %s (%d of %d live replicas)", gained, rank + 1, len(members))
+                self._serve(gained)
+        self._serve([b for b in retry if b in self._owned])
+
+    def _serve(self, buckets: list[str]) -> None:
+        """Have the service serve buckets whose locks this replica holds; those it could not (the database failed
+        while it read their vehicles) are tried again next round."""
+        if not buckets:
+            return
+        if self._wait(self._on_gain(buckets), "serving", buckets):
+            self._unserved.difference_update(buckets)
+        else:
+            self._unserved.update(buckets)
+
+    def _try_lock(self, conn: psycopg.Connection[Any], bucket: str) -> bool:
+        row = conn.execute("SELECT pg_try_advisory_lock(%s, %s)", (BUCKET_LOCKS, self._index[bucket])).fetchone()
+        return bool(row and row[0])
+
+    def _give_up(self, buckets: list[str], wait: bool) -> None:
+        """Stop serving ``buckets`` (their writes flushed), then release their locks; ``wait=False``: the locks
+        are gone already (a new session), only the service has to stop."""
+        done = self._on_lose(buckets)
+        if wait and not self._wait(done, "giving up", buckets):
+            return  # still served: keep the locks, and try again next round
+        if wait:
+            conn = self._require()
+            for bucket in buckets:
+                conn.execute("SELECT pg_advisory_unlock(%s, %s)", (BUCKET_LOCKS, self._index[bucket]))
+        self._owned.difference_update(buckets)
+        self._unserved.difference_update(buckets)
+        self._set(lost=self.state.lost + len(buckets))
+        log.info("leases: gave up buckets %s", buckets)
+
+    def _wait(self, done: Future[None], what: str, buckets: list[str]) -> bool:
+        try:
+            done.result(HANDOVER_TIMEOUT_S)
+        except FutureTimeout:
+            log.error("leases: %s buckets %s took over %g s", what, buckets, HANDOVER_TIMEOUT_S)
+            return False
+        except Exception:
+            log.exception("leases: %s buckets %s failed", what, buckets)
+            return False
+        return True
+
+    def _set(self, **changes: Any) -> None:
+        with self._lock:
+            for name, value in changes.items():
+                setattr(self.state, name, value)
+            self.state.owned = sorted(self._owned, key=self._index.__getitem__)
+
+    def snapshot(self) -> LeaseState:
+        with self._lock:
+            s = self.state
+            return LeaseState(list(s.owned), s.members, s.connected, s.gained, s.lost, s.rounds, s.problem)
