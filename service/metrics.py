@@ -24,6 +24,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.registry import Collector
 
 from service.fleet.vehicle import REJECT_REASONS
+from service.protocol import all_buckets
 
 if TYPE_CHECKING:
     from service.bucket_leases import LeaseState
@@ -169,6 +170,16 @@ class ServiceCollector(Collector):
             GaugeMetricFamily("agv_fe_buckets_owned", "key-expression buckets this replica serves now"),
             len(self.source.buckets),
         )
+        served = GaugeMetricFamily(
+            "agv_fe_bucket_served",
+            "1 for each key-expression bucket this replica serves now, 0 for the others: summed over the replicas, "
+            "a bucket at 0 has no owner (its vehicles get no estimates) and one above 1 has two",
+            labels=["bucket"],
+        )
+        mine = set(self.source.buckets)
+        for bucket in all_buckets():
+            served.add_metric([bucket], int(bucket in mine))
+        yield served
         state = self.source.lease_state()
         if state is None:
             return

@@ -12,9 +12,10 @@ from prometheus_client import CollectorRegistry
 from edge_client.library import paper_1
 from service.app import Service
 from service.fleet import FleetEngine
+from service.history import EstimateHistory
 from service.jobs import SynthesisJobs
 from service.metrics import END_TO_END_BUCKETS_S, Histogram, ServiceCollector, ServiceMetrics, exposition
-from service.protocol import Measurement
+from service.protocol import Measurement, all_buckets, shard_buckets
 from service.settings import Settings
 from service.storage_writer import StorageState
 from tests.service.helpers import (
@@ -105,6 +106,7 @@ class _Source:
     failed_profiles: dict[str, str] = field(default_factory=dict)
     task_failures: dict[str, int] = field(default_factory=dict)
     buckets: list[str] = field(default_factory=list)
+    history: EstimateHistory | None = None
     ready: bool = True
 
     def storage_state(self) -> StorageState:
@@ -194,13 +196,21 @@ def test_a_real_service_exposes_its_series_the_process_and_the_end_to_end_delay(
         assert scrape.types["python_gc_collections_total"] == "counter"
         assert scrape.value("agv_fe_estimates_total") == n + 1
         assert scrape.value("agv_fe_vehicles_by_level", profile="default", level="OK") == 2
+        # one replica serves every bucket: each of the 16 at 1 (the alerts sum them over the replicas)
+        assert [scrape.value("agv_fe_bucket_served", bucket=b) for b in all_buckets()] == [1] * 16
+
+        other = Service(make_settings(tmp_path / "b", shard={"replicas": 2, "index": 1}))  # built, not started
+        served = parse_metrics(exposition(other.registry).decode())
+        assert [served.value("agv_fe_bucket_served", bucket=b) for b in all_buckets()] == [
+            int(b in shard_buckets(1, 2)) for b in all_buckets()
+        ]
         buckets = scrape.buckets("agv_fe_estimate_latency_seconds")
         assert buckets[0] == (END_TO_END_BUCKETS_S[0], 1)  # the vehicle clock ahead
         assert buckets[-2][1] == 1 and buckets[-1] == (float("inf"), n + 1)  # the others are years old
         age_s = (time.time_ns() - T0_NS - n * PERIOD_NS) / 1e9
         assert scrape.value("agv_fe_estimate_latency_seconds_sum") >= n * age_s * 0.99
 
-        other = Service(make_settings(tmp_path / "b"))  # built, not started: its registry is its own
+        other = Service(make_settings(tmp_path / "c"))  # built, not started: its registry is its own
         other_scrape = parse_metrics(exposition(other.registry).decode())
         assert other_scrape.value("agv_fe_measurements_received_total") == 0
         assert other_scrape.value("agv_fe_estimate_latency_seconds_count") == 0
