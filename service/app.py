@@ -1,4 +1,4 @@
-"""Wiring: settings -> storage, fleet engine, job queue, Zenoh transport, ingest loop (service/main.py makes the FastAPI app).
+"""Wiring: settings -> storage, fleet engine, job queue, Zenoh transport, ingest loop (the app: service/main.py).
 
 :class:`Service` owns every part and runs on one asyncio loop: the ingest
 loop drains the Zenoh channels, steps the fleet and publishes; REST handlers

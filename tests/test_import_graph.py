@@ -121,13 +121,11 @@ def test_no_module_of_the_product_imports_itself_round_a_cycle():
     assert cycles(graph) == []
 
 
-#: What edge_client takes from the service today, by module: the wire protocol both sides speak, the Zenoh session
-#: configuration of service.transport (edge_client.transport) and the alarm defaults of service.profiles
-#: (edge_client.fleet_mix). Issue 27 item 5 moves the first two to a home both import and passes the third in;
-#: until then this list may only shrink.
+#: What edge_client takes from the service today, by module: the wire protocol both sides speak and the Zenoh
+#: session configuration of service.transport (edge_client.transport). Issue 27 item 5 moves both to a home both
+#: sides import; until then this list may only shrink.
 EDGE_CLIENT_FROM_SERVICE = {
     "edge_client.transport": {"service", "service.protocol", "service.transport"},
-    "edge_client.fleet_mix": {"service", "service.profiles"},
     "edge_client.publisher": {"service", "service.protocol"},
     "edge_client.dashboard": {"service", "service.protocol"},
     "edge_client.ros2_bridge": {"service", "service.protocol"},
