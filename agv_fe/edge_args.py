@@ -8,7 +8,7 @@ import math
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -141,6 +141,42 @@ def check_bridge_arguments(args: argparse.Namespace) -> None:
         raise CommandError(f"--wait: expected seconds >= 0, got {args.wait}")
     if not (math.isfinite(args.progress) and args.progress > 0):
         raise CommandError(f"--progress: expected seconds > 0, got {args.progress}")
+
+
+def run_bridge(
+    args: argparse.Namespace,
+    session: Any,
+    open_source: Callable[[contextlib.ExitStack[Any]], Any],
+    extra_lines: Callable[[], list[str]] = list,
+) -> int:
+    """Run a live bridge: the source ``open_source`` enters on the stack (with whatever else it needs closed) fed
+    to the 100 Hz publisher until --duration or Ctrl-C, then what it read and what came back printed; the session
+    is closed at the end. Returns the command's exit status."""
+    from agv_fe.common import fail
+    from edge_client.publisher import FleetPublisher, PublisherOptions
+    from edge_client.recording import RecordingError
+    from edge_client.transport import close_session
+
+    options = PublisherOptions(truth_rate_hz=0.0, buffer_s=0.0, prefix=args.prefix, warmup_s=0.0)
+    progress = ProgressPrinter()
+    try:
+        with contextlib.ExitStack() as stack:
+            stack.callback(close_session, session)
+            source = open_source(stack)
+            stack.callback(progress.finish)
+            log = stack.enter_context(Path(args.log).open("w")) if args.log else None
+            publisher = stack.enter_context(FleetPublisher(session, source, options, log=log))
+            stop = stack.enter_context(stop_on_interrupt())
+            report = publisher.run(
+                args.duration, stop=stop, on_progress=progress, progress_period_s=args.progress, drain_s=1.0
+            )
+            lines = [*source.describe(), *extra_lines()]
+    except RecordingError as exc:
+        return fail(CommandError(str(exc)))
+    except OSError as exc:
+        return fail(CommandError(f"{args.log}: cannot write: {exc.strerror}"))
+    print_bridge_report(lines, report)
+    return 0
 
 
 def print_bridge_report(lines: list[str], report: Any) -> None:

@@ -13,34 +13,24 @@ non-finite values are counted, never fatal.
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from edge_client.can_log import CanMapping, CanSignal, decode_frame, resolve
-from edge_client.grid import COLUMNS, LiveSource
+from edge_client.grid import LiveSource
 
 
 @dataclass
 class CanBridgeStats:
-    """What the bridge read from the bus, used and refused."""
+    """What the bridge read from the bus and refused besides what :class:`~edge_client.grid.LiveSource` counts."""
 
     frames: int = 0
-    used: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COLUMNS, 0))
     other: int = 0
     undecodable: int = 0
-    non_finite: int = 0
     errors: int = 0
-
-    def describe(self) -> str:
-        used = ", ".join(f"{column} {count}" for column, count in self.used.items())
-        return (
-            f"read {self.frames} frames: used {used}; {self.other} of other messages; refused {self.undecodable} "
-            f"undecodable, {self.non_finite} not finite; bus errors {self.errors}"
-        )
 
 
 class CanSource(LiveSource):
@@ -90,21 +80,20 @@ class CanSource(LiveSource):
             with self._lock:
                 self.stats.undecodable += 1
             return
-        for column, value in decoded:
-            with self._lock:
-                if not math.isfinite(value):
-                    self.stats.non_finite += 1
-                    continue
-                self.stats.used[column] += 1
-            self.received(column, value)
+        self.received(decoded)
 
     def describe_missing(self, columns: tuple[str, ...]) -> str:
         signals = self.mapping.signals()
         return ", ".join(f"{c} ({signals[c].message}.{signals[c].signal})" for c in columns)
 
     def describe(self) -> list[str]:
-        with self._lock:
-            return [self.stats.describe(), self.describe_grid()]
+        with self._lock, self.lock:
+            stats = self.stats
+            return [
+                f"read {stats.frames} frames: used {self.used_text()}; {stats.other} of other messages; refused "
+                f"{stats.undecodable} undecodable, {self.non_finite} not finite; bus errors {stats.errors}",
+                self.describe_grid(),
+            ]
 
     def close(self) -> None:
         self._notifier.stop(timeout=1.0)

@@ -23,8 +23,8 @@ intermittent        a torque (100-150 N m) or steering (0.02-0.03 rad) bias on
 With ``gusts`` every vehicle, healthy or not, also meets random lateral wind
 gusts of 300-800 N (:func:`random_gusts`): a disturbance, not a fault.
 
-Fault sizes follow the service's default alarm thresholds (:data:`ASSUMED_ALARM`,
-taken from ``service.profiles.AlarmThresholds``): the WARN levels, |T_f estimate|
+Fault sizes follow the service's default alarm thresholds (:data:`ASSUMED_ALARM`, the
+defaults of ``service.profiles.AlarmThresholds``, which a test keeps equal): the WARN levels, |T_f estimate|
 above 40 N m or |delta_f estimate| above 0.01 rad held for 0.5 s, about five
 times the fault-estimate RMSE of the default robust design under realistic
 noise. Every injected fault is at least twice its threshold once established. Fault onsets come after
@@ -45,7 +45,6 @@ import numpy as np
 from edge_client.faults import BiasFault, Fault, IntermittentFault, LossOfEffectivenessFault, SinusoidalFault
 from edge_client.random_drive import random_drive
 from edge_client.scenario import Gust, Scenario, ScenarioError, SensorNoise, read_scenario_file, scenario_from_data
-from service.profiles import AlarmThresholds
 
 MixKind = Literal["healthy", "torque_bias", "torque_loe", "steer_bias", "steer_sinusoidal", "intermittent"]
 MIX_KINDS: tuple[MixKind, ...] = get_args(MixKind)
@@ -72,12 +71,9 @@ class AlarmAssumption:
     persistence_s: float
 
 
-_SERVICE_DEFAULTS = AlarmThresholds()
-ASSUMED_ALARM = AlarmAssumption(
-    torque_threshold_nm=_SERVICE_DEFAULTS.torque_warn_nm,
-    steer_threshold_rad=_SERVICE_DEFAULTS.steer_warn_rad,
-    persistence_s=_SERVICE_DEFAULTS.raise_after_s,
-)
+#: The service's default WARN thresholds and persistence (service.profiles.AlarmThresholds; the vehicle side
+#: imports nothing of the service but the wire protocol, and tests/edge_client/test_fleet_mix.py keeps them equal).
+ASSUMED_ALARM = AlarmAssumption(torque_threshold_nm=40.0, steer_threshold_rad=0.01, persistence_s=0.5)
 
 
 class MixError(ValueError):

@@ -15,6 +15,7 @@ and the live ROS 2 bridge (edge_client/ros2_bridge.py) put them on the grid by o
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -133,12 +134,27 @@ class LiveSource:
         self._clock = clock
         self._k = 0
         self._first = threading.Event()
+        #: values used per column, and values refused as not finite (transport threads count under the lock)
+        self.used = dict.fromkeys(COLUMNS, 0)
+        self.non_finite = 0
+        self.lock = threading.Lock()
 
-    def received(self, column: str, value: float) -> None:
-        """A fresh value of ``column`` (from a transport's thread), at the source's clock now."""
-        self.hold.update(column, value, self._clock())
+    def received(self, values: list[tuple[str, float]]) -> None:
+        """Fresh values of columns from one message (on a transport's thread), at the source's clock now; a value
+        that is not finite is counted and not held."""
+        now = self._clock()
+        for column, value in values:
+            with self.lock:
+                if not math.isfinite(value):
+                    self.non_finite += 1
+                    continue
+                self.used[column] += 1
+            self.hold.update(column, value, now)
         if not self._first.is_set() and self.hold.sample(self._clock()).values is not None:
             self._first.set()
+
+    def used_text(self) -> str:
+        return ", ".join(f"{column} {count}" for column, count in self.used.items())
 
     @property
     def vehicle_ids(self) -> list[str]:

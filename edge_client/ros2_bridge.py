@@ -20,14 +20,13 @@ another type definition (type hash), one that does not decode (malformed CDR), a
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from edge_client.grid import COLUMNS, LiveSource
+from edge_client.grid import LiveSource
 from edge_client.ros2 import RosMapping, RosSignal, field_value, typestore_for
 from edge_client.transport import Received, Subscription
 
@@ -57,20 +56,11 @@ def rmw_attachment(seq: int, source_timestamp_ns: int, gid: bytes) -> bytes:
 
 @dataclass
 class BridgeStats:
-    """What the bridge received, used and refused."""
+    """What the bridge received and refused besides what :class:`~edge_client.grid.LiveSource` counts."""
 
     messages: int = 0
-    used: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COLUMNS, 0))
     undecodable: int = 0
-    non_finite: int = 0
     other_type: int = 0
-
-    def describe(self) -> str:
-        used = ", ".join(f"{column} {count}" for column, count in self.used.items())
-        return (
-            f"received {self.messages} messages: used {used}; refused {self.undecodable} undecodable, "
-            f"{self.non_finite} not finite, {self.other_type} of another type or type definition (type hash)"
-        )
 
 
 class Ros2Source(LiveSource):
@@ -125,13 +115,7 @@ class Ros2Source(LiveSource):
                 with self._lock:
                     self.stats.undecodable += 1
                 return
-            for column, value in values:
-                with self._lock:
-                    if not math.isfinite(value):
-                        self.stats.non_finite += 1
-                        continue
-                    self.stats.used[column] += 1
-                self.received(column, value)
+            self.received(values)
 
         return on_message
 
@@ -139,8 +123,14 @@ class Ros2Source(LiveSource):
         return ", ".join(f"{column} ({self.keys[self.mapping.signals()[column].topic]})" for column in columns)
 
     def describe(self) -> list[str]:
-        with self._lock:
-            return [self.stats.describe(), self.describe_grid()]
+        with self._lock, self.lock:
+            stats = self.stats
+            return [
+                f"received {stats.messages} messages: used {self.used_text()}; refused {stats.undecodable} "
+                f"undecodable, {self.non_finite} not finite, {stats.other_type} of another type or type definition "
+                "(type hash)",
+                self.describe_grid(),
+            ]
 
     def close(self) -> None:
         for subscription in self._subscriptions:

@@ -1,4 +1,4 @@
-"""Wiring: settings -> storage, fleet engine, job queue, Zenoh transport, ingest loop, FastAPI app.
+"""Wiring: settings -> storage, fleet engine, job queue, Zenoh transport, ingest loop (the app: service/main.py).
 
 :class:`Service` owns every part and runs on one asyncio loop: the ingest
 loop drains the Zenoh channels, steps the fleet and publishes; REST handlers
@@ -25,16 +25,16 @@ import re
 import secrets
 import socket
 import time
-from collections.abc import AsyncIterator, Callable, Coroutine
+from collections.abc import Callable, Coroutine
 from concurrent.futures import Future
-from contextlib import asynccontextmanager, suppress
+from contextlib import suppress
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
-from fastapi import FastAPI
 from pydantic import ValidationError
 
 from service import logs
+from service.databases import open_storage
 from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine, FleetError
 from service.history import EstimateHistory
 from service.jobs import FINAL_STATES, Job, JobKind, SynthesisJobs
@@ -48,7 +48,7 @@ from service.profiles import (
 )
 from service.protocol import all_buckets, bucket_of, shard_buckets
 from service.settings import Settings
-from service.storage import Storage, StorageError, StoredProfile, open_storage
+from service.storage import Storage, StorageError, StoredProfile
 from service.storage_writer import StorageState, StorageUnavailable, StorageWriter, Write
 from service.transport import Transport
 from service.web.hub import DashboardHub
@@ -803,44 +803,3 @@ def _same_design(gains: ObserverGains, spec: ProfileSpec) -> bool:
         and gains.bounds.model_dump(mode="json") == inputs["bounds"]
         and gains.options.model_dump(mode="json") == inputs["options"]
     )
-
-
-def create_app(settings: Settings) -> FastAPI:
-    """The FastAPI application; the lifespan starts and stops the :class:`Service`."""
-    from service.api import build_router, install_error_handlers
-    from service.api.routes.apidocs import install_api_docs
-
-    @asynccontextmanager
-    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        service = Service(settings)
-        service.on_fatal = getattr(app.state, "on_fatal", None)
-        app.state.service = service
-        try:
-            await service.start()
-            yield
-        finally:
-            await service.stop()
-
-    app = FastAPI(
-        title="AGV fault estimator",
-        version="0.1.0",
-        summary="Real-time actuator fault estimation for a fleet of ground vehicles, with certified observers.",
-        description=(
-            "Measurements arrive over Zenoh (see docs/protocol.md); this API reports vehicles, estimates and alarms, "
-            "and manages vehicle profiles and their certified observer gains. Mutating endpoints need "
-            "`Authorization: Bearer TOKEN`."
-        ),
-        lifespan=lifespan,
-        # /docs comes from the package (service/api/routes/apidocs.py), not a CDN; /redoc would need one
-        docs_url=None,
-        redoc_url=None,
-        swagger_ui_oauth2_redirect_url=None,
-    )
-    app.include_router(build_router(settings))
-    install_api_docs(app)
-    install_error_handlers(app, settings)
-    if settings.dashboard.enabled:
-        from service.api.routes.ui import install_dashboard
-
-        install_dashboard(app, settings.auth.open_reads)
-    return app

@@ -341,12 +341,3 @@ class SqliteStorage(Storage):
 
     def _rows(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
         return [tuple(r) for r in self._db.execute(sql, params).fetchall()]
-
-
-def open_storage(database_url: str | None, path: Path, busy_timeout_s: float = 5.0) -> Storage:
-    """PostgreSQL when a URL is given (migrated to the newest schema), else the SQLite file at ``path``."""
-    if database_url is None:
-        return SqliteStorage(path, busy_timeout_s)
-    from service.storage_postgres import PostgresStorage  # psycopg and Alembic are loaded only when used
-
-    return PostgresStorage(database_url, busy_timeout_s)

@@ -5,17 +5,14 @@ from __future__ import annotations
 import argparse
 import contextlib
 import textwrap
-from pathlib import Path
 from typing import Any
 
 from agv_fe.common import CommandError, fail
 from agv_fe.edge_args import (
-    ProgressPrinter,
     add_bridge_arguments,
     add_transport_arguments,
     check_bridge_arguments,
-    print_bridge_report,
-    stop_on_interrupt,
+    run_bridge,
     transport_options,
 )
 
@@ -81,9 +78,7 @@ def open_bus(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from edge_client.can_bridge import CanSource
-    from edge_client.publisher import FleetPublisher, PublisherOptions
-    from edge_client.recording import RecordingError
-    from edge_client.transport import TransportError, close_session, open_session
+    from edge_client.transport import TransportError, open_session
 
     try:
         mapping, database, transport = _check(args)
@@ -97,26 +92,9 @@ def run(args: argparse.Namespace) -> int:
         return fail(CommandError(str(exc)))
     print(textwrap.fill(f"bridging CAN {args.interface} {args.channel} to vehicle {args.vehicle}; zenoh "
                         f"{transport.describe()}", 100))  # fmt: skip
-    options = PublisherOptions(truth_rate_hz=0.0, buffer_s=0.0, prefix=args.prefix, warmup_s=0.0)
-    progress = ProgressPrinter()
-    try:
-        with contextlib.ExitStack() as stack:
-            stack.callback(close_session, session)
-            stack.callback(bus.shutdown)
-            source = stack.enter_context(
-                CanSource(bus, database, mapping, args.vehicle, dbc_name=args.dbc, wait_s=args.wait)
-            )
-            stack.callback(progress.finish)
-            log = stack.enter_context(Path(args.log).open("w")) if args.log else None
-            publisher = stack.enter_context(FleetPublisher(session, source, options, log=log))
-            stop = stack.enter_context(stop_on_interrupt())
-            report = publisher.run(
-                args.duration, stop=stop, on_progress=progress, progress_period_s=args.progress, drain_s=1.0
-            )
-            lines = source.describe()
-    except RecordingError as exc:
-        return fail(CommandError(str(exc)))
-    except OSError as exc:
-        return fail(CommandError(f"{args.log}: cannot write: {exc.strerror}"))
-    print_bridge_report(lines, report)
-    return 0
+
+    def open_source(stack: contextlib.ExitStack[Any]) -> Any:
+        stack.callback(bus.shutdown)
+        return stack.enter_context(CanSource(bus, database, mapping, args.vehicle, dbc_name=args.dbc, wait_s=args.wait))
+
+    return run_bridge(args, session, open_source)

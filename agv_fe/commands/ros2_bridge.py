@@ -6,17 +6,14 @@ import argparse
 import contextlib
 import re
 import textwrap
-from pathlib import Path
 from typing import Any
 
 from agv_fe.common import CommandError, fail
 from agv_fe.edge_args import (
-    ProgressPrinter,
     add_bridge_arguments,
     add_transport_arguments,
     check_bridge_arguments,
-    print_bridge_report,
-    stop_on_interrupt,
+    run_bridge,
     transport_options,
 )
 
@@ -66,10 +63,8 @@ def _check(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from edge_client.publisher import FleetPublisher, PublisherOptions
-    from edge_client.recording import RecordingError
     from edge_client.ros2_bridge import EstimateRepublisher, Ros2Source, describe_keys
-    from edge_client.transport import TransportError, close_session, open_session
+    from edge_client.transport import TransportError, open_session
 
     try:
         mapping, transport = _check(args)
@@ -78,34 +73,23 @@ def run(args: argparse.Namespace) -> int:
         return fail(exc if isinstance(exc, CommandError) else CommandError(str(exc)))
     print(textwrap.fill(f"bridging ROS 2 domain {mapping.domain_id} to vehicle {args.vehicle}; zenoh "
                         f"{transport.describe()}", 100))  # fmt: skip
-    options = PublisherOptions(truth_rate_hz=0.0, buffer_s=0.0, prefix=args.prefix, warmup_s=0.0)
-    progress = ProgressPrinter()
-    republisher = None
-    try:
-        with contextlib.ExitStack() as stack:
-            stack.callback(close_session, session)
-            source = stack.enter_context(Ros2Source(session, mapping, args.vehicle, wait_s=args.wait))
-            print("\n".join(["subscribed (signal, rmw_zenoh key):", *describe_keys(source)]), flush=True)
-            if args.republish:
-                republisher = stack.enter_context(
+    republisher: list[Any] = []
+
+    def open_source(stack: contextlib.ExitStack[Any]) -> Any:
+        source = stack.enter_context(Ros2Source(session, mapping, args.vehicle, wait_s=args.wait))
+        print("\n".join(["subscribed (signal, rmw_zenoh key):", *describe_keys(source)]), flush=True)
+        if args.republish:
+            republisher.append(
+                stack.enter_context(
                     EstimateRepublisher(
                         session, source.store, mapping.domain_id, args.republish, args.vehicle, args.prefix
                     )
                 )
-                print(f"estimates republished on {republisher.key}", flush=True)
-            stack.callback(progress.finish)
-            log = stack.enter_context(Path(args.log).open("w")) if args.log else None
-            publisher = stack.enter_context(FleetPublisher(session, source, options, log=log))
-            stop = stack.enter_context(stop_on_interrupt())
-            report = publisher.run(
-                args.duration, stop=stop, on_progress=progress, progress_period_s=args.progress, drain_s=1.0
             )
-            lines = source.describe()
-            if republisher is not None:
-                lines.append(f"republished {republisher.sent} estimates on {republisher.key}")
-    except RecordingError as exc:
-        return fail(CommandError(str(exc)))
-    except OSError as exc:
-        return fail(CommandError(f"{args.log}: cannot write: {exc.strerror}"))
-    print_bridge_report(lines, report)
-    return 0
+            print(f"estimates republished on {republisher[0].key}", flush=True)
+        return source
+
+    def extra_lines() -> list[str]:
+        return [f"republished {r.sent} estimates on {r.key}" for r in republisher]
+
+    return run_bridge(args, session, open_source, extra_lines)

@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
 
     from agv_fe.common import CommandError, fail
     from service import logs
-    from service.app import create_app
+    from service.main import create_app
 
     try:
         settings = build_settings(args)

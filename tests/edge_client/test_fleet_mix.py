@@ -125,3 +125,16 @@ def test_random_gusts_leave_healthy_vehicles_below_the_alarm_thresholds(paper_ga
     peak = np.abs(result.f_hat[settled]).max(axis=(0, 1))
     assert peak[0] < ASSUMED_ALARM.torque_threshold_nm / 4
     assert peak[1] < ASSUMED_ALARM.steer_threshold_rad
+
+
+def test_the_assumed_alarm_is_the_services_default():
+    """The mix's fault sizes are set against the service's default WARN thresholds and persistence; the vehicle
+    side states them rather than import the service, and this keeps the two equal."""
+    from service.profiles import AlarmThresholds
+
+    defaults = AlarmThresholds()
+    assert (ASSUMED_ALARM.torque_threshold_nm, ASSUMED_ALARM.steer_threshold_rad, ASSUMED_ALARM.persistence_s) == (
+        defaults.torque_warn_nm,
+        defaults.steer_warn_rad,
+        defaults.raise_after_s,
+    )

@@ -24,7 +24,8 @@ import zenoh
 
 from edge_client.library import paper_1
 from edge_client.plant import PlantSimulator
-from service.app import Service, create_app
+from service.app import Service
+from service.main import create_app
 from service.protocol import Alarm, Estimate, Measurement, fleet_selector, vehicle_key
 from service.settings import Settings
 from service.transport import open_session

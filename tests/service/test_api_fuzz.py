@@ -32,7 +32,7 @@ def _openapi() -> dict[str, Any]:
     """The service's OpenAPI document, from the app itself (nothing is started): the operations to generate for."""
     import tempfile
 
-    from service.app import create_app
+    from service.main import create_app
 
     with tempfile.TemporaryDirectory() as directory:
         return dict(create_app(make_settings(Path(directory))).openapi())

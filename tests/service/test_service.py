@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from edge_client.library import paper_1
-from service.app import create_app
+from service.main import create_app
 from service.profiles import ProfileSpec
 from service.protocol import FLAG_SEQUENCE_RESTART, Measurement, vehicle_key
 from synth.gains import ObserverGains

@@ -13,7 +13,8 @@ import psycopg
 import pytest
 
 from agv_fe.pg_cluster import PostgresServer
-from service.storage import SqliteStorage, Storage, StorageError, StorageUnavailable, open_storage
+from service.databases import open_storage
+from service.storage import SqliteStorage, Storage, StorageError, StorageUnavailable
 from service.storage_postgres import PostgresStorage, migrate, redacted
 
 Open = Callable[[], Storage]

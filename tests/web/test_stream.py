@@ -17,7 +17,7 @@ from typing import Any
 import httpx
 import pytest
 
-from service.app import create_app
+from service.main import create_app
 from service.web.hub import POINT_COLUMNS, TRUTH_COLUMNS
 from tests.service.helpers import FAST_DESIGN, TOKEN, make_settings, wait_for
 from tests.web.helpers import cruise, dashboard_server, live_fleet, torque_bias
