@@ -369,6 +369,31 @@ def observer_step(
     nv = y.shape[0]
     if y.shape != (nv, 2) or u.shape != (nv, 2) or z.shape != (nv, rt.state_size):
         _check_batch(rt, z, y, u)
+    Phi, x, in_domain, vy_in_bounds = _features(rt, z, y, u)
+    z_rows, x_rows = _gain_products(rt, Phi, x, fast, mixed)
+    n, k = rt.n, rt.K_rows.size
+    lagged = rt.steer_lag != 0.0
+    z_next = (_with_actuator(rt, z_rows, z, u) if lagged else z_rows).T
+    # the reported estimate: x_hat_k + K (y_k - C_bar x_hat_k), every row out of the small GEMM, when
+    # there is an output gain; else x_hat_k = z_k - E y_k (line 8)
+    z_obs = z[:, :n] if lagged else z
+    x_hat = x_rows[:k].T if k else (z_obs if rt.E_is_zero else z_obs - y @ rt.E.T)
+    innovation = x_rows[k:].T if rt.WT_quiet is not None else None
+    mask = None if rt.WT_quiet is None else (_constant_mask(nv, True) if fast is None else fast)
+    return z_next, StepResult(
+        x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds, fast=mask, innovation=innovation
+    )
+
+
+def _features(
+    rt: RuntimeGains, z: FloatArray, y: FloatArray, u: FloatArray
+) -> tuple[FloatArray, FloatArray, np.ndarray, np.ndarray]:
+    """Lines 8-9 of Algorithm 1 up to the gains: the feature matrix Phi, shape (n_features, nv), vehicles last.
+
+    Returns (Phi, x, in_domain, vy_in_bounds): x = Phi[:n + 2] is the constant block [y; z] (without the
+    actuator's column), in_domain and vy_in_bounds are those of :class:`StepResult`.
+    """
+    nv = y.shape[0]
     n, n2, m = rt.n, rt.n + 2, rt.m
     tail = n2 + 3 * m  # first row after the rule blend: [v_x^2, r/v_x, v_x r, u, phi, (1), (phi_c)]
     Phi = np.empty((rt.n_features, nv))
@@ -405,41 +430,42 @@ def observer_step(
     if rt.cornering:
         vy_in_bounds &= _cornering_drag(rt, Phi[-1], x, z, y, Phi[tail + 4], vy_sat, r, V_x)
     np.multiply(vy_sat, vy_sat, out=vy_sat)
-    k = rt.K_rows.size
+    return Phi, x, in_domain, vy_in_bounds
+
+
+def _gain_products(
+    rt: RuntimeGains, Phi: FloatArray, x: FloatArray, fast: np.ndarray | None, mixed: bool | None
+) -> tuple[FloatArray, FloatArray]:
+    """Line 9's z_{k+1} rows W^T Phi, shape (n, nv), and the reported rows X^T x (the output gain's estimate,
+    then the weighted innovation), from the set each vehicle runs: one GEMM each for a batch on one set, or
+    for a mixed batch both sets stacked, the fast vehicles' columns copied over the quiet ones."""
+    n, nv, k = rt.n, Phi.shape[1], rt.K_rows.size
     WT_quiet, WT_pair, XT_quiet, XT_pair = rt.WT_quiet, rt.WT_pair, rt.XT_quiet, rt.XT_pair
     if mixed is None and fast is not None:
         mixed = 0 < np.count_nonzero(fast) < nv
     all_fast = fast is None or (not mixed and (nv == 0 or bool(fast[0])))
     if WT_quiet is None or WT_pair is None or XT_quiet is None or XT_pair is None or all_fast:
-        z_rows = rt.WT @ Phi
-        x_rows = rt.XT @ x
-    elif not mixed:
-        z_rows = WT_quiet @ Phi
-        x_rows = XT_quiet @ x
-    else:  # a mixed batch: both sets in one GEMM each, the fast vehicles' columns copied over the quiet ones
-        both = WT_pair @ Phi
-        z_rows = both[n:]
-        np.copyto(z_rows, both[:n], where=fast)
-        x_both = XT_pair @ x  # [fast set's reported rows; quiet set's; innovation]
-        x_rows = x_both[k:]
-        np.copyto(x_rows[:k], x_both[:k], where=fast)
-    if lagged:
-        # the actuator model: delta_{k+1} = a delta_k + (1 - a) delta_d,k
-        full = np.empty((n + 1, nv))
-        full[:n] = z_rows
-        np.multiply(z[:, n], rt.steer_lag, out=full[n])
-        full[n] += (1.0 - rt.steer_lag) * u[:, 1]
-        z_rows = full
-    z_next = z_rows.T
-    # the reported estimate: x_hat_k + K (y_k - C_bar x_hat_k), every row out of the small GEMM, when
-    # there is an output gain; else x_hat_k = z_k - E y_k (line 8)
-    z_obs = z[:, :n] if lagged else z
-    x_hat = x_rows[:k].T if k else (z_obs if rt.E_is_zero else z_obs - y @ rt.E.T)
-    innovation = x_rows[k:].T if rt.WT_quiet is not None else None
-    mask = None if rt.WT_quiet is None else (_constant_mask(nv, True) if fast is None else fast)
-    return z_next, StepResult(
-        x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds, fast=mask, innovation=innovation
-    )
+        return rt.WT @ Phi, rt.XT @ x
+    if not mixed:
+        return WT_quiet @ Phi, XT_quiet @ x
+    both = WT_pair @ Phi
+    z_rows = both[n:]
+    np.copyto(z_rows, both[:n], where=fast)
+    x_both = XT_pair @ x  # [fast set's reported rows; quiet set's; innovation]
+    x_rows = x_both[k:]
+    np.copyto(x_rows[:k], x_both[:k], where=fast)
+    return z_rows, x_rows
+
+
+def _with_actuator(rt: RuntimeGains, z_rows: FloatArray, z: FloatArray, u: FloatArray) -> FloatArray:
+    """z_{k+1}'s rows, shape (n + 1, nv), with the steering actuator's model appended as the last row."""
+    n, nv = rt.n, z_rows.shape[1]
+    # the actuator model: delta_{k+1} = a delta_k + (1 - a) delta_d,k
+    full = np.empty((n + 1, nv))
+    full[:n] = z_rows
+    np.multiply(z[:, n], rt.steer_lag, out=full[n])
+    full[n] += (1.0 - rt.steer_lag) * u[:, 1]
+    return full
 
 
 def _check_batch(rt: RuntimeGains, z: FloatArray, y: FloatArray, u: FloatArray) -> None:
