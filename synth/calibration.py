@@ -510,6 +510,31 @@ def _longitudinal_rows(
     return X, rhs, ay, p.t[a]
 
 
+def _ratio_estimates(
+    names: Sequence[str], theta: FloatArray, cov: FloatArray, inv_m: float, m_free: bool
+) -> dict[str, Estimate]:
+    """The physical values of the fitted theta = [1/m_eff, C_x/m_eff, F_r/m_eff] (its free entries, named by
+    ``names``, "inv_m" for 1/m_eff) with 95 % intervals: each is a ratio to 1/m_eff, its variance by the delta
+    method from theta's covariance ``cov``. inv_m : float  [1/kg], fitted or given."""
+    estimates: dict[str, Estimate] = {}
+    for i, name in enumerate(names):
+        grad = np.zeros(len(names))
+        if name == "inv_m":
+            value = 1.0 / inv_m
+            grad[i] = -1.0 / inv_m**2
+            name = "effective_mass_kg"
+        elif m_free:
+            value = theta[i] / inv_m
+            grad[i], grad[0] = 1.0 / inv_m, -theta[i] / inv_m**2
+        else:
+            value = theta[i] / inv_m
+            grad[i] = 1.0 / inv_m
+        sd = math.sqrt(max(float(grad @ cov @ grad), 0.0))
+        low = value - 1.96 * sd if name == "effective_mass_kg" else max(0.0, value - 1.96 * sd)
+        estimates[name] = Estimate(value, low, value + 1.96 * sd)
+    return estimates
+
+
 def _fit_longitudinal(
     prepared: Sequence[_Prepared],
     sims: Sequence[tuple[FloatArray, FloatArray, FloatArray]],
@@ -573,23 +598,8 @@ def _fit_longitudinal(
             raise CalibrationRefused(
                 "the drive torque does not explain the accelerations: check the torque signal's sign and unit"
             )
-        for i, name in enumerate(names):
-            # each physical value is a ratio to 1/m_eff: its variance by the delta method
-            grad = np.zeros(len(names))
-            if name == "inv_m":
-                value = 1.0 / inv_m
-                grad[i] = -1.0 / inv_m**2
-                name = "effective_mass_kg"
-            elif m_free:
-                value = theta[i] / inv_m
-                grad[i], grad[0] = 1.0 / inv_m, -theta[i] / inv_m**2
-            else:
-                value = theta[i] / inv_m
-                grad[i] = 1.0 / inv_m
-            sd = math.sqrt(max(float(grad @ cov @ grad), 0.0))
-            low = value - 1.96 * sd if name == "effective_mass_kg" else max(0.0, value - 1.96 * sd)
-            estimates[name] = Estimate(value, low, value + 1.96 * sd)
-            values[name] = value
+        estimates = _ratio_estimates(names, theta, cov, inv_m, m_free)
+        values.update({name: e.value for name, e in estimates.items()})
     inv_m = 1.0 / values["effective_mass_kg"]
     theta_full = np.array([inv_m, values["longitudinal_drag_coeff"] * inv_m, values["rolling_resistance_n"] * inv_m])
     window_noise = math.sqrt(2.0 / ENDPOINT_SAMPLES) * noise["vx_sigma_mps"]
