@@ -11,7 +11,6 @@ the test's router (the docker compose topology).
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -21,15 +20,10 @@ from pathlib import Path
 import httpx
 import pytest
 
+from agv_fe.benchmarks.harness import free_port as free_port
 from edge_client.transport import TransportOptions
 
 ROUTER_SCRIPT = Path(__file__).with_name("zenoh_router.py")
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 class Router:
