@@ -44,6 +44,24 @@ N_OUTPUTS = 2
 VY_INDEX = 1
 
 
+class AugmentedEstimate:
+    """What a batch's estimate of the augmented state reads as: ``x_hat`` of shape (nv, n), rows
+    [v_x, v_y, r, T_f, delta_f, ...]. The observer's and the EKF's results both carry it."""
+
+    __slots__ = ()
+    x_hat: FloatArray
+
+    @property
+    def state(self) -> FloatArray:
+        """(nv, 3) estimated [v_x [m/s], v_y [m/s], r [rad/s]]."""
+        return self.x_hat[:, :N_STATES]
+
+    @property
+    def faults(self) -> FloatArray:
+        """(nv, 2) estimated [T_f [N m], delta_f [rad]]."""
+        return self.x_hat[:, N_STATES : N_STATES + N_FAULTS]
+
+
 def fault_chain_matrix(order: int) -> FloatArray:
     """The block companion matrix of (z - 1)^order in shift coordinates, (2q, 2q).
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from synth.augmented import AugmentedModel, difference_coordinates, fault_chain_matrix
+from synth.augmented import AugmentedEstimate, AugmentedModel, difference_coordinates, fault_chain_matrix
 from synth.fuzzy import NTSModel
 from synth.model import FloatArray, continuous_dynamics, continuous_matrices
 from synth.options import NoiseModel
@@ -37,19 +37,11 @@ INITIAL_SIGMA_FAULT = np.array([200.0, 0.1])
 
 
 @dataclass(frozen=True)
-class EKFResult:
+class EKFResult(AugmentedEstimate):
     """The filtered estimate x_{k|k} of a batch: state (nv, 3), faults (nv, 2), in_domain (nv,)."""
 
     x_hat: FloatArray
     in_domain: np.ndarray
-
-    @property
-    def state(self) -> FloatArray:
-        return self.x_hat[:, :3]
-
-    @property
-    def faults(self) -> FloatArray:
-        return self.x_hat[:, 3:5]
 
 
 def jacobian(x: FloatArray, p: VehicleParams, steer_rad: FloatArray | None = None) -> FloatArray:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -37,6 +38,32 @@ from synth.params import OperatingBounds, VehicleParams
 #: Index of each premise corner (V_x, r) in the rule ordering of eq. (16):
 #: rule 1 (low, low), rule 2 (low, high), rule 3 (high, low), rule 4 (high, high).
 RULE_CORNERS = ((0, 0), (0, 1), (1, 0), (1, 1))
+
+
+class InputMatrices(TypedDict):
+    """The input matrices of the Euler-discretised model (eq. 14): B (3, 2), D (3, 1), F (3, 2)."""
+
+    B: FloatArray
+    D: FloatArray
+    F: FloatArray
+
+
+def euler_input_matrices(params: VehicleParams) -> InputMatrices:
+    """B = s B_v, D = s D_v, F = s F_v of eq. (14), shared by the N-TS and the conventional TS model.
+
+    Parameters
+    ----------
+    params : VehicleParams
+        The vehicle; its sample period s [s] and the continuous input matrices of eq. (6).
+
+    Returns
+    -------
+    InputMatrices
+        B : (3, 2) on the demands [T_d, delta_d]; D : (3, 1) on the wind force; F : (3, 2) on the faults.
+    """
+    cm = continuous_matrices(params)
+    s = params.sample_period_s
+    return {"B": s * cm.B_v, "D": s * cm.D_v, "F": s * cm.F_v}
 
 
 def sector_weights(z: ArrayLike, low: float, high: float) -> tuple[FloatArray, FloatArray]:
@@ -51,7 +78,20 @@ def sector_weights(z: ArrayLike, low: float, high: float) -> tuple[FloatArray, F
 
 
 @dataclass(frozen=True)
-class NTSModel:
+class DiscreteTSModel:
+    """What the TS models of eqs. (14) and (15) share: the vehicle and its operating box, the vertex matrices
+    A (r, 3, 3), one per rule, and the input matrices B, D, F of :func:`euler_input_matrices`."""
+
+    params: VehicleParams
+    bounds: OperatingBounds
+    A: FloatArray
+    B: FloatArray
+    D: FloatArray
+    F: FloatArray
+
+
+@dataclass(frozen=True)
+class NTSModel(DiscreteTSModel):
     """The N-TS fuzzy model of eq. (15) with the memberships of eq. (16).
 
     A : (4, 3, 3)  vertex matrices A_i = A(V_x, r) at the premise corners
@@ -64,12 +104,6 @@ class NTSModel:
     premise_low, premise_high : (2,)  bounds of xi = [V_x [s/m], r [rad/s]]
     """
 
-    params: VehicleParams
-    bounds: OperatingBounds
-    A: FloatArray
-    B: FloatArray
-    D: FloatArray
-    F: FloatArray
     G: FloatArray
     G_c: FloatArray
     C: FloatArray
@@ -83,7 +117,6 @@ class NTSModel:
         r_lo, r_hi = bounds.yaw_rate_bounds
         corners = [(V_lo, V_hi)[a] for a, _ in RULE_CORNERS], [(r_lo, r_hi)[b] for _, b in RULE_CORNERS]
         A = np.stack([_vertex_matrix(V, r, params) for V, r in zip(*corners, strict=True)])
-        cm = continuous_matrices(params)
         s = params.sample_period_s
         G = np.array([[0.0], [-s * params.lateral_drag_coeff / params.mass_kg], [0.0]])
         G_c = np.array([[-s / params.effective_mass_kg if params.cornering_drag else 0.0], [0.0], [0.0]])
@@ -91,9 +124,7 @@ class NTSModel:
             params=params,
             bounds=bounds,
             A=A,
-            B=s * cm.B_v,
-            D=s * cm.D_v,
-            F=s * cm.F_v,
+            **euler_input_matrices(params),
             G=G,
             G_c=G_c,
             C=C.copy(),
@@ -201,19 +232,13 @@ def _vertex_matrix(V_x: float, r: float, p: VehicleParams) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class ConventionalTSModel:
+class ConventionalTSModel(DiscreteTSModel):
     """The conventional 8-rule TS model of eq. (14), premise varpi = [v_x, 1/v_x, v_y].
 
     A : (8, 3, 3)  A_i = I + s A_v at the corners of the premise box, rule index
                    i = 4 a + 2 b + c for corner (v_x, 1/v_x, v_y) = (a, b, c), 0 = low.
     """
 
-    params: VehicleParams
-    bounds: OperatingBounds
-    A: FloatArray
-    B: FloatArray
-    D: FloatArray
-    F: FloatArray
     C: FloatArray
     premise_low: FloatArray
     premise_high: FloatArray
@@ -229,15 +254,11 @@ class ConventionalTSModel:
         high = np.array([bounds.vx_max_mps, 1.0 / bounds.vx_min_mps, bounds.vy_max_mps])
         corners = [np.where(np.array(c) == 1, high, low) for c in itertools.product((0, 1), repeat=3)]
         A = np.stack([_affine_state_matrix(float(v_x), float(inv), float(v_y), params) for v_x, inv, v_y in corners])
-        cm = continuous_matrices(params)
-        s = params.sample_period_s
         return cls(
             params=params,
             bounds=bounds,
             A=A,
-            B=s * cm.B_v,
-            D=s * cm.D_v,
-            F=s * cm.F_v,
+            **euler_input_matrices(params),
             C=C.copy(),
             premise_low=low,
             premise_high=high,

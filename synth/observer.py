@@ -42,7 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from synth.augmented import N_STATES, VY_INDEX, front_force_bound_n
+from synth.augmented import N_STATES, VY_INDEX, AugmentedEstimate, front_force_bound_n
 from synth.errors import BadParameters, check_shape
 from synth.fuzzy import RULE_CORNERS
 from synth.gains import ObserverGains
@@ -286,7 +286,7 @@ def _stacked_gains(
 
 
 @dataclass(slots=True)
-class StepResult:
+class StepResult(AugmentedEstimate):
     """Output of one observer step for a batch.
 
     x_hat : (nv, n) reported estimate of x_bar_k: [v_x, v_y, r, T_f, delta_f, ...] (with the output gain)
@@ -305,16 +305,6 @@ class StepResult:
     #: (nv, 2) the innovation y_k - C x_hat_k divided by the sensor sigmas and weighted by sqrt((1 - lambda) / 2),
     #: so that its squared norm is the switching statistic's increment (switched designs; None otherwise)
     innovation: FloatArray | None = None
-
-    @property
-    def state(self) -> FloatArray:
-        """(nv, 3) estimated [v_x, v_y, r]."""
-        return self.x_hat[:, :3]
-
-    @property
-    def faults(self) -> FloatArray:
-        """(nv, 2) estimated [T_f [N m], delta_f [rad]]."""
-        return self.x_hat[:, 3:5]
 
 
 def initial_observer_state(
