@@ -100,8 +100,8 @@ BRAKE_RANGE_MPS2 = (0.5, 4.0)
 END_CRUISE_S = 2.0
 #: The healthy fleet: vehicles x duration [s] (31 min: 1,031 vehicle-hours after the 3 s warm-ups), driven in
 #: segments [s] (each a new scenario, the vehicle's state, estimators and alarm levels carried on), in WORKERS
-#: processes; the EKF runs on the first EKF_SHARE of each process's vehicles (measured: the EKF on every vehicle
-#: adds about 30 % to the fleet's 8 minutes on two cores, so it runs on all of them).
+#: processes; the EKF runs on the first EKF_SHARE of each process's vehicles (the report gives the run's time
+#: per stage).
 HEALTHY_VEHICLES = 2000
 HEALTHY_DURATION_S = 1860.0
 SEGMENT_S = 310.0
