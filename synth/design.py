@@ -41,15 +41,33 @@ def synthesize(
     *,
     use_symmetry: bool = True,
 ) -> ObserverGains:
-    """Design certified observer gains (Theorem 2, or the robust design).
+    """Design certified observer gains (Theorem 2, or the robust design). Never returns unverified gains.
 
-    ``use_symmetry``: pose the LMIs on mirror-invariant points when the data have the
-    left-right symmetry (synth.symmetry; lossless). False only to measure what it saves.
+    Parameters
+    ----------
+    params : VehicleParams, optional
+        The vehicle (the paper's if None).
+    bounds : OperatingBounds, optional
+        The operating box the certificate covers (the paper's eq. (13) if None).
+    options : DesignOptions, optional
+        The design options (the product's default design if None).
+    use_symmetry : bool, default True
+        Pose the LMIs on mirror-invariant points when the data have the left-right symmetry (synth.symmetry;
+        lossless). False only to measure what it saves.
 
-    Raises :class:`~synth.errors.Infeasible` when the design cannot exist (with
-    the reason), :class:`~synth.errors.SolverFailed` when no solver returns a
-    point, :class:`~synth.errors.VerificationFailed` when no returned point
-    passes the numpy check. Never returns unverified gains.
+    Returns
+    -------
+    ObserverGains
+        Verified gains with their certificate.
+
+    Raises
+    ------
+    Infeasible
+        The design cannot exist (with the reason).
+    SolverFailed
+        No solver returned a point.
+    VerificationFailed
+        No returned point passed the numpy check.
     """
     params = params or VehicleParams()
     bounds = bounds or OperatingBounds()

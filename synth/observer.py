@@ -55,8 +55,18 @@ G_FEATURES = ("v_x^2", "r/v_x", "v_x r")
 
 
 def g_feature_matrix(gains: ObserverGains) -> FloatArray:
-    """(3, 3) matrix K with g(v_x, r) = K @ [v_x^2, r / v_x, v_x r] + g_0 (eq. 15, corrected; g_0 of
-    :func:`g_constant`)."""
+    """The monomial map of the measured consequent g of eq. (15) (corrected).
+
+    Parameters
+    ----------
+    gains : ObserverGains
+        The gains whose vehicle and sample period define g.
+
+    Returns
+    -------
+    (3, 3) ndarray
+        K with g(v_x, r) = K @ [v_x^2, r / v_x, v_x r] + g_0 (g_0 of :func:`g_constant`).
+    """
     k = gains.params.symbols()
     s = k["s"]
     K = np.zeros((3, 3))
@@ -68,7 +78,18 @@ def g_feature_matrix(gains: ObserverGains) -> FloatArray:
 
 
 def g_constant(gains: ObserverGains) -> FloatArray:
-    """(3,) the constant part of g: the rolling resistance, g_0 = [-s F_r / m_eff, 0, 0]."""
+    """The constant part of g: the rolling resistance, g_0 = [-s F_r / m_eff, 0, 0].
+
+    Parameters
+    ----------
+    gains : ObserverGains
+        Their vehicle's F_r [N] and m_eff [kg], and the sample period s [s].
+
+    Returns
+    -------
+    (3,) ndarray
+        g_0 [m/s].
+    """
     k = gains.params.symbols()
     return np.array([-k["s"] * k["F_r"] / k["m_eff"], 0.0, 0.0])
 
@@ -310,12 +331,24 @@ class StepResult(AugmentedEstimate):
 def initial_observer_state(
     rt: RuntimeGains, y: ArrayLike, x_hat0: ArrayLike | None = None, u0: ArrayLike | None = None
 ) -> FloatArray:
-    """z_0 such that x_hat_0 = z_0 - E y_0 equals ``x_hat0``, shape (nv, state_size).
+    """z_0 such that x_hat_0 = z_0 - E y_0 equals ``x_hat0``.
 
-    y : (nv, 2) first measurement; x_hat0 : (nv, n), (nv, 3) or None. A 3-vector
-    sets the vehicle state with zero faults; None means [v_x, 0, r] from y.
-    u0 : (nv, 2) first demand: with a steering actuator lag, its model starts at
-    rest on the demanded angle (at 0 without u0).
+    Parameters
+    ----------
+    rt : RuntimeGains
+        The gains in runtime form.
+    y : (nv, 2) array_like
+        First measurement [v_x [m/s], r [rad/s]].
+    x_hat0 : (nv, n) or (nv, 3) array_like, optional
+        The initial estimate; a 3-vector sets the vehicle state with zero faults. None: [v_x, 0, r] from y.
+    u0 : (nv, 2) array_like, optional
+        First demand [T_d [N m], delta_d [rad]]: with a steering actuator lag, its model starts at rest on the
+        demanded angle (at 0 without u0).
+
+    Returns
+    -------
+    (nv, state_size) ndarray
+        z_0.
     """
     y = np.atleast_2d(np.asarray(y, dtype=float))
     nv = y.shape[0]
@@ -341,18 +374,39 @@ def observer_step(
     fast: np.ndarray | None = None,
     mixed: bool | None = None,
 ) -> tuple[FloatArray, StepResult]:
-    """One step of Algorithm 1 for a batch: returns (z_{k+1}, result at k).
+    """One step of Algorithm 1 for a batch.
 
-    z : (nv, n) observer state; y : (nv, 2) measured [v_x [m/s], r [rad/s]];
-    u : (nv, 2) demanded [T_d [N m], delta_d [rad]]. Inputs must be finite.
-    fast : (nv,) for a switched design, which vehicles use the fast set (None: all of them);
-    the features are shared, so a mixed batch costs one GEMM with both sets stacked.
-    mixed : whether ``fast`` has both True and False, when the caller knows already.
-
-    Internally the batch is laid out vehicles-last (structure of arrays), so
-    every elementwise loop runs over the fleet; the returned z_{k+1} is the
-    transpose of a contiguous (n, nv) array, which makes the next call's
+    Internally the batch is laid out vehicles-last (structure of arrays), so every elementwise loop runs over the
+    fleet; the returned z_{k+1} is the transpose of a contiguous (n, nv) array, which makes the next call's
     transposes free.
+
+    Parameters
+    ----------
+    rt : RuntimeGains
+        The gains in runtime form.
+    z : (nv, state_size) ndarray
+        Observer state z_k.
+    y : (nv, 2) array_like
+        Measured [v_x [m/s], r [rad/s]]; finite.
+    u : (nv, 2) array_like
+        Demanded [T_d [N m], delta_d [rad]]; finite.
+    fast : (nv,) bool ndarray, optional
+        For a switched design, which vehicles use the fast set (None: all of them). The features are shared, so a
+        mixed batch costs one GEMM with both sets stacked.
+    mixed : bool, optional
+        Whether ``fast`` has both True and False, when the caller knows already.
+
+    Returns
+    -------
+    z_next : (nv, state_size) ndarray
+        z_{k+1}.
+    result : StepResult
+        The estimate at k and its flags.
+
+    Raises
+    ------
+    ShapeError
+        y, u or z does not have the batch's shape (the message names it).
     """
     y = np.asarray(y, dtype=float)
     u = np.asarray(u, dtype=float)
@@ -514,17 +568,41 @@ def _constant_mask(nv: int, value: bool) -> np.ndarray:
 def switched_step(
     rt: RuntimeGains, z: FloatArray, stat: FloatArray, left: np.ndarray, y: ArrayLike, u: ArrayLike
 ) -> tuple[FloatArray, FloatArray, np.ndarray, StepResult]:
-    """One step with the switching rule: returns (z_{k+1}, statistic s_k, fast samples left, result at k).
+    """One step with the switching rule.
 
-    stat : (nv,) the statistic s_{k-1}; left : (nv,) samples the fast set still has to run, counting
-    this one (``rt.start_samples`` at a (re)start; 0 and a statistic of 0 are a settled vehicle).
-    For gains with one set this is :func:`observer_step`, with stat and left passed through.
+    For gains with one set this is :func:`observer_step`, with ``stat`` and ``left`` passed through. Otherwise::
 
         fast set at k if left > 0;   nu_k = (y_k - C x_hat_k) / sigma   (out of the small GEMM on [y; z])
         s_k = lambda s_{k-1} + (1 - lambda) |nu_k|^2 / 2
         left <- max(left - 1, 0), then max(left, hold) where s_k > threshold
 
     so a statistic above the threshold at k puts the fast set on from k + 1 for ``hold`` samples.
+
+    Parameters
+    ----------
+    rt, z, y, u
+        As for :func:`observer_step`.
+    stat : (nv,) ndarray
+        The statistic s_{k-1}.
+    left : (nv,) int ndarray
+        Samples the fast set still has to run, counting this one (``rt.start_samples`` at a (re)start; 0 and a
+        statistic of 0 are a settled vehicle).
+
+    Returns
+    -------
+    z_next : (nv, state_size) ndarray
+        z_{k+1}.
+    stat : (nv,) ndarray
+        s_k.
+    left : (nv,) int ndarray
+        Fast samples left after this one.
+    result : StepResult
+        The estimate at k, with the set each vehicle ran.
+
+    Raises
+    ------
+    ShapeError
+        y, u or z does not have the batch's shape.
     """
     if rt.WT_quiet is None:
         z_next, result = observer_step(rt, z, y, u)

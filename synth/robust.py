@@ -95,7 +95,20 @@ class NoiseInputs:
 
 
 def noise_inputs(aug: AugmentedModel, noise: NoiseModel) -> NoiseInputs:
-    """Build the input and performance matrices of the H2 problem from the noise model."""
+    """The input and performance matrices of the H2 problem, from the noise model.
+
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model (physical coordinates).
+    noise : NoiseModel
+        Sensor sigmas, wind RMS, fault drift rates and the cost scales of the fault errors.
+
+    Returns
+    -------
+    NoiseInputs
+        The fixed inputs' matrix B_fixed, the sensor covariance Sigma_v and the performance output C_z.
+    """
     n = aug.n
     s = aug.nts.params.sample_period_s
     last = slice(n - N_FAULTS, n)
@@ -116,11 +129,21 @@ def noise_inputs(aug: AugmentedModel, noise: NoiseModel) -> NoiseInputs:
 def error_scales(aug: AugmentedModel, noise: NoiseModel) -> FloatArray:
     """Units of the solver coordinates for the H2 problem: the expected size of each estimation error.
 
-    v_x and r: their sensor sigmas; v_y: 0.05 m/s; fault f: the cost scales; the
-    differences of the fault chain: the per-sample drift. Every
-    coordinate of the error is then O(1), which is what lets the interior-point
-    solver find the optimum rather than a point that is 'optimal' to tolerance
-    but thousands of times worse (measured: cost 7.4e3 instead of 0.3).
+    v_x and r: their sensor sigmas; v_y: 0.05 m/s; fault f: the cost scales; the differences of the fault chain:
+    the per-sample drift. Every coordinate of the error is then O(1), which is what lets the interior-point
+    solver find the optimum rather than a point that is 'optimal' to tolerance but far worse.
+
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model.
+    noise : NoiseModel
+        The noise model the scales come from.
+
+    Returns
+    -------
+    (n,) ndarray
+        The scale of each augmented state's error, in its unit.
     """
     s = aug.nts.params.sample_period_s
     drift = np.array([noise.torque_fault_rate_nm_per_s * s, noise.steer_fault_rate_rad_per_s * s])
@@ -243,7 +266,22 @@ class H2LMIs:
 
 
 def output_matrices(lmis: H2LMIs, K_s: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """C_1 (n_z, n) and D_1 (n_z, m) of the filtered performance output, design coordinates."""
+    """The filtered performance output's matrices, in design coordinates.
+
+    Parameters
+    ----------
+    lmis : H2LMIs
+        The solved LMIs (their C_z, Sigma_v and design coordinates).
+    K_s : (n_z, p) ndarray
+        The scaled fault-filter gain.
+
+    Returns
+    -------
+    C_1 : (n_z, n) ndarray
+        C_z - K_s Sigma_v^-1 C_bar.
+    D_1 : (n_z, m) ndarray
+        [0, -K_s].
+    """
     Sigma_v_inv = np.diag(1.0 / np.diag(lmis.Sigma_v))
     C_1 = lmis.C_z - K_s @ Sigma_v_inv @ lmis.dc.C
     D_1 = np.hstack([np.zeros((K_s.shape[0], lmis.B_fixed.shape[1])), -K_s])
@@ -259,11 +297,35 @@ def verify_h2_bound(
     R: FloatArray,
     K_s: FloatArray,
 ) -> tuple[float, float]:
-    """Recompute the guaranteed cost in numpy: (bound, min eigenvalue of the cost-weighted Lyapunov LMIs).
+    """Recompute the guaranteed cost in numpy.
 
     bound = max_ij trace(B_i^T R^T (R + R^T - P_j)^-1 R B_i) + |D_1|_F^2 >= trace(B_i^T P_j B_i + D_1^T D_1),
     valid when every [[alpha^2 P_i - C_1^T C_1, (R N_i(rho))^T], [R N_i(rho), R + R^T - P_j]] is
     positive definite.
+
+    Parameters
+    ----------
+    dc : DesignCoordinates
+        The design coordinates of the solve.
+    lmis : H2LMIs
+        The solved LMIs.
+    N : (r, n, n) ndarray
+        N_i in design coordinates.
+    H : (r, n, p) ndarray
+        H_i = R^-1 X_i.
+    P : (r or 1, n, n) ndarray
+        The Lyapunov matrices.
+    R : (n, n) ndarray
+        The slack matrix.
+    K_s : (n_z, p) ndarray
+        The scaled fault-filter gain.
+
+    Returns
+    -------
+    bound : float
+        The guaranteed cost (dimensionless).
+    min_eigenvalue : float
+        The smallest eigenvalue of the cost-weighted Lyapunov LMIs; the bound holds only when it is positive.
     """
     r = N.shape[0]
     n_P = P.shape[0]
@@ -290,7 +352,37 @@ def verify_h2_bound(
 def synthesize_robust(
     params: VehicleParams, bounds: OperatingBounds, options: DesignOptions, *, use_symmetry: bool = True
 ) -> ObserverGains:
-    """Design the noise-aware observer; same guarantees and errors as :func:`synth.design.synthesize`."""
+    """Design the noise-aware observer (an H2 guaranteed cost, the fuzzy structure kept).
+
+    Same guarantees and errors as :func:`synth.design.synthesize`, which calls it for ``design="robust"``.
+
+    Parameters
+    ----------
+    params : VehicleParams
+        The vehicle.
+    bounds : OperatingBounds
+        The operating box the certificate covers.
+    options : DesignOptions
+        The design options (noise model, cost form, switching, solvers); ``design`` must be "robust".
+    use_symmetry : bool, default True
+        Pose the LMIs on mirror-invariant points when the data have the left-right symmetry.
+
+    Returns
+    -------
+    ObserverGains
+        Verified gains, certificate and guaranteed cost; for a switched design both gain sets.
+
+    Raises
+    ------
+    Infeasible
+        The augmented model is not detectable (the undetectable modes are named).
+    SolverFailed
+        No solver returned a usable point.
+    VerificationFailed
+        Every returned point failed the numpy verification.
+    BadParameters
+        ``options.design`` is not "robust", or a solver is not installed.
+    """
     if options.design != "robust":
         raise BadParameters(f"synthesize_robust needs design='robust', got {options.design!r}")
     started = time.perf_counter()
