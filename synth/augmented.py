@@ -63,9 +63,24 @@ class AugmentedEstimate:
 
 
 def fault_chain_matrix(order: int) -> FloatArray:
-    """The block companion matrix of (z - 1)^order in shift coordinates, (2q, 2q).
+    """The block companion matrix of (z - 1)^order in shift coordinates.
 
-    order 3 gives eq. (17): the bottom block row is [I, -3I, 3I].
+    Order 3 gives eq. (17): the bottom block row is [I, -3I, 3I].
+
+    Parameters
+    ----------
+    order : int
+        The fault model's order q: 1, 2 or 3.
+
+    Returns
+    -------
+    (2q, 2q) ndarray
+        The fault chain's transition matrix.
+
+    Raises
+    ------
+    BadParameters
+        ``order`` is not 1, 2 or 3.
     """
     _check_order(order)
     q = order
@@ -124,6 +139,16 @@ def front_force_bound_n(nts: NTSModel) -> float:
 
     The bounds' ``front_lateral_force_max_n`` when given, never more than what the operating box allows:
     2 C_f (delta_max + w_max), w_max = (max |v_y| + l_f max |r|) / v_x,min.
+
+    Parameters
+    ----------
+    nts : NTSModel
+        The model: its vehicle and operating box.
+
+    Returns
+    -------
+    float
+        F_max [N].
     """
     bounds, k = nts.bounds, nts.params.symbols()
     vy_abs = max(abs(bounds.vy_min_mps), abs(bounds.vy_max_mps))
@@ -135,7 +160,18 @@ def front_force_bound_n(nts: NTSModel) -> float:
 
 
 def dmvt_vertices(terms: tuple[DMVTTerm, ...]) -> list[tuple[float, ...]]:
-    """Every vertex of the box of (rho_1, ..., rho_K): 2^K tuples, the lower bounds first."""
+    """Every vertex of the box of (rho_1, ..., rho_K).
+
+    Parameters
+    ----------
+    terms : tuple of DMVTTerm
+        The K DMVT terms, whose bounds span the box.
+
+    Returns
+    -------
+    list of tuple of float
+        The 2^K vertices, the lower bounds first.
+    """
     return list(itertools.product(*((t.low, t.high) for t in terms)))
 
 
@@ -242,10 +278,24 @@ class AugmentedModel:
 
 
 def difference_coordinates(fault_order: int) -> FloatArray:
-    """T with x_diff = T x_bar, x_diff = [x; f; Delta f; ...], shape (n, n).
+    """The change to difference coordinates of the fault chain.
 
-    Delta^m f = sum_j binom(m, j) (-1)^(m-j) f_{k+j}: finite differences of the
-    shift-coordinate fault chain.
+    Delta^m f = sum_j binom(m, j) (-1)^(m-j) f_{k+j}: finite differences of the shift-coordinate fault chain.
+
+    Parameters
+    ----------
+    fault_order : int
+        The fault model's order q: 1, 2 or 3.
+
+    Returns
+    -------
+    (n, n) ndarray
+        T with x_diff = T x_bar, x_diff = [x; f; Delta f; ...], n = 3 + 2 q.
+
+    Raises
+    ------
+    BadParameters
+        ``fault_order`` is not 1, 2 or 3.
     """
     _check_order(fault_order)
     n = N_STATES + N_FAULTS * fault_order

@@ -67,10 +67,21 @@ def euler_input_matrices(params: VehicleParams) -> InputMatrices:
 
 
 def sector_weights(z: ArrayLike, low: float, high: float) -> tuple[FloatArray, FloatArray]:
-    """The two sector-nonlinearity weights of a scalar premise, shape (...) each.
+    """The two sector-nonlinearity weights of a scalar premise.
 
-    Returns (w_low, w_high) with w_low + w_high = 1, w_low = (high - z)/(high - low).
     ``z`` is not clipped here: callers clip to the design domain first.
+
+    Parameters
+    ----------
+    z : array_like
+        The premise, any shape (...).
+    low, high : float
+        The premise's bounds.
+
+    Returns
+    -------
+    w_low, w_high : (...) ndarray
+        w_low = (high - z) / (high - low) and w_high = 1 - w_low.
     """
     z = np.asarray(z, dtype=float)
     w_low = (high - z) / (high - low)

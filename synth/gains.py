@@ -70,8 +70,28 @@ def gains_hash(
 ) -> str:
     """Content hash of runtime gains and everything they were designed for.
 
-    A zero (or absent) output gain K is left out, so gains designed before K existed keep their hash;
-    so is an absent quiet set.
+    A zero (or absent) output gain K is left out, so gains designed before K existed keep their hash; so is an
+    absent quiet set.
+
+    Parameters
+    ----------
+    params : VehicleParams
+        The vehicle.
+    bounds : OperatingBounds
+        The operating box.
+    options : DesignOptions
+        The design options.
+    N, L, M, E : ndarray
+        The runtime gains of eq. (19), physical coordinates: N (r, n, n), L (r, n, p), M (n, n), E (n, p).
+    K : (n, p) ndarray, optional
+        The output gain.
+    quiet : GainSet, optional
+        A switched design's quiet set.
+
+    Returns
+    -------
+    str
+        The SHA-256 hex digest (synth.certificate.content_hash).
     """
     meta = {
         "format": GAINS_FORMAT,
