@@ -70,7 +70,7 @@ def fault_chain_matrix(order: int) -> FloatArray:
     Parameters
     ----------
     order : int
-        The fault model's order q: 1, 2 or 3.
+        q, how many samples of each fault channel the chain holds (1, 2 or 3).
 
     Returns
     -------
@@ -201,6 +201,25 @@ class AugmentedModel:
 
     @classmethod
     def build(cls, nts: NTSModel, fault_order: int = 3) -> AugmentedModel:
+        """The augmented model of eqs. (17)-(18) for ``nts`` and a fault chain of ``fault_order``.
+
+        Parameters
+        ----------
+        nts : NTSModel
+            The vehicle's N-TS model.
+        fault_order : int, default 3
+            The fault model's order q: 1, 2 or 3 (3 is the paper's).
+
+        Returns
+        -------
+        AugmentedModel
+            A_bar_i, T1, B_bar, G_bar, G_c_bar, D_bar and C_bar, n = 3 + 2 q.
+
+        Raises
+        ------
+        BadParameters
+            A fault order other than 1, 2 or 3.
+        """
         _check_order(fault_order)
         n = N_STATES + N_FAULTS * fault_order
         A_bar = np.zeros((nts.n_rules, n, n))

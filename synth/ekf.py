@@ -177,7 +177,18 @@ class AugmentedEKF:
         self._steer: FloatArray | None = None
 
     def step(self, y: ArrayLike, u: ArrayLike) -> EKFResult:
-        """Update with y_k, report x_{k|k}, predict to k + 1 with u_k."""
+        """Update with y_k, report x_{k|k}, predict to k + 1 with u_k.
+
+        Parameters
+        ----------
+        y, u : (nv, 2) array_like
+            The measurement and the demand of sample k, as for :meth:`synth.observer.FuzzyObserver.step`.
+
+        Returns
+        -------
+        EKFResult
+            x_{k|k} and the in-domain flags.
+        """
         y = np.atleast_2d(np.asarray(y, dtype=float))
         u = np.atleast_2d(np.asarray(u, dtype=float))
         demand = u

@@ -54,7 +54,7 @@ def euler_input_matrices(params: VehicleParams) -> InputMatrices:
     Parameters
     ----------
     params : VehicleParams
-        The vehicle; its sample period s [s] and the continuous input matrices of eq. (6).
+        Gives the sample period s [s] and, through :func:`synth.model.continuous_matrices`, B_v, D_v, F_v.
 
     Returns
     -------
@@ -123,7 +123,20 @@ class NTSModel(DiscreteTSModel):
 
     @classmethod
     def build(cls, params: VehicleParams, bounds: OperatingBounds) -> NTSModel:
-        """Build the vertex matrices from the parameters and the premise box."""
+        """Build the vertex matrices from the parameters and the premise box.
+
+        Parameters
+        ----------
+        params : VehicleParams
+            The vehicle.
+        bounds : OperatingBounds
+            The operating box; its 1/v_x and r bounds are the premise box.
+
+        Returns
+        -------
+        NTSModel
+            The model of eq. (15).
+        """
         V_lo, V_hi = bounds.inverse_speed_bounds
         r_lo, r_hi = bounds.yaw_rate_bounds
         corners = [(V_lo, V_hi)[a] for a, _ in RULE_CORNERS], [(r_lo, r_hi)[b] for _, b in RULE_CORNERS]
@@ -162,14 +175,38 @@ class NTSModel(DiscreteTSModel):
         return np.clip(np.asarray(xi, dtype=float), self.premise_low, self.premise_high)
 
     def memberships(self, xi: ArrayLike) -> FloatArray:
-        """h_i(xi) of eq. (16), shape (..., 4). Inside the box they lie on the simplex."""
+        """h_i(xi) of eq. (16). Inside the box they lie on the simplex.
+
+        Parameters
+        ----------
+        xi : (..., 2) array_like
+            The premise [1/v_x [s/m], r [rad/s]].
+
+        Returns
+        -------
+        (..., 4) ndarray
+            The rules' memberships.
+        """
         xi = np.asarray(xi, dtype=float)
         wV = sector_weights(xi[..., 0], self.premise_low[0], self.premise_high[0])
         wr = sector_weights(xi[..., 1], self.premise_low[1], self.premise_high[1])
         return np.stack([wV[a] * wr[b] for a, b in RULE_CORNERS], axis=-1)
 
     def g(self, v_x: ArrayLike, r: ArrayLike) -> FloatArray:
-        """The measured nonlinear consequent g(xi) of eq. (15), corrected, shape (..., 3)."""
+        """The measured nonlinear consequent g(xi) of eq. (15), corrected.
+
+        Parameters
+        ----------
+        v_x : array_like
+            Longitudinal speed [m/s], shape (...).
+        r : array_like
+            Yaw rate [rad/s], shape (...).
+
+        Returns
+        -------
+        (..., 3) ndarray
+            g [m/s, m/s, rad/s] per sample.
+        """
         k = self.params.symbols()
         s = k["s"]
         v_x = np.asarray(v_x, dtype=float)
@@ -193,10 +230,21 @@ class NTSModel(DiscreteTSModel):
         return bool(np.any(self.G_c))
 
     def phi_c(self, x: ArrayLike, steer_rad: ArrayLike) -> FloatArray:
-        """The cornering drag phi_c = F_yf sin(delta) [N] of the applied road-wheel angle, shape (...).
+        """The cornering drag phi_c = F_yf sin(delta) [N] of the applied road-wheel angle.
 
-        x : (..., 3) state [v_x, v_y, r]; steer_rad : (...) applied delta = delta_d + b_delta delta_f [rad].
         F_yf = 2 C_f (delta - (v_y + l_f r) / v_x) of eq. (2). Enters through G_c (zero without cornering drag).
+
+        Parameters
+        ----------
+        x : (..., 3) array_like
+            State [v_x [m/s], v_y [m/s], r [rad/s]].
+        steer_rad : (...) array_like
+            Applied delta = delta_d + b_delta delta_f [rad].
+
+        Returns
+        -------
+        (...) ndarray
+            phi_c [N].
         """
         x = np.asarray(x, dtype=float)
         k = self.params.symbols()
@@ -206,9 +254,19 @@ class NTSModel(DiscreteTSModel):
         return np.asarray(F_yf * np.sin(delta))
 
     def step(self, x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike) -> FloatArray:
-        """x_{k+1} of eq. (15), shape (..., 3); equals the Euler step (12) inside S_x.
+        """x_{k+1} of eq. (15); equals the Euler step (12) inside S_x.
 
         With the cornering drag: + G_c phi_c(x, delta_d + b_delta delta_f).
+
+        Parameters
+        ----------
+        x, u_d, w, f : array_like
+            State, demand, wind force and faults, as for :func:`synth.model.continuous_dynamics`.
+
+        Returns
+        -------
+        (..., 3) ndarray
+            x_{k+1}.
         """
         x = np.asarray(x, dtype=float)
         u_d = np.asarray(u_d, dtype=float)
@@ -256,6 +314,25 @@ class ConventionalTSModel(DiscreteTSModel):
 
     @classmethod
     def build(cls, params: VehicleParams, bounds: OperatingBounds) -> ConventionalTSModel:
+        """Build the 8 vertex matrices at the corners of the premise box [v_x, 1/v_x, v_y].
+
+        Parameters
+        ----------
+        params : VehicleParams
+            The vehicle, with the paper's longitudinal equation.
+        bounds : OperatingBounds
+            The operating box.
+
+        Returns
+        -------
+        ConventionalTSModel
+            The model of eq. (14).
+
+        Raises
+        ------
+        BadParameters
+            The vehicle has rolling resistance or cornering drag, which eq. (14) does not model.
+        """
         if params.rolling_resistance_n != 0.0 or params.cornering_drag:
             raise BadParameters(
                 "the conventional model of eq. (14) has the paper's longitudinal equation: no rolling resistance "
@@ -285,7 +362,18 @@ class ConventionalTSModel(DiscreteTSModel):
         )
 
     def step(self, x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike) -> FloatArray:
-        """x_{k+1} of eq. (14), shape (..., 3)."""
+        """x_{k+1} of eq. (14).
+
+        Parameters
+        ----------
+        x, u_d, w, f : array_like
+            As for :meth:`NTSModel.step`.
+
+        Returns
+        -------
+        (..., 3) ndarray
+            x_{k+1}.
+        """
         x = np.asarray(x, dtype=float)
         varpi = np.stack([x[..., 0], 1.0 / x[..., 0], x[..., 1]], axis=-1)
         h = self.memberships(varpi)

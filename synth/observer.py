@@ -185,6 +185,23 @@ class RuntimeGains:
 
     @classmethod
     def from_gains(cls, gains: ObserverGains) -> RuntimeGains:
+        """The runtime form of ``gains``: stacked, transposed feature weights for one GEMM per step.
+
+        Parameters
+        ----------
+        gains : ObserverGains
+            Verified gains of the 4-rule model.
+
+        Returns
+        -------
+        RuntimeGains
+            What :func:`observer_step` and :func:`switched_step` use.
+
+        Raises
+        ------
+        BadParameters
+            The gains do not have the 4 rules of eq. (16).
+        """
         aug = gains.model
         r, n, _ = gains.N.shape
         if r != len(RULE_CORNERS):
@@ -646,7 +663,20 @@ class FuzzyObserver:
         return int(self.z.shape[0])
 
     def step(self, y: ArrayLike, u: ArrayLike) -> StepResult:
-        """Consume y_k, u_k; return the estimate at k and advance to k + 1."""
+        """Consume y_k, u_k; return the estimate at k and advance to k + 1.
+
+        Parameters
+        ----------
+        y : (nv, 2) array_like
+            Measured [v_x [m/s], r [rad/s]].
+        u : (nv, 2) array_like
+            Demanded [T_d [N m], delta_d [rad]].
+
+        Returns
+        -------
+        StepResult
+            The estimate at k.
+        """
         self.z, self.stat, self.left, result = switched_step(
             self.runtime, self.z, self.stat, self.left, np.atleast_2d(y), np.atleast_2d(u)
         )
