@@ -234,16 +234,12 @@ def verify(
         The model (premise box, memberships).
     terms : sequence of DMVTTerm
         The DMVT terms of the augmented model (physical coordinates).
-    P : (r or 1, n, n) ndarray
-        The Lyapunov matrices, design coordinates.
-    R : (n, n) ndarray
-        The slack matrix, design coordinates.
+    P, R : ndarray
+        The Lyapunov matrices (r or 1, n, n) and the slack matrix (n, n), design coordinates.
     alpha : float
         The decay rate per sample the LMIs were posed at.
-    N_physical : (r, n, n) ndarray
-        The runtime N_i.
-    M_physical : (n, n) ndarray
-        The runtime M.
+    N_physical, M_physical : ndarray
+        The runtime N_i (r, n, n) and M (n, n).
     T : (n, n) ndarray
         The change to design coordinates.
 

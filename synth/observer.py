@@ -195,7 +195,6 @@ class RuntimeGains:
         Returns
         -------
         RuntimeGains
-            What :func:`observer_step` and :func:`switched_step` use.
 
         Raises
         ------
@@ -211,18 +210,10 @@ class RuntimeGains:
         sets = [gains] if quiet is None or rule is None else [gains, quiet]
         # every row of the reported estimate out of the small GEMM (no copy of the rest) when a set has an output gain
         K_rows = np.arange(n) if any(np.any(g.output_gain) for g in sets) else np.arange(0)
-        innovation_scale = None
-        if rule is not None and len(sets) == 2:
-            noise = gains.options.noise
-            weight = np.sqrt(0.5 * (1.0 - rule.forgetting))
-            innovation_scale = weight / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
+        innovation_scale = _innovation_scale(gains) if rule is not None and len(sets) == 2 else None
         stacked = [_stacked_gains(g, K_rows, innovation_scale) for g in sets]
-        # x' = x[:m]: the rows of x = [y; z] that some set's premise-dependent blocks (Q_V, Q_r, Q_Vr) use
+        m = _blended_rows([W for W, _ in stacked], n)
         n2 = n + 2
-        used = np.zeros(n2, dtype=bool)
-        for W, _ in stacked:
-            used |= np.any(W[n2 : 4 * n2].reshape(3, n2, n) != 0.0, axis=(0, 2))
-        m = int(np.flatnonzero(used)[-1]) + 1 if used.any() else 0
         rolling, cornering = gains.params.rolling_resistance_n != 0.0, aug.nts.has_cornering_drag
         n_tail = 6 + int(rolling) + int(cornering)
         keep = np.r_[
@@ -277,6 +268,25 @@ class RuntimeGains:
     def switched(self) -> bool:
         """Two gain sets (a switched design)."""
         return self.WT_quiet is not None
+
+
+def _innovation_scale(gains: ObserverGains) -> FloatArray:
+    """(2,) the switching statistic's weights of the innovation: sqrt((1 - lambda) / 2) over the sensor sigmas."""
+    rule, noise = gains.options.switching, gains.options.noise
+    if rule is None:
+        raise BadParameters("the innovation statistic needs a switched design (options.switching)")
+    weight = np.sqrt(0.5 * (1.0 - rule.forgetting))
+    return weight / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
+
+
+def _blended_rows(W: list[FloatArray], n: int) -> int:
+    """m, such that x' = x[:m] holds the rows of x = [y; z] that some set's premise-dependent blocks (Q_V, Q_r,
+    Q_Vr) of its feature weights W (n_features, n) use."""
+    n2 = n + 2
+    used = np.zeros(n2, dtype=bool)
+    for W_set in W:
+        used |= np.any(W_set[n2 : 4 * n2].reshape(3, n2, n) != 0.0, axis=(0, 2))
+    return int(np.flatnonzero(used)[-1]) + 1 if used.any() else 0
 
 
 def _stacked_gains(

@@ -352,16 +352,12 @@ def verify_h2_bound(
 def synthesize_robust(
     params: VehicleParams, bounds: OperatingBounds, options: DesignOptions, *, use_symmetry: bool = True
 ) -> ObserverGains:
-    """Design the noise-aware observer (an H2 guaranteed cost, the fuzzy structure kept).
-
-    Same guarantees and errors as :func:`synth.design.synthesize`, which calls it for ``design="robust"``.
+    """Design the noise-aware observer (an H2 guaranteed cost, the fuzzy structure kept); see synthesize.
 
     Parameters
     ----------
-    params : VehicleParams
-        The vehicle.
-    bounds : OperatingBounds
-        The operating box the certificate covers.
+    params, bounds : VehicleParams, OperatingBounds
+        The vehicle and the operating box the certificate covers.
     options : DesignOptions
         The design options (noise model, cost form, switching, solvers); ``design`` must be "robust".
     use_symmetry : bool, default True
@@ -374,12 +370,8 @@ def synthesize_robust(
 
     Raises
     ------
-    Infeasible
-        The augmented model is not detectable (the undetectable modes are named).
-    SolverFailed
-        No solver returned a usable point.
-    VerificationFailed
-        Every returned point failed the numpy verification.
+    Infeasible, SolverFailed, VerificationFailed
+        As :func:`synth.design.synthesize` (here Infeasible: the augmented model is not detectable).
     BadParameters
         ``options.design`` is not "robust", or a solver is not installed.
     """
