@@ -105,9 +105,8 @@ class DashboardModel:
         vehicle_id = self._vehicle_of(rx.key)
         if vehicle_id is None:
             return
-        try:
-            alarm = Alarm.decode(rx.payload)
-        except ProtocolError:
+        alarm = rx.decode(Alarm.decode)
+        if alarm is None:
             self.bad_messages += 1
             return
         self.apply_alarm(alarm)

@@ -48,6 +48,24 @@ class FleetConfig:
     publisher: PublisherOptions = field(default_factory=PublisherOptions)
     log_path: Path | None = None
 
+    def members(self) -> list[FleetMember]:
+        """The fleet of this configuration: ``n_vehicles`` drawn from ``mix`` with ``seed``.
+
+        Raises
+        ------
+        MixError, ScenarioError, ValueError
+            The mix is not one (its text, a scenario, a share).
+        """
+        return build_fleet(
+            self.mix,
+            self.n_vehicles,
+            self.duration_s,
+            seed=self.seed,
+            noise=self.noise,
+            id_prefix=self.id_prefix,
+            gusts=self.gusts,
+        )
+
 
 class TruthTracker:
     """A source wrapper that remembers each vehicle's peak |true fault| (nv, 2)."""
@@ -245,15 +263,7 @@ def run_fleet(
     Raises MixError / ScenarioError for a bad mix, TransportError if zenoh cannot be reached.
     """
     if members is None:
-        members = build_fleet(
-            config.mix,
-            config.n_vehicles,
-            config.duration_s,
-            seed=config.seed,
-            noise=config.noise,
-            id_prefix=config.id_prefix,
-            gusts=config.gusts,
-        )
+        members = config.members()
     source = TruthTracker(SimulatedSource([m.vehicle_id for m in members], [m.scenario for m in members]))
     log: TextIO | None = None
     session = open_session(config.transport)

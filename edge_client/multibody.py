@@ -34,11 +34,10 @@ model's rate limit.
 Integration. The inputs are held over each 10 ms sample and the MB ODE is
 integrated with fixed-step RK4 in substeps. The stiffest mode is the wheel
 spin: I_y_w dω/dt = -R_w F_x(slip), slip = 1 - R_w ω / v_x, an eigenvalue
-of about -WHEEL_MODE_RATE_MPS2 / v_x (-1,000 1/s at 6 m/s, measured on sets
-1 and 3, larger when braking). The substep count per sample keeps
-|λ| h <= RK4_STEP_BUDGET, inside RK4's stability interval (2.78) with margin:
-2 to 10 substeps at 22 to 6 m/s, 20 to 30 simulated seconds per wall second
-(:func:`simulate_many` runs drives in parallel processes).
+of about -WHEEL_MODE_RATE_MPS2 / v_x (larger when braking). The substep count
+per sample keeps |λ| h <= RK4_STEP_BUDGET, inside RK4's stability interval
+(2.78) with margin: 2 to 10 substeps at 22 to 6 m/s (:func:`simulate_many`
+runs drives in parallel processes).
 
 What the MB does that the 2-DOF model does not (measured on sets 1 and 3):
 
@@ -80,7 +79,7 @@ PARAMETER_SETS = (1, 2, 3, 4)
 GRAVITY_MPS2 = 9.81
 #: Position-servo gain of the steering actuator k_steer [1/s]: a lag of 1/k_steer = 33 ms.
 STEER_SERVO_GAIN_PER_S = 30.0
-#: |λ| of the wheel-spin mode is about this divided by v_x [m/s^2] (measured: 6,000-12,000 on sets 1 and 3).
+#: |λ| of the wheel-spin mode times v_x that the RK4 substeps are sized for [m/s^2].
 WHEEL_MODE_RATE_MPS2 = 12_000.0
 #: Largest |λ| h per RK4 substep (RK4 is stable on the negative real axis up to 2.78).
 RK4_STEP_BUDGET = 2.0

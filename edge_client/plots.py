@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -13,6 +14,27 @@ from edge_client.simulation import SimulationResult
 
 TRUE_STYLE = {"color": "tab:blue", "lw": 1.6, "label": "true"}
 EST_STYLE = {"color": "tab:red", "lw": 1.2, "ls": "--", "label": "estimated"}
+#: The two fault panels: (y label, title).
+FAULT_PANELS = (("T_f [N m]", "(a) torque fault"), ("delta_f [rad]", "(b) steering fault"))
+
+
+def _finish_fault_panel(ax: Any, true: Any, margin: float, ylabel: str, name: str) -> None:
+    """Limits around the true fault (0 included) with ``margin`` times its peak on both sides, labels, grid."""
+    span = max(float(abs(true).max()), 1e-9)
+    ax.set_ylim(min(float(true.min()), 0.0) - margin * span, max(float(true.max()), 0.0) + margin * span)
+    ax.set(ylabel=ylabel, title=name)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best")
+
+
+def _save(fig: Any, path: str | Path, title: str) -> Path:
+    """Title the figure (when given), write it as PNG and close it."""
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def plot_states(result: SimulationResult, path: str | Path, vehicle: int = 0, title: str = "") -> Path:
@@ -35,35 +57,20 @@ def plot_states(result: SimulationResult, path: str | Path, vehicle: int = 0, ti
         ax.set(xlabel="t [s]", ylabel=ylabel, title=name)
         ax.grid(alpha=0.3)
         ax.legend(loc="best")
-    if title:
-        fig.suptitle(title)
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def plot_faults(result: SimulationResult, path: str | Path, vehicle: int = 0, title: str = "") -> Path:
     """Figs. 4/6: (a) torque fault T_f, (b) steering fault delta_f, true vs estimated."""
     fig, axes = plt.subplots(2, 1, figsize=(11, 7), constrained_layout=True, sharex=True)
     t = result.t
-    for k, (ylabel, name) in enumerate([("T_f [N m]", "(a) torque fault"), ("delta_f [rad]", "(b) steering fault")]):
+    for k, (ylabel, name) in enumerate(FAULT_PANELS):
         ax = axes[k]
         ax.plot(t, result.f[:, vehicle, k], **TRUE_STYLE)
         ax.plot(t, result.f_hat[:, vehicle, k], **EST_STYLE)
-        true = result.f[:, vehicle, k]
-        span = max(float(abs(true).max()), 1e-9)
-        ax.set_ylim(min(float(true.min()), 0.0) - 0.6 * span, max(float(true.max()), 0.0) + 0.6 * span)
-        ax.set(ylabel=ylabel, title=name)
-        ax.grid(alpha=0.3)
-        ax.legend(loc="best")
+        _finish_fault_panel(ax, result.f[:, vehicle, k], 0.6, ylabel, name)
     axes[-1].set_xlabel("t [s]")
-    if title:
-        fig.suptitle(title)
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def plot_fault_overlay(results: dict[str, SimulationResult], path: str | Path, title: str = "") -> Path:
@@ -71,21 +78,11 @@ def plot_fault_overlay(results: dict[str, SimulationResult], path: str | Path, t
     fig, axes = plt.subplots(2, 1, figsize=(11, 7), constrained_layout=True, sharex=True)
     first = next(iter(results.values()))
     styles = [("tab:red", "--"), ("tab:green", ":"), ("tab:purple", "-.")]
-    for k, (ylabel, name) in enumerate([("T_f [N m]", "(a) torque fault"), ("delta_f [rad]", "(b) steering fault")]):
+    for k, (ylabel, name) in enumerate(FAULT_PANELS):
         ax = axes[k]
         ax.plot(first.t, first.f[:, 0, k], color="tab:blue", lw=1.8, label="true")
         for (label, result), (color, ls) in zip(results.items(), styles, strict=False):
             ax.plot(result.t, result.f_hat[:, 0, k], color=color, ls=ls, lw=1.1, label=label)
-        true = first.f[:, 0, k]
-        span = max(float(abs(true).max()), 1e-9)
-        ax.set_ylim(min(float(true.min()), 0.0) - 0.8 * span, max(float(true.max()), 0.0) + 0.8 * span)
-        ax.set(ylabel=ylabel, title=name)
-        ax.grid(alpha=0.3)
-        ax.legend(loc="best")
+        _finish_fault_panel(ax, first.f[:, 0, k], 0.8, ylabel, name)
     axes[-1].set_xlabel("t [s]")
-    if title:
-        fig.suptitle(title)
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)

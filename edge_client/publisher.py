@@ -285,9 +285,8 @@ class FleetPublisher:
         i = self._vehicle_of(rx.key)
         if i is None:
             return
-        try:
-            estimate = Estimate.decode(rx.payload)
-        except ProtocolError:
+        estimate = rx.decode(Estimate.decode)
+        if estimate is None:
             self.bad_messages += 1
             return
         slot = estimate.seq % LATENCY_RING
@@ -310,9 +309,8 @@ class FleetPublisher:
         i = self._vehicle_of(rx.key)
         if i is None:
             return
-        try:
-            alarm = Alarm.decode(rx.payload)
-        except ProtocolError:
+        alarm = rx.decode(Alarm.decode)
+        if alarm is None:
             self.bad_messages += 1
             return
         with self._rx_lock:

@@ -34,12 +34,12 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 import zenoh
 
-from service.protocol import DEFAULT_PREFIX, vehicle_key
+from service.protocol import DEFAULT_PREFIX, ProtocolError, vehicle_key
 from service.transport import ConfigValue, session_config
 from service.transport import TransportError as _ConfigError
 
@@ -137,6 +137,9 @@ def connected_nodes(session: zenoh.Session) -> int:
     return len(info.routers_zid()) + len(info.peers_zid())
 
 
+_Message = TypeVar("_Message")
+
+
 @dataclass(frozen=True)
 class Received:
     """A received sample: its key, payload, receipt time (time.monotonic_ns) and whether it was a PUT."""
@@ -145,6 +148,13 @@ class Received:
     payload: bytes
     received_ns: int
     put: bool = True
+
+    def decode(self, message: Callable[[bytes], _Message]) -> _Message | None:
+        """The payload as ``message`` decodes it (a protocol class's ``decode``), or None when it is not one."""
+        try:
+            return message(self.payload)
+        except ProtocolError:
+            return None
 
 
 class Subscription:

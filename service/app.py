@@ -279,39 +279,9 @@ class Service:
             for name, spec in initial.items():
                 storage.put_profile(name, spec.stored(), now)
             stored = storage.profiles()
-        # designs accepted (202) but not finished when the service stopped: each profile's latest is resumed
-        resume: dict[str, Job] = {}
-        for interrupted in (j for j in storage.jobs(limit=1000) if j["status"] in ("queued", "running")):
-            job = Job.from_dict(interrupted)
-            if not self._claim(job.profile):
-                continue  # another replica of the shared database is running this design
-            job.status, job.error, job.reason = "interrupted", "restart", "the service restarted during the design"
-            storage.put_job(job.to_dict())
-            if job.profile not in resume or job.created_t_ns > resume[job.profile].created_t_ns:
-                resume[job.profile] = job
+        resume = self._interrupted_designs(storage)
         for profile in stored:
-            try:
-                spec = self._add_stored_profile(profile)
-            except ProfileLoadError as exc:
-                # one profile the service cannot run must not keep the others from running
-                self.failed_profiles[profile.name] = str(exc)
-                log.error("stored profile %r cannot be loaded and does not run: %s", profile.name, exc)
-                continue
-            if profile.active_version:
-                await self._activate_stored_gains(profile.name, profile.active_version)
-            earlier = resume.get(profile.name)
-            resumed = None if earlier is None else _valid_spec(earlier.spec)
-            if earlier is not None and resumed is not None:
-                log.warning(
-                    "profile %s: resuming the design of job %s, interrupted by a restart", profile.name, earlier.id
-                )
-                self.jobs.submit(profile.name, resumed, earlier.kind, resumes=earlier.id)
-            elif self.engine.banks[profile.name].gains is None:
-                if self._claim(profile.name):
-                    self.jobs.submit(profile.name, spec, "initial")
-                else:
-                    log.info("profile %s: another replica designs its gains; this one activates them", profile.name)
-            self._release_claim(profile.name)  # unless a design of the profile is pending here
+            await self._load_profile(profile, resume.get(profile.name))
         served = set(self.buckets)  # a shared database holds the whole fleet: only this replica's share runs here
         for vehicle_id, profile_name, registered in storage.vehicles():
             if bucket_of(vehicle_id) not in served:
@@ -322,6 +292,43 @@ class Service:
                 self.engine.hold(vehicle_id, profile_name, registered)
         latched = [AlarmRecord.from_dict(r) for r in storage.latched_alarms() if bucket_of(r["vehicle"]) in served]
         self.engine.alarms.load(latched)
+
+    def _interrupted_designs(self, storage: Storage) -> dict[str, Job]:
+        """Designs accepted (202) but not finished when the service stopped, marked interrupted: each profile's
+        latest, to resume (those another replica of a shared database is running are left to it)."""
+        resume: dict[str, Job] = {}
+        for interrupted in (j for j in storage.jobs(limit=1000) if j["status"] in ("queued", "running")):
+            job = Job.from_dict(interrupted)
+            if not self._claim(job.profile):
+                continue  # another replica of the shared database is running this design
+            job.status, job.error, job.reason = "interrupted", "restart", "the service restarted during the design"
+            storage.put_job(job.to_dict())
+            if job.profile not in resume or job.created_t_ns > resume[job.profile].created_t_ns:
+                resume[job.profile] = job
+        return resume
+
+    async def _load_profile(self, profile: StoredProfile, earlier: Job | None) -> None:
+        """One stored profile into the fleet with its active gains; its interrupted design resumed (``earlier``),
+        or its first design started when it has no gains; a profile that cannot load is reported, not fatal."""
+        try:
+            spec = self._add_stored_profile(profile)
+        except ProfileLoadError as exc:
+            # one profile the service cannot run must not keep the others from running
+            self.failed_profiles[profile.name] = str(exc)
+            log.error("stored profile %r cannot be loaded and does not run: %s", profile.name, exc)
+            return
+        if profile.active_version:
+            await self._activate_stored_gains(profile.name, profile.active_version)
+        resumed = None if earlier is None else _valid_spec(earlier.spec)
+        if earlier is not None and resumed is not None:
+            log.warning("profile %s: resuming the design of job %s, interrupted by a restart", profile.name, earlier.id)
+            self.jobs.submit(profile.name, resumed, earlier.kind, resumes=earlier.id)
+        elif self.engine.banks[profile.name].gains is None:
+            if self._claim(profile.name):
+                self.jobs.submit(profile.name, spec, "initial")
+            else:
+                log.info("profile %s: another replica designs its gains; this one activates them", profile.name)
+        self._release_claim(profile.name)  # unless a design of the profile is pending here
 
     def _add_stored_profile(self, profile: StoredProfile) -> ProfileSpec:
         """Validate a stored profile as a request body would be and add it to the fleet, or say why not."""

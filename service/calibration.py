@@ -199,18 +199,9 @@ def calibrate_profile(
     alarm_base = AlarmThresholds.model_validate(alarms or {})
     nominal = nominal_torque_nm or params.effective_mass_kg * params.wheel_radius_m * NOMINAL_ACCEL_MPS2
     gusts = gust_drives(params, result.bounds, gust_n)
-    rates = [chosen["robust_decay_rate"]] if "robust_decay_rate" in chosen else list(DECAY_RATE_CANDIDATES)
-    candidates: list[tuple[float, ObserverGains, dict[str, ChannelThresholds], FloatArray]] = []
-    for rate in rates:
-        design_options = DesignOptions.model_validate({**chosen, "robust_decay_rate": rate})
-        gains = synthesize(params, result.bounds, design_options)
-        estimates = healthy_fault_estimates(gains, drives, alarm_base.warmup_s)
-        gust = held_peaks(observer_stepper(gains), gusts, alarm_base.raise_after_s)
-        thresholds = channel_thresholds(gains, estimates, gust, alarm_base, false_alarms_per_1000_h, nominal)
-        # the smallest faults the channels then detect, each relative to the fault it must see
-        score = sum(t.smallest_fault_bias / t.required_bias for t in thresholds.values())
-        candidates.append((score, gains, thresholds, estimates))
-    _, gains, thresholds, estimates = min(candidates, key=lambda candidate: candidate[0])
+    gains, thresholds, estimates = _best_design(
+        result, chosen, drives, gusts, alarm_base, false_alarms_per_1000_h, nominal
+    )
     design_options = gains.options
     # the effectiveness stage's measurement noise: the observer's healthy RMS (the stage stays off unless asked)
     stage = EffectivenessOptions(
@@ -253,6 +244,31 @@ def calibrate_profile(
         warnings=warnings,
         gust_n=gust_n,
     )
+
+
+def _best_design(
+    result: CalibrationResult,
+    chosen: dict[str, Any],
+    drives: Sequence[Drive],
+    gusts: list[Drive],
+    alarm_base: AlarmThresholds,
+    false_alarms_per_1000_h: float,
+    nominal: float,
+) -> tuple[ObserverGains, dict[str, ChannelThresholds], FloatArray]:
+    """The design among the decay-rate candidates (or the one rate ``chosen`` names) whose thresholds detect the
+    smallest faults, each relative to the fault its channel must see; with its thresholds and healthy estimates."""
+    rates = [chosen["robust_decay_rate"]] if "robust_decay_rate" in chosen else list(DECAY_RATE_CANDIDATES)
+    candidates: list[tuple[float, ObserverGains, dict[str, ChannelThresholds], FloatArray]] = []
+    for rate in rates:
+        design_options = DesignOptions.model_validate({**chosen, "robust_decay_rate": rate})
+        gains = synthesize(result.params, result.bounds, design_options)
+        estimates = healthy_fault_estimates(gains, drives, alarm_base.warmup_s)
+        gust = held_peaks(observer_stepper(gains), gusts, alarm_base.raise_after_s)
+        thresholds = channel_thresholds(gains, estimates, gust, alarm_base, false_alarms_per_1000_h, nominal)
+        score = sum(t.smallest_fault_bias / t.required_bias for t in thresholds.values())
+        candidates.append((score, gains, thresholds, estimates))
+    _, gains, thresholds, estimates = min(candidates, key=lambda candidate: candidate[0])
+    return gains, thresholds, estimates
 
 
 def calibrate_from_base(

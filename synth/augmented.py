@@ -44,10 +44,43 @@ N_OUTPUTS = 2
 VY_INDEX = 1
 
 
-def fault_chain_matrix(order: int) -> FloatArray:
-    """The block companion matrix of (z - 1)^order in shift coordinates, (2q, 2q).
+class AugmentedEstimate:
+    """What a batch's estimate of the augmented state reads as: ``x_hat`` of shape (nv, n), rows
+    [v_x, v_y, r, T_f, delta_f, ...]. The observer's and the EKF's results both carry it."""
 
-    order 3 gives eq. (17): the bottom block row is [I, -3I, 3I].
+    __slots__ = ()
+    x_hat: FloatArray
+
+    @property
+    def state(self) -> FloatArray:
+        """(nv, 3) estimated [v_x [m/s], v_y [m/s], r [rad/s]]."""
+        return self.x_hat[:, :N_STATES]
+
+    @property
+    def faults(self) -> FloatArray:
+        """(nv, 2) estimated [T_f [N m], delta_f [rad]]."""
+        return self.x_hat[:, N_STATES : N_STATES + N_FAULTS]
+
+
+def fault_chain_matrix(order: int) -> FloatArray:
+    """The block companion matrix of (z - 1)^order in shift coordinates.
+
+    Order 3 gives eq. (17): the bottom block row is [I, -3I, 3I].
+
+    Parameters
+    ----------
+    order : int
+        q, how many samples of each fault channel the chain holds (1, 2 or 3).
+
+    Returns
+    -------
+    (2q, 2q) ndarray
+        The fault chain's transition matrix.
+
+    Raises
+    ------
+    BadParameters
+        ``order`` is not 1, 2 or 3.
     """
     _check_order(order)
     q = order
@@ -106,6 +139,16 @@ def front_force_bound_n(nts: NTSModel) -> float:
 
     The bounds' ``front_lateral_force_max_n`` when given, never more than what the operating box allows:
     2 C_f (delta_max + w_max), w_max = (max |v_y| + l_f max |r|) / v_x,min.
+
+    Parameters
+    ----------
+    nts : NTSModel
+        The model: its vehicle and operating box.
+
+    Returns
+    -------
+    float
+        F_max [N].
     """
     bounds, k = nts.bounds, nts.params.symbols()
     vy_abs = max(abs(bounds.vy_min_mps), abs(bounds.vy_max_mps))
@@ -117,7 +160,18 @@ def front_force_bound_n(nts: NTSModel) -> float:
 
 
 def dmvt_vertices(terms: tuple[DMVTTerm, ...]) -> list[tuple[float, ...]]:
-    """Every vertex of the box of (rho_1, ..., rho_K): 2^K tuples, the lower bounds first."""
+    """Every vertex of the box of (rho_1, ..., rho_K).
+
+    Parameters
+    ----------
+    terms : tuple of DMVTTerm
+        The K DMVT terms, whose bounds span the box.
+
+    Returns
+    -------
+    list of tuple of float
+        The 2^K vertices, the lower bounds first.
+    """
     return list(itertools.product(*((t.low, t.high) for t in terms)))
 
 
@@ -147,6 +201,25 @@ class AugmentedModel:
 
     @classmethod
     def build(cls, nts: NTSModel, fault_order: int = 3) -> AugmentedModel:
+        """The augmented model of eqs. (17)-(18) for ``nts`` and a fault chain of ``fault_order``.
+
+        Parameters
+        ----------
+        nts : NTSModel
+            The vehicle's N-TS model.
+        fault_order : int, default 3
+            The fault model's order q: 1, 2 or 3 (3 is the paper's).
+
+        Returns
+        -------
+        AugmentedModel
+            A_bar_i, T1, B_bar, G_bar, G_c_bar, D_bar and C_bar, n = 3 + 2 q.
+
+        Raises
+        ------
+        BadParameters
+            A fault order other than 1, 2 or 3.
+        """
         _check_order(fault_order)
         n = N_STATES + N_FAULTS * fault_order
         A_bar = np.zeros((nts.n_rules, n, n))
@@ -224,10 +297,24 @@ class AugmentedModel:
 
 
 def difference_coordinates(fault_order: int) -> FloatArray:
-    """T with x_diff = T x_bar, x_diff = [x; f; Delta f; ...], shape (n, n).
+    """The change to difference coordinates of the fault chain.
 
-    Delta^m f = sum_j binom(m, j) (-1)^(m-j) f_{k+j}: finite differences of the
-    shift-coordinate fault chain.
+    Delta^m f = sum_j binom(m, j) (-1)^(m-j) f_{k+j}: finite differences of the shift-coordinate fault chain.
+
+    Parameters
+    ----------
+    fault_order : int
+        The fault model's order q: 1, 2 or 3.
+
+    Returns
+    -------
+    (n, n) ndarray
+        T with x_diff = T x_bar, x_diff = [x; f; Delta f; ...], n = 3 + 2 q.
+
+    Raises
+    ------
+    BadParameters
+        ``fault_order`` is not 1, 2 or 3.
     """
     _check_order(fault_order)
     n = N_STATES + N_FAULTS * fault_order

@@ -174,10 +174,30 @@ class CalibrationResult:
 def calibrate(
     drives: Sequence[Drive], base: dict[str, Any], options: CalibrationOptions | None = None
 ) -> CalibrationResult:
-    """Identify a vehicle profile from healthy drives; raise :class:`CalibrationRefused` saying why not.
+    """Identify a vehicle profile from healthy drives.
 
-    ``base`` holds vehicle parameters by their field names (synth.params.VehicleParams); what it gives is
-    kept, what it leaves out of :data:`IDENTIFIED_FIELDS` (and the yaw inertia) is identified.
+    What ``base`` gives is kept; what it leaves out of :data:`IDENTIFIED_FIELDS` (and the yaw inertia) is
+    identified.
+
+    Parameters
+    ----------
+    drives : sequence of Drive
+        The healthy recordings (100 Hz).
+    base : dict
+        Vehicle parameters by their field names (synth.params.VehicleParams).
+    options : CalibrationOptions, optional
+        Windows, thresholds and limits of the identification (defaults if None).
+
+    Returns
+    -------
+    CalibrationResult
+        The parameters, their confidence intervals, the sensor noise, the fit's residuals and an operating box.
+
+    Raises
+    ------
+    CalibrationRefused
+        The recordings cannot identify the profile; the message says why (no acceleration, too little
+        turning, a non-finite value, an interval too wide...).
     """
     options = options or CalibrationOptions()
     _check_inputs(drives, base)
@@ -510,6 +530,31 @@ def _longitudinal_rows(
     return X, rhs, ay, p.t[a]
 
 
+def _ratio_estimates(
+    names: Sequence[str], theta: FloatArray, cov: FloatArray, inv_m: float, m_free: bool
+) -> dict[str, Estimate]:
+    """The physical values of the fitted theta = [1/m_eff, C_x/m_eff, F_r/m_eff] (its free entries, named by
+    ``names``, "inv_m" for 1/m_eff) with 95 % intervals: each is a ratio to 1/m_eff, its variance by the delta
+    method from theta's covariance ``cov``. inv_m : float  [1/kg], fitted or given."""
+    estimates: dict[str, Estimate] = {}
+    for i, name in enumerate(names):
+        grad = np.zeros(len(names))
+        if name == "inv_m":
+            value = 1.0 / inv_m
+            grad[i] = -1.0 / inv_m**2
+            name = "effective_mass_kg"
+        elif m_free:
+            value = theta[i] / inv_m
+            grad[i], grad[0] = 1.0 / inv_m, -theta[i] / inv_m**2
+        else:
+            value = theta[i] / inv_m
+            grad[i] = 1.0 / inv_m
+        sd = math.sqrt(max(float(grad @ cov @ grad), 0.0))
+        low = value - 1.96 * sd if name == "effective_mass_kg" else max(0.0, value - 1.96 * sd)
+        estimates[name] = Estimate(value, low, value + 1.96 * sd)
+    return estimates
+
+
 def _fit_longitudinal(
     prepared: Sequence[_Prepared],
     sims: Sequence[tuple[FloatArray, FloatArray, FloatArray]],
@@ -573,23 +618,8 @@ def _fit_longitudinal(
             raise CalibrationRefused(
                 "the drive torque does not explain the accelerations: check the torque signal's sign and unit"
             )
-        for i, name in enumerate(names):
-            # each physical value is a ratio to 1/m_eff: its variance by the delta method
-            grad = np.zeros(len(names))
-            if name == "inv_m":
-                value = 1.0 / inv_m
-                grad[i] = -1.0 / inv_m**2
-                name = "effective_mass_kg"
-            elif m_free:
-                value = theta[i] / inv_m
-                grad[i], grad[0] = 1.0 / inv_m, -theta[i] / inv_m**2
-            else:
-                value = theta[i] / inv_m
-                grad[i] = 1.0 / inv_m
-            sd = math.sqrt(max(float(grad @ cov @ grad), 0.0))
-            low = value - 1.96 * sd if name == "effective_mass_kg" else max(0.0, value - 1.96 * sd)
-            estimates[name] = Estimate(value, low, value + 1.96 * sd)
-            values[name] = value
+        estimates = _ratio_estimates(names, theta, cov, inv_m, m_free)
+        values.update({name: e.value for name, e in estimates.items()})
     inv_m = 1.0 / values["effective_mass_kg"]
     theta_full = np.array([inv_m, values["longitudinal_drag_coeff"] * inv_m, values["rolling_resistance_n"] * inv_m])
     window_noise = math.sqrt(2.0 / ENDPOINT_SAMPLES) * noise["vx_sigma_mps"]
@@ -660,13 +690,30 @@ def operating_bounds(
     params: VehicleParams,
     offset: float,
 ) -> OperatingBounds:
-    """The design box: the paper's box (eq. 13: 5 to 30 m/s, |r| <= 0.55 rad/s) widened to hold the recorded
-    speeds and yaw rates with margins, symmetric in r and delta (the mirror symmetry halves the LMIs); v_y from
-    the identified model with a margin; the steering bound holds the largest recorded demand, a margin, and
-    0.05 rad of steering fault; and |F_yf| at most the grip of a dry road (mu = 1.2).
+    """The design box of a calibrated vehicle.
 
-    The box is the domain the certificate covers: the vehicle may leave the recordings' envelope (a tighter
-    turn, a lower speed) without leaving the design's, where it would be flagged out of domain.
+    The paper's box (eq. 13: 5 to 30 m/s, |r| <= 0.55 rad/s) widened to hold the recorded speeds and yaw rates
+    with margins, symmetric in r and delta (the mirror symmetry halves the LMIs); v_y from the identified model
+    with a margin; the steering bound holds the largest recorded demand, a margin, and 0.05 rad of steering
+    fault; and |F_yf| at most the grip of a dry road (mu = 1.2). The box is the domain the certificate covers:
+    the vehicle may leave the recordings' envelope (a tighter turn, a lower speed) without leaving the design's,
+    where it would be flagged out of domain.
+
+    Parameters
+    ----------
+    prepared : sequence of _Prepared
+        The recordings, prepared for the fits.
+    sims : sequence of (v_y, r, delta) tuples of ndarray
+        The identified model's lateral speed [m/s], yaw rate [rad/s] and road-wheel angle [rad] on each.
+    params : VehicleParams
+        The identified vehicle.
+    offset : float
+        The fitted steering offset [rad].
+
+    Returns
+    -------
+    OperatingBounds
+        The box.
     """
     vx = np.concatenate([p.v_x_raw[p.moving] for p in prepared])
     r = np.concatenate([p.r[p.moving] for p in prepared])

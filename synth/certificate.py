@@ -56,7 +56,24 @@ class VerificationReport:
 
 
 def vertex_lmi(P_i: FloatArray, P_j: FloatArray, R: FloatArray, N_rho: FloatArray, alpha: float) -> FloatArray:
-    """[[alpha^2 P_i, (R N)^T], [R N, R + R^T - P_j]] of eq. (33), shape (2n, 2n)."""
+    """The vertex LMI of eq. (33), [[alpha^2 P_i, (R N)^T], [R N, R + R^T - P_j]].
+
+    Parameters
+    ----------
+    P_i, P_j : (n, n) ndarray
+        The Lyapunov matrices of rules i and j.
+    R : (n, n) ndarray
+        The slack matrix.
+    N_rho : (n, n) ndarray
+        The error dynamics at a vertex of rho, N_i + sum_k rho_k M G_k c_k^T.
+    alpha : float
+        The decay rate per sample.
+
+    Returns
+    -------
+    (2n, 2n) ndarray
+        The LMI's matrix, positive definite when the vertex is certified.
+    """
     RN = R @ N_rho
     top = np.hstack([alpha**2 * P_i, RN.T])
     bottom = np.hstack([RN, R + R.T - P_j])
@@ -65,7 +82,20 @@ def vertex_lmi(P_i: FloatArray, P_j: FloatArray, R: FloatArray, N_rho: FloatArra
 
 
 def error_term_matrices(terms: Sequence[DMVTTerm], M: FloatArray) -> list[FloatArray]:
-    """M G_k c_k^T for every DMVT term, (n, n) each: the error dynamics' change per unit rho_k (eqs. 27-28)."""
+    """M G_k c_k^T for every DMVT term: the error dynamics' change per unit rho_k (eqs. 27-28).
+
+    Parameters
+    ----------
+    terms : sequence of DMVTTerm
+        The DMVT terms of the augmented model.
+    M : (n, n) ndarray
+        The observer's M.
+
+    Returns
+    -------
+    list of (n, n) ndarray
+        One matrix per term.
+    """
     return [term.matrix(M) for term in terms]
 
 
@@ -77,11 +107,35 @@ def verify_lyapunov(
     R: FloatArray,
     alpha: float,
 ) -> tuple[list[float], list[float], float, float]:
-    """Checks 1 and 2. Returns (LMI min eigenvalues, P min eigenvalues, slack min eig, certified alpha).
+    """Checks 1 and 2 of the certificate: the vertex LMIs and P > 0.
 
-    N : (r, n, n); error_terms : one (n, n) matrix M G_k c_k^T per DMVT term, whose bounds ``terms`` give;
-    P : (r or 1, n, n); R : (n, n). Every vertex of the box of rho is checked: the LMI is affine in rho,
-    so the vertices prove it on the whole box.
+    Every vertex of the box of rho is checked: the LMI is affine in rho, so the vertices prove it on the whole box.
+
+    Parameters
+    ----------
+    N : (r, n, n) ndarray
+        N_i.
+    error_terms : sequence of (n, n) ndarray
+        M G_k c_k^T per DMVT term (:func:`error_term_matrices`).
+    terms : sequence of DMVTTerm
+        The terms whose bounds give the box of rho.
+    P : (r or 1, n, n) ndarray
+        The Lyapunov matrices.
+    R : (n, n) ndarray
+        The slack matrix.
+    alpha : float
+        The decay rate per sample the LMIs were posed at.
+
+    Returns
+    -------
+    lmi_min_eigenvalues : list of float
+        The smallest eigenvalue of each vertex LMI.
+    p_min_eigenvalues : list of float
+        The smallest eigenvalue of each P_i.
+    slack_min_eigenvalue : float
+        The smallest eigenvalue of R + R^T - P_j over j.
+    certified_alpha : float
+        The smallest decay rate the LMIs certify (inf when P or R + R^T - P_j is not positive definite).
     """
     r = N.shape[0]
     P_of = (lambda k: P[k]) if P.shape[0] == r else (lambda k: P[0])
@@ -117,8 +171,29 @@ def spectral_radius_grid(
 ) -> tuple[float, dict[str, float], int]:
     """Max spectral radius of N(h) + sum_k rho_k M G_k c_k^T over the premise box x the box of rho.
 
-    ``rho_points`` points per rho with one DMVT term, 3 (both ends and the centre) per rho with several.
-    Returns (max, where it occurs as {speed_mps, yaw_rate_radps, rho, <other term names>}, number of points).
+    Parameters
+    ----------
+    nts : NTSModel
+        The model whose premise box and memberships are gridded.
+    N : (r, n, n) ndarray
+        N_i, physical coordinates.
+    error_terms : sequence of (n, n) ndarray
+        M G_k c_k^T per DMVT term.
+    terms : sequence of DMVTTerm
+        The DMVT terms (their bounds).
+    points_per_axis : int
+        Grid points per premise axis.
+    rho_points : int
+        Points per rho with one DMVT term; 3 (both ends and the centre) per rho with several.
+
+    Returns
+    -------
+    radius : float
+        The largest spectral radius on the grid.
+    where : dict of str to float
+        Where it occurs: speed_mps, yaw_rate_radps, rho and the other terms' names.
+    points : int
+        The number of points checked.
     """
     V = np.linspace(nts.premise_low[0], nts.premise_high[0], points_per_axis)
     r = np.linspace(nts.premise_low[1], nts.premise_high[1], points_per_axis)
@@ -148,11 +223,35 @@ def verify(
     M_physical: FloatArray,
     T: FloatArray,
 ) -> VerificationReport:
-    """Run checks 1-3 on gains in physical coordinates; raise :class:`VerificationFailed` naming the first that fails.
+    """Run checks 1-3 on gains in physical coordinates.
 
-    terms : the DMVT terms of the augmented model (physical coordinates); P, R : the multipliers in the
-    design coordinates x' = T x_bar. The LMIs are checked in the design coordinates (well conditioned);
-    the spectral radius on the runtime gains in physical coordinates.
+    The LMIs are checked in the design coordinates x' = T x_bar (well conditioned), the spectral radius on the
+    runtime gains in physical coordinates.
+
+    Parameters
+    ----------
+    nts : NTSModel
+        The model (premise box, memberships).
+    terms : sequence of DMVTTerm
+        The DMVT terms of the augmented model (physical coordinates).
+    P, R : ndarray
+        The Lyapunov matrices (r or 1, n, n) and the slack matrix (n, n), design coordinates.
+    alpha : float
+        The decay rate per sample the LMIs were posed at.
+    N_physical, M_physical : ndarray
+        The runtime N_i (r, n, n) and M (n, n).
+    T : (n, n) ndarray
+        The change to design coordinates.
+
+    Returns
+    -------
+    VerificationReport
+        Every figure the certificate records.
+
+    Raises
+    ------
+    VerificationFailed
+        A check fails; the message names the first that does.
     """
     T_inv = np.linalg.inv(T)
     N_design = np.einsum("ab,ibc,cd->iad", T, N_physical, T_inv)
@@ -197,7 +296,18 @@ def verify(
 
 
 def merged(first: VerificationReport, second: VerificationReport) -> VerificationReport:
-    """One report for two gain sets verified with the same P(h), R: the worse figure of each, both LMI lists."""
+    """One report for two gain sets verified with the same P(h) and R.
+
+    Parameters
+    ----------
+    first, second : VerificationReport
+        The two sets' reports.
+
+    Returns
+    -------
+    VerificationReport
+        The worse figure of each, both LMI lists.
+    """
     worse = first if first.spectral_radius_max >= second.spectral_radius_max else second
     return VerificationReport(
         lmi_min_eigenvalues=first.lmi_min_eigenvalues + second.lmi_min_eigenvalues,
@@ -268,9 +378,37 @@ def build_certificate(
 ) -> Certificate:
     """The certificate of a verified design: the one place a :class:`Certificate` is made.
 
-    ``report`` is what the numpy verification found, ``info`` what the solver of the accepted point
-    reported, ``alpha`` the decay rate the LMIs were posed at, ``gains_hash`` the content hash of the
-    runtime gains (synth.gains.gains_hash).
+    Parameters
+    ----------
+    options : DesignOptions
+        The design's options.
+    report : VerificationReport
+        What the numpy verification found.
+    info : SolveInfo
+        What the solver of the accepted point reported.
+    lmi_form : str
+        "vertex" or "petersen".
+    alpha : float
+        The decay rate per sample the LMIs were posed at.
+    n_lmis_solved : int
+        LMIs in the solved problem.
+    solves : int
+        Solver runs the design took.
+    timings : dict of str to float
+        Wall times of the design's stages [s].
+    gains_hash : str
+        The content hash of the runtime gains (synth.gains.gains_hash).
+    symmetry : str
+        "mirror" or "none".
+    performance : dict of str to float, optional
+        Guaranteed costs and other figures of the design.
+    notes : list of str, optional
+        What the figures mean.
+
+    Returns
+    -------
+    Certificate
+        The certificate.
     """
     return Certificate(
         design=options.design,
@@ -304,7 +442,20 @@ def build_certificate(
 
 
 def content_hash(arrays: dict[str, FloatArray], meta: dict[str, Any]) -> str:
-    """SHA-256 of the gain arrays (float64, C order) and the canonical JSON of ``meta``."""
+    """SHA-256 of the gain arrays (float64, C order) and the canonical JSON of ``meta``.
+
+    Parameters
+    ----------
+    arrays : dict of str to ndarray
+        The arrays, hashed in the order of their names.
+    meta : dict
+        JSON-serialisable metadata.
+
+    Returns
+    -------
+    str
+        The hex digest.
+    """
     digest = hashlib.sha256()
     digest.update(json.dumps(meta, sort_keys=True, separators=(",", ":")).encode())
     for name in sorted(arrays):

@@ -8,7 +8,9 @@ out, or an exception of :mod:`synth.errors` that says why not.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NoReturn
 
 import numpy as np
 
@@ -41,15 +43,28 @@ def synthesize(
     *,
     use_symmetry: bool = True,
 ) -> ObserverGains:
-    """Design certified observer gains (Theorem 2, or the robust design).
+    """Design certified observer gains (Theorem 2, or the robust design). Never returns unverified gains.
 
-    ``use_symmetry``: pose the LMIs on mirror-invariant points when the data have the
-    left-right symmetry (synth.symmetry; lossless). False only to measure what it saves.
+    Parameters
+    ----------
+    params, bounds : VehicleParams, OperatingBounds, optional
+        The vehicle and the operating box the certificate covers (the paper's, eq. (13), if None).
+    options : DesignOptions, optional
+        The design options (the product's default design if None).
+    use_symmetry : bool, default True
+        Pose the LMIs on mirror-invariant points when the data have the left-right symmetry (synth.symmetry;
+        lossless). False only to measure what it saves.
 
-    Raises :class:`~synth.errors.Infeasible` when the design cannot exist (with
-    the reason), :class:`~synth.errors.SolverFailed` when no solver returns a
-    point, :class:`~synth.errors.VerificationFailed` when no returned point
-    passes the numpy check. Never returns unverified gains.
+    Returns
+    -------
+    ObserverGains
+        Verified gains with their certificate.
+
+    Raises
+    ------
+    Infeasible, SolverFailed, VerificationFailed
+        The design cannot exist (with the reason), no solver returned a point, or no returned point passed the
+        numpy check.
     """
     params = params or VehicleParams()
     bounds = bounds or OperatingBounds()
@@ -85,15 +100,7 @@ def synthesize(
     best, failures = _solve_verified(lmis, aug, dc, 1.0, options.solvers, options.solver_time_limit_s)
     solves += len(options.solvers) if best is None else 1 + len(failures)
     if best is None:
-        if failures and all(isinstance(f, VerificationFailed) for f in failures):
-            raise VerificationFailed(
-                "every solver returned gains that fail the numpy verification: " + "; ".join(str(f) for f in failures),
-                {"failures": [str(f) for f in failures]},
-            )
-        raise SolverFailed(
-            f"no solver found a feasible point of the {lmis.n_lmis} LMIs of Theorem 2 "
-            f"({', '.join(options.solvers)}): " + "; ".join(str(f) for f in failures)
-        )
+        _raise_no_design(failures, lmis.n_lmis, options.solvers)
     timings["solve_s"] = time.perf_counter() - mark
     timings["compile_s"] = best.solution.info.compile_s
     timings["solver_s"] = best.solution.info.solver_s
@@ -106,6 +113,20 @@ def synthesize(
 
     timings["total_s"] = time.perf_counter() - started
     return _package(params, bounds, options, aug, dc, lmis, best, timings, solves)
+
+
+def _raise_no_design(failures: list[Exception], n_lmis: int, solvers: Sequence[str]) -> NoReturn:
+    """Raise why no solver gave verified gains: VerificationFailed when every solver's point failed the numpy
+    check, else SolverFailed."""
+    if failures and all(isinstance(f, VerificationFailed) for f in failures):
+        raise VerificationFailed(
+            "every solver returned gains that fail the numpy verification: " + "; ".join(str(f) for f in failures),
+            {"failures": [str(f) for f in failures]},
+        )
+    raise SolverFailed(
+        f"no solver found a feasible point of the {n_lmis} LMIs of Theorem 2 "
+        f"({', '.join(solvers)}): " + "; ".join(str(f) for f in failures)
+    )
 
 
 def _solve_verified(

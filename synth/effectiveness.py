@@ -268,6 +268,19 @@ class EffectivenessObserver:
         self.stage = EffectivenessEstimator(gains, options, self.observer.n_vehicles, u0)
 
     def step(self, y: ArrayLike, u: ArrayLike) -> EffectivenessStep:
+        """One observer step, then the loss-of-effectiveness stage on its fault estimates.
+
+        Parameters
+        ----------
+        y, u : (nv, 2) array_like
+            Sample k's measured [v_x, r] and demanded [T_d, delta_d], in the units of
+            :meth:`~synth.observer.FuzzyObserver.step`.
+
+        Returns
+        -------
+        EffectivenessStep
+            The total faults with alpha, bias and the observer's own estimate.
+        """
         result = self.observer.step(y, u)
         second = self.stage.step(result, y, u)
         x_hat = np.array(result.x_hat, dtype=float)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from synth.augmented import AugmentedModel, difference_coordinates, fault_chain_matrix
+from synth.augmented import AugmentedEstimate, AugmentedModel, difference_coordinates, fault_chain_matrix
 from synth.fuzzy import NTSModel
 from synth.model import FloatArray, continuous_dynamics, continuous_matrices
 from synth.options import NoiseModel
@@ -37,28 +37,33 @@ INITIAL_SIGMA_FAULT = np.array([200.0, 0.1])
 
 
 @dataclass(frozen=True)
-class EKFResult:
+class EKFResult(AugmentedEstimate):
     """The filtered estimate x_{k|k} of a batch: state (nv, 3), faults (nv, 2), in_domain (nv,)."""
 
     x_hat: FloatArray
     in_domain: np.ndarray
 
-    @property
-    def state(self) -> FloatArray:
-        return self.x_hat[:, :3]
-
-    @property
-    def faults(self) -> FloatArray:
-        return self.x_hat[:, 3:5]
-
 
 def jacobian(x: FloatArray, p: VehicleParams, steer_rad: FloatArray | None = None) -> FloatArray:
-    """d(dx/dt)/d[v_x, v_y, r] of eqs. (1)-(2) at x, shape (nv, 3, 3).
+    """d(dx/dt)/d[v_x, v_y, r] of eqs. (1)-(2) at x.
 
-    Without the cornering drag the inputs enter affinely (the steering angle
-    additively in F_yf), so the Jacobian does not depend on them and the fault
-    columns are F_v. With it, the applied steering angle ``steer_rad`` (nv,)
-    enters through -F_yf sin(delta) / m_eff (see :func:`cornering_drag_partials`).
+    Without the cornering drag the inputs enter affinely (the steering angle additively in F_yf), so the
+    Jacobian does not depend on them and the fault columns are F_v. With it, the applied steering angle enters
+    through -F_yf sin(delta) / m_eff (see :func:`cornering_drag_partials`).
+
+    Parameters
+    ----------
+    x : (nv, 3) ndarray
+        State [v_x [m/s], v_y [m/s], r [rad/s]].
+    p : VehicleParams
+        The vehicle.
+    steer_rad : (nv,) ndarray, optional
+        The applied steering angle [rad]; needed with the cornering drag.
+
+    Returns
+    -------
+    (nv, 3, 3) ndarray
+        The Jacobian [1/s and the mixed units of eq. (1)-(2)].
     """
     k = p.symbols()
     v_x, v_y, r = x[:, 0], x[:, 1], x[:, 2]
@@ -87,9 +92,25 @@ def jacobian(x: FloatArray, p: VehicleParams, steer_rad: FloatArray | None = Non
 
 
 def cornering_drag_partials(x: FloatArray, steer_rad: FloatArray, p: VehicleParams) -> tuple[FloatArray, FloatArray]:
-    """Partials of the cornering drag phi_c = F_yf sin(delta) [N]: d/d[v_x, v_y, r] (nv, 3) and d/d delta (nv,).
+    """Partials of the cornering drag phi_c = F_yf sin(delta) [N].
 
     F_yf = 2 C_f (delta - (v_y + l_f r) / v_x) of eq. (2).
+
+    Parameters
+    ----------
+    x : (nv, 3) ndarray
+        State [v_x [m/s], v_y [m/s], r [rad/s]].
+    steer_rad : (nv,) ndarray
+        The applied steering angle delta [rad].
+    p : VehicleParams
+        The vehicle.
+
+    Returns
+    -------
+    d_state : (nv, 3) ndarray
+        d phi_c / d[v_x, v_y, r] [N s/m, N s/m, N s].
+    d_steer : (nv,) ndarray
+        d phi_c / d delta [N/rad].
     """
     k = p.symbols()
     v_x, v_y, r = x[:, 0], x[:, 1], x[:, 2]
@@ -156,7 +177,18 @@ class AugmentedEKF:
         self._steer: FloatArray | None = None
 
     def step(self, y: ArrayLike, u: ArrayLike) -> EKFResult:
-        """Update with y_k, report x_{k|k}, predict to k + 1 with u_k."""
+        """Update with y_k, report x_{k|k}, predict to k + 1 with u_k.
+
+        Parameters
+        ----------
+        y, u : (nv, 2) array_like
+            The measurement and the demand of sample k, as for :meth:`synth.observer.FuzzyObserver.step`.
+
+        Returns
+        -------
+        EKFResult
+            x_{k|k} and the in-domain flags.
+        """
         y = np.atleast_2d(np.asarray(y, dtype=float))
         u = np.atleast_2d(np.asarray(u, dtype=float))
         demand = u

@@ -52,9 +52,30 @@ class ShapeError(BadParameters):
 def check_shape(
     value: Any, shape: tuple[int | None, ...], name: str, error: type[Exception] = ShapeError
 ) -> np.ndarray:
-    """``value`` as an array of ``shape`` (None: any length on that axis), else ``error`` naming the matrix.
+    """``value`` as an array of ``shape``, else ``error`` naming the matrix.
 
     In python-control's words: "Incompatible dimensions of N matrix; expected (4, 5, 5) but found (4, 5)".
+
+    Parameters
+    ----------
+    value : array_like
+        The array to check.
+    shape : tuple of int or None
+        The expected shape; None accepts any length on that axis.
+    name : str
+        The matrix's name in the message.
+    error : type of Exception, default ShapeError
+        The exception to raise.
+
+    Returns
+    -------
+    ndarray
+        ``value`` as an array.
+
+    Raises
+    ------
+    ShapeError
+        (or ``error``) when the shape differs.
     """
     array = np.asarray(value)
     if array.ndim != len(shape) or any(

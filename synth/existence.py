@@ -42,7 +42,18 @@ class UndetectableMode:
 
 
 def augmented_state_names(fault_order: int) -> list[str]:
-    """Readable names of the augmented state, shift coordinates."""
+    """Readable names of the augmented state, shift coordinates.
+
+    Parameters
+    ----------
+    fault_order : int
+        The fault model's order q.
+
+    Returns
+    -------
+    list of str
+        n = 3 + 2 q names: v_x, v_y, r, then the torque and steering faults of each shift.
+    """
     names = ["longitudinal speed v_x", "lateral speed v_y", "yaw rate r"]
     for m in range(fault_order):
         suffix = "" if m == 0 else f" (shift {m})"
@@ -51,7 +62,18 @@ def augmented_state_names(fault_order: int) -> list[str]:
 
 
 def decoupling_matrices(aug: AugmentedModel) -> tuple[FloatArray, FloatArray]:
-    """U = -D_bar (C_bar D_bar)^+ and V = I - (C_bar D_bar)(C_bar D_bar)^+ of eqs. (38)-(39)."""
+    """U = -D_bar (C_bar D_bar)^+ and V = I - (C_bar D_bar)(C_bar D_bar)^+ of eqs. (38)-(39).
+
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model (its C_bar and D_bar).
+
+    Returns
+    -------
+    U : (n, p) ndarray
+    V : (p, p) ndarray
+    """
     CD = aug.C_bar @ aug.D_bar
     CD_pinv = np.linalg.pinv(CD)
     U = -aug.D_bar @ CD_pinv
@@ -60,7 +82,18 @@ def decoupling_matrices(aug: AugmentedModel) -> tuple[FloatArray, FloatArray]:
 
 
 def check_decoupling_rank(aug: AugmentedModel) -> None:
-    """Raise :class:`Infeasible` unless rank(C_bar D_bar) = rank(D_bar)."""
+    """Check that the wind can be decoupled: rank(C_bar D_bar) = rank(D_bar).
+
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model.
+
+    Raises
+    ------
+    Infeasible
+        The ranks differ (the message gives them).
+    """
     rank_CD = np.linalg.matrix_rank(aug.C_bar @ aug.D_bar)
     rank_D = np.linalg.matrix_rank(aug.D_bar)
     if rank_CD != rank_D:
@@ -76,7 +109,26 @@ def check_decoupling_rank(aug: AugmentedModel) -> None:
 def undetectable_modes(
     A: FloatArray, C_ext: FloatArray, names: list[str], speed_mps: float, yaw_rate_radps: float
 ) -> list[UndetectableMode]:
-    """PBH test: eigenvalues of A on or outside the unit circle that C_ext does not see."""
+    """PBH test: the eigenvalues of A on or outside the unit circle that C_ext does not see.
+
+    Parameters
+    ----------
+    A : (n, n) ndarray
+        The error matrix at one premise.
+    C_ext : (p, n) ndarray
+        The output matrix (extended with what the design may use).
+    names : list of str
+        The state's names, for the modes' descriptions.
+    speed_mps : float
+        The premise's v_x [m/s].
+    yaw_rate_radps : float
+        The premise's r [rad/s].
+
+    Returns
+    -------
+    list of UndetectableMode
+        Empty when (A, C_ext) is detectable.
+    """
     n = A.shape[0]
     eigenvalues, vectors = np.linalg.eig(A)
     modes = []
@@ -105,7 +157,20 @@ def undetectable_modes(
 
 
 def premise_grid(aug: AugmentedModel, points_per_axis: int) -> list[tuple[float, float, FloatArray]]:
-    """(v_x [m/s], r [rad/s], memberships) on a grid of the premise box, r = 0 and the box edges included."""
+    """A grid of the premise box, r = 0 and the box edges included.
+
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model (its premise box and memberships).
+    points_per_axis : int
+        Grid points per premise axis.
+
+    Returns
+    -------
+    list of (float, float, ndarray)
+        (v_x [m/s], r [rad/s], memberships (r_rules,)) at each point.
+    """
     nts = aug.nts
     V_values = np.linspace(nts.premise_low[0], nts.premise_high[0], points_per_axis)
     r_values = np.union1d(np.linspace(nts.premise_low[1], nts.premise_high[1], points_per_axis), [0.0])
@@ -119,7 +184,20 @@ def premise_grid(aug: AugmentedModel, points_per_axis: int) -> list[tuple[float,
 
 
 def check_decoupled_detectability(aug: AugmentedModel, points_per_axis: int = 9) -> None:
-    """Raise :class:`Infeasible` with a readable paragraph if the decoupled design cannot exist."""
+    """Check that the decoupled design (the paper's wind decoupling) can exist.
+
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model, whose wind input is to be decoupled.
+    points_per_axis : int, default 9
+        Grid points per premise axis where the decoupled error dynamics are tested.
+
+    Raises
+    ------
+    Infeasible
+        It cannot; the message is a readable paragraph saying why.
+    """
     check_decoupling_rank(aug)
     U, V = decoupling_matrices(aug)
     M0 = np.eye(aug.n) + U @ aug.C_bar
@@ -177,7 +255,20 @@ def _format_complex(z: complex) -> str:
 
 
 def check_detectability(aug: AugmentedModel, points_per_axis: int = 9) -> None:
-    """Raise :class:`Infeasible` if (A_bar(xi), C_bar) is undetectable somewhere in the premise box."""
+    """Check that (A_bar(xi), C_bar) is detectable everywhere in the premise box.
+
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model.
+    points_per_axis : int, default 9
+        Grid points per premise axis.
+
+    Raises
+    ------
+    Infeasible
+        Some premise has an undetectable mode (the message names it).
+    """
     names = augmented_state_names(aug.fault_order)
     for speed, yaw_rate, h in premise_grid(aug, points_per_axis):
         modes = undetectable_modes(aug.A_bar_at(h), aug.C_bar, names, speed, yaw_rate)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -39,11 +40,48 @@ from synth.params import OperatingBounds, VehicleParams
 RULE_CORNERS = ((0, 0), (0, 1), (1, 0), (1, 1))
 
 
-def sector_weights(z: ArrayLike, low: float, high: float) -> tuple[FloatArray, FloatArray]:
-    """The two sector-nonlinearity weights of a scalar premise, shape (...) each.
+class InputMatrices(TypedDict):
+    """The input matrices of the Euler-discretised model (eq. 14): B (3, 2), D (3, 1), F (3, 2)."""
 
-    Returns (w_low, w_high) with w_low + w_high = 1, w_low = (high - z)/(high - low).
+    B: FloatArray
+    D: FloatArray
+    F: FloatArray
+
+
+def euler_input_matrices(params: VehicleParams) -> InputMatrices:
+    """B = s B_v, D = s D_v, F = s F_v of eq. (14), shared by the N-TS and the conventional TS model.
+
+    Parameters
+    ----------
+    params : VehicleParams
+        Gives the sample period s [s] and, through :func:`synth.model.continuous_matrices`, B_v, D_v, F_v.
+
+    Returns
+    -------
+    InputMatrices
+        B : (3, 2) on the demands [T_d, delta_d]; D : (3, 1) on the wind force; F : (3, 2) on the faults.
+    """
+    cm = continuous_matrices(params)
+    s = params.sample_period_s
+    return {"B": s * cm.B_v, "D": s * cm.D_v, "F": s * cm.F_v}
+
+
+def sector_weights(z: ArrayLike, low: float, high: float) -> tuple[FloatArray, FloatArray]:
+    """The two sector-nonlinearity weights of a scalar premise.
+
     ``z`` is not clipped here: callers clip to the design domain first.
+
+    Parameters
+    ----------
+    z : array_like
+        The premise, any shape (...).
+    low, high : float
+        The premise's bounds.
+
+    Returns
+    -------
+    w_low, w_high : (...) ndarray
+        w_low = (high - z) / (high - low) and w_high = 1 - w_low.
     """
     z = np.asarray(z, dtype=float)
     w_low = (high - z) / (high - low)
@@ -51,7 +89,20 @@ def sector_weights(z: ArrayLike, low: float, high: float) -> tuple[FloatArray, F
 
 
 @dataclass(frozen=True)
-class NTSModel:
+class DiscreteTSModel:
+    """What the TS models of eqs. (14) and (15) share: the vehicle and its operating box, the vertex matrices
+    A (r, 3, 3), one per rule, and the input matrices B, D, F of :func:`euler_input_matrices`."""
+
+    params: VehicleParams
+    bounds: OperatingBounds
+    A: FloatArray
+    B: FloatArray
+    D: FloatArray
+    F: FloatArray
+
+
+@dataclass(frozen=True)
+class NTSModel(DiscreteTSModel):
     """The N-TS fuzzy model of eq. (15) with the memberships of eq. (16).
 
     A : (4, 3, 3)  vertex matrices A_i = A(V_x, r) at the premise corners
@@ -64,12 +115,6 @@ class NTSModel:
     premise_low, premise_high : (2,)  bounds of xi = [V_x [s/m], r [rad/s]]
     """
 
-    params: VehicleParams
-    bounds: OperatingBounds
-    A: FloatArray
-    B: FloatArray
-    D: FloatArray
-    F: FloatArray
     G: FloatArray
     G_c: FloatArray
     C: FloatArray
@@ -78,12 +123,24 @@ class NTSModel:
 
     @classmethod
     def build(cls, params: VehicleParams, bounds: OperatingBounds) -> NTSModel:
-        """Build the vertex matrices from the parameters and the premise box."""
+        """Build the vertex matrices from the parameters and the premise box.
+
+        Parameters
+        ----------
+        params : VehicleParams
+            The vehicle.
+        bounds : OperatingBounds
+            The operating box; its 1/v_x and r bounds are the premise box.
+
+        Returns
+        -------
+        NTSModel
+            The model of eq. (15).
+        """
         V_lo, V_hi = bounds.inverse_speed_bounds
         r_lo, r_hi = bounds.yaw_rate_bounds
         corners = [(V_lo, V_hi)[a] for a, _ in RULE_CORNERS], [(r_lo, r_hi)[b] for _, b in RULE_CORNERS]
         A = np.stack([_vertex_matrix(V, r, params) for V, r in zip(*corners, strict=True)])
-        cm = continuous_matrices(params)
         s = params.sample_period_s
         G = np.array([[0.0], [-s * params.lateral_drag_coeff / params.mass_kg], [0.0]])
         G_c = np.array([[-s / params.effective_mass_kg if params.cornering_drag else 0.0], [0.0], [0.0]])
@@ -91,9 +148,7 @@ class NTSModel:
             params=params,
             bounds=bounds,
             A=A,
-            B=s * cm.B_v,
-            D=s * cm.D_v,
-            F=s * cm.F_v,
+            **euler_input_matrices(params),
             G=G,
             G_c=G_c,
             C=C.copy(),
@@ -120,14 +175,38 @@ class NTSModel:
         return np.clip(np.asarray(xi, dtype=float), self.premise_low, self.premise_high)
 
     def memberships(self, xi: ArrayLike) -> FloatArray:
-        """h_i(xi) of eq. (16), shape (..., 4). Inside the box they lie on the simplex."""
+        """h_i(xi) of eq. (16). Inside the box they lie on the simplex.
+
+        Parameters
+        ----------
+        xi : (..., 2) array_like
+            The premise [1/v_x [s/m], r [rad/s]].
+
+        Returns
+        -------
+        (..., 4) ndarray
+            The rules' memberships.
+        """
         xi = np.asarray(xi, dtype=float)
         wV = sector_weights(xi[..., 0], self.premise_low[0], self.premise_high[0])
         wr = sector_weights(xi[..., 1], self.premise_low[1], self.premise_high[1])
         return np.stack([wV[a] * wr[b] for a, b in RULE_CORNERS], axis=-1)
 
     def g(self, v_x: ArrayLike, r: ArrayLike) -> FloatArray:
-        """The measured nonlinear consequent g(xi) of eq. (15), corrected, shape (..., 3)."""
+        """The measured nonlinear consequent g(xi) of eq. (15), corrected.
+
+        Parameters
+        ----------
+        v_x : array_like
+            Longitudinal speed [m/s], shape (...).
+        r : array_like
+            Yaw rate [rad/s], shape (...).
+
+        Returns
+        -------
+        (..., 3) ndarray
+            g [m/s, m/s, rad/s] per sample.
+        """
         k = self.params.symbols()
         s = k["s"]
         v_x = np.asarray(v_x, dtype=float)
@@ -151,10 +230,21 @@ class NTSModel:
         return bool(np.any(self.G_c))
 
     def phi_c(self, x: ArrayLike, steer_rad: ArrayLike) -> FloatArray:
-        """The cornering drag phi_c = F_yf sin(delta) [N] of the applied road-wheel angle, shape (...).
+        """The cornering drag phi_c = F_yf sin(delta) [N] of the applied road-wheel angle.
 
-        x : (..., 3) state [v_x, v_y, r]; steer_rad : (...) applied delta = delta_d + b_delta delta_f [rad].
         F_yf = 2 C_f (delta - (v_y + l_f r) / v_x) of eq. (2). Enters through G_c (zero without cornering drag).
+
+        Parameters
+        ----------
+        x : (..., 3) array_like
+            State [v_x [m/s], v_y [m/s], r [rad/s]].
+        steer_rad : (...) array_like
+            Applied delta = delta_d + b_delta delta_f [rad].
+
+        Returns
+        -------
+        (...) ndarray
+            phi_c [N].
         """
         x = np.asarray(x, dtype=float)
         k = self.params.symbols()
@@ -164,9 +254,19 @@ class NTSModel:
         return np.asarray(F_yf * np.sin(delta))
 
     def step(self, x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike) -> FloatArray:
-        """x_{k+1} of eq. (15), shape (..., 3); equals the Euler step (12) inside S_x.
+        """x_{k+1} of eq. (15); equals the Euler step (12) inside S_x.
 
         With the cornering drag: + G_c phi_c(x, delta_d + b_delta delta_f).
+
+        Parameters
+        ----------
+        x, u_d, w, f : array_like
+            State, demand, wind force and faults, as for :func:`synth.model.continuous_dynamics`.
+
+        Returns
+        -------
+        (..., 3) ndarray
+            x_{k+1}.
         """
         x = np.asarray(x, dtype=float)
         u_d = np.asarray(u_d, dtype=float)
@@ -201,25 +301,38 @@ def _vertex_matrix(V_x: float, r: float, p: VehicleParams) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class ConventionalTSModel:
+class ConventionalTSModel(DiscreteTSModel):
     """The conventional 8-rule TS model of eq. (14), premise varpi = [v_x, 1/v_x, v_y].
 
     A : (8, 3, 3)  A_i = I + s A_v at the corners of the premise box, rule index
                    i = 4 a + 2 b + c for corner (v_x, 1/v_x, v_y) = (a, b, c), 0 = low.
     """
 
-    params: VehicleParams
-    bounds: OperatingBounds
-    A: FloatArray
-    B: FloatArray
-    D: FloatArray
-    F: FloatArray
     C: FloatArray
     premise_low: FloatArray
     premise_high: FloatArray
 
     @classmethod
     def build(cls, params: VehicleParams, bounds: OperatingBounds) -> ConventionalTSModel:
+        """Build the 8 vertex matrices at the corners of the premise box [v_x, 1/v_x, v_y].
+
+        Parameters
+        ----------
+        params : VehicleParams
+            The vehicle, with the paper's longitudinal equation.
+        bounds : OperatingBounds
+            The operating box.
+
+        Returns
+        -------
+        ConventionalTSModel
+            The model of eq. (14).
+
+        Raises
+        ------
+        BadParameters
+            The vehicle has rolling resistance or cornering drag, which eq. (14) does not model.
+        """
         if params.rolling_resistance_n != 0.0 or params.cornering_drag:
             raise BadParameters(
                 "the conventional model of eq. (14) has the paper's longitudinal equation: no rolling resistance "
@@ -229,15 +342,11 @@ class ConventionalTSModel:
         high = np.array([bounds.vx_max_mps, 1.0 / bounds.vx_min_mps, bounds.vy_max_mps])
         corners = [np.where(np.array(c) == 1, high, low) for c in itertools.product((0, 1), repeat=3)]
         A = np.stack([_affine_state_matrix(float(v_x), float(inv), float(v_y), params) for v_x, inv, v_y in corners])
-        cm = continuous_matrices(params)
-        s = params.sample_period_s
         return cls(
             params=params,
             bounds=bounds,
             A=A,
-            B=s * cm.B_v,
-            D=s * cm.D_v,
-            F=s * cm.F_v,
+            **euler_input_matrices(params),
             C=C.copy(),
             premise_low=low,
             premise_high=high,
@@ -253,7 +362,18 @@ class ConventionalTSModel:
         )
 
     def step(self, x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike) -> FloatArray:
-        """x_{k+1} of eq. (14), shape (..., 3)."""
+        """x_{k+1} of eq. (14).
+
+        Parameters
+        ----------
+        x, u_d, w, f : array_like
+            As for :meth:`NTSModel.step`.
+
+        Returns
+        -------
+        (..., 3) ndarray
+            x_{k+1}.
+        """
         x = np.asarray(x, dtype=float)
         varpi = np.stack([x[..., 0], 1.0 / x[..., 0], x[..., 1]], axis=-1)
         h = self.memberships(varpi)

@@ -70,8 +70,28 @@ def gains_hash(
 ) -> str:
     """Content hash of runtime gains and everything they were designed for.
 
-    A zero (or absent) output gain K is left out, so gains designed before K existed keep their hash;
-    so is an absent quiet set.
+    A zero (or absent) output gain K is left out, so gains designed before K existed keep their hash; so is an
+    absent quiet set.
+
+    Parameters
+    ----------
+    params : VehicleParams
+        The vehicle.
+    bounds : OperatingBounds
+        The operating box.
+    options : DesignOptions
+        The design options.
+    N, L, M, E : ndarray
+        The runtime gains of eq. (19), physical coordinates: N (r, n, n), L (r, n, p), M (n, n), E (n, p).
+    K : (n, p) ndarray, optional
+        The output gain.
+    quiet : GainSet, optional
+        A switched design's quiet set.
+
+    Returns
+    -------
+    str
+        The SHA-256 hex digest (synth.certificate.content_hash).
     """
     meta = {
         "format": GAINS_FORMAT,
@@ -143,7 +163,18 @@ class ObserverGains:
         return gains_hash(self.params, self.bounds, self.options, self.N, self.L, self.M, self.E, self.K, self.quiet)
 
     def to_dict(self, *, matrices: bool = True) -> dict[str, Any]:
-        """A JSON-ready dict; ``matrices=False`` leaves out the arrays (summary only)."""
+        """A JSON-ready dict of the gains, their design and certificate.
+
+        Parameters
+        ----------
+        matrices : bool, default True
+            Include the arrays; False gives a summary only.
+
+        Returns
+        -------
+        dict
+            What :meth:`from_dict` reads back.
+        """
         data: dict[str, Any] = {
             "format": GAINS_FORMAT,
             "version": self.version,
@@ -165,7 +196,27 @@ class ObserverGains:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], *, reverify: bool = True) -> ObserverGains:
-        """Rebuild gains from :meth:`to_dict` output; check the hash and, by default, re-run verification."""
+        """Rebuild gains from :meth:`to_dict` output; check the hash and, by default, re-run verification.
+
+        Parameters
+        ----------
+        data : dict
+            A gains document.
+        reverify : bool, default True
+            Re-run the numpy verification of the certificate.
+
+        Returns
+        -------
+        ObserverGains
+            The gains.
+
+        Raises
+        ------
+        VerificationFailed
+            The document is not one (format, a missing matrix, a matrix whose shape its fault order does not give or
+            with non-finite entries: the message names it), its hash does not match its content, or the gains fail
+            the verification.
+        """
         if data.get("format") != GAINS_FORMAT:
             raise VerificationFailed(f"unknown gains format {data.get('format')!r}, expected {GAINS_FORMAT!r}")
         if "matrices" not in data:

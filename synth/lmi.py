@@ -139,8 +139,26 @@ def design_coordinates(
 ) -> DesignCoordinates:
     """The solver coordinates: difference coordinates for the fault chain, then a diagonal scaling.
 
-    By default only the torque-fault components are scaled (by ``torque_fault_scale``);
-    ``state_scales`` (n,) sets the unit of every coordinate instead.
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model.
+    difference : bool, default True
+        Use the difference coordinates of the fault chain (else shift coordinates).
+    torque_fault_scale : float
+        The unit of the torque-fault components [N m]; by default only they are scaled.
+    state_scales : (n,) ndarray, optional
+        The unit of every coordinate instead.
+
+    Returns
+    -------
+    DesignCoordinates
+        T, T_inv and the model's matrices in the new coordinates.
+
+    Raises
+    ------
+    BadParameters
+        A scale is not positive and finite, or ``state_scales`` has the wrong length.
     """
     if not np.isfinite(torque_fault_scale) or torque_fault_scale <= 0:
         raise BadParameters(f"torque_fault_scale must be positive and finite, got {torque_fault_scale!r}")
@@ -187,7 +205,21 @@ def gains_from_solution(
     """M, N_i, L_i from E and H_i (eqs. 20, 43, 44), design coordinates.
 
     M = I + E C_bar; N_i = M A_bar_i - H_i C_bar; L_i = H_i (I + C_bar E) - M A_bar_i E.
-    Returns M (n, n), N (r, n, n), L (r, n, p).
+
+    Parameters
+    ----------
+    dc : DesignCoordinates
+        The design coordinates.
+    E : (n, p) ndarray
+        The observer's E.
+    H : (r, n, p) ndarray
+        H_i.
+
+    Returns
+    -------
+    M : (n, n) ndarray
+    N : (r, n, n) ndarray
+    L : (r, n, p) ndarray
     """
     n = dc.n
     p = dc.C.shape[0]
@@ -302,10 +334,28 @@ def petersen_block(
     """[[L0 - sum_k lambda_k b_k b_k^T, a_1 .. a_K], [a_k^T, diag(lambda)]] (symmetrised) and the lambda_k.
 
     Petersen's lemma: for one term (K = 1) this is positive definite for some lambda > 0 exactly when
-    L0 + t (a b^T + b a^T) > 0 for every t in [-1, 1], i.e. the LMI at both ends of the scalar
-    uncertainty that a b^T carries (rho about the centre of its interval). For several independent
-    scalars t_k in [-1, 1] the same block with one multiplier each is sufficient (completing the square
-    term by term), not necessary; the numpy verification checks every vertex regardless.
+    L0 + t (a b^T + b a^T) > 0 for every t in [-1, 1], i.e. the LMI at both ends of the scalar uncertainty that
+    a b^T carries (rho about the centre of its interval). For several independent scalars t_k in [-1, 1] the same
+    block with one multiplier each is sufficient (completing the square term by term), not necessary; the numpy
+    verification checks every vertex regardless.
+
+    Parameters
+    ----------
+    L0 : cvxpy.Expression
+        The LMI at the centre of the box of rho.
+    a : list of cvxpy.Expression
+        The a_k columns.
+    b : list of ndarray
+        The b_k columns.
+    name : str
+        The multipliers' name.
+
+    Returns
+    -------
+    block : cvxpy.Expression
+        The Petersen block.
+    multipliers : list of cvxpy.Variable
+        lambda_k.
     """
     lams = [cp.Variable(name=f"{name}_{k + 1}" if len(a) > 1 else name) for k in range(len(a))]
     top_left = L0

@@ -66,7 +66,18 @@ class ContinuousMatrices:
 
 
 def continuous_matrices(p: VehicleParams) -> ContinuousMatrices:
-    """B_v, D_v and F_v of eqs. (3) and (6)."""
+    """B_v, D_v and F_v of eqs. (3) and (6).
+
+    Parameters
+    ----------
+    p : VehicleParams
+        The vehicle.
+
+    Returns
+    -------
+    ContinuousMatrices
+        B_v (3, 2) on the demands [T_d, delta_d], D_v (3, 1) on the wind force F_w, F_v (3, 2) on the faults.
+    """
     k = p.symbols()
     # the drive torque at the wheels is a force T / R_w on the effective mass
     b11 = 1.0 / (k["R_w"] * k["m_eff"])
@@ -81,7 +92,19 @@ def continuous_matrices(p: VehicleParams) -> ContinuousMatrices:
 def tire_forces(x: ArrayLike, steer_rad: ArrayLike, p: VehicleParams) -> tuple[FloatArray, FloatArray]:
     """Front and rear lateral tyre forces F_yf, F_yr of eq. (2) [N].
 
-    x : (..., 3) state; steer_rad : (...) applied front wheel angle delta [rad].
+    Parameters
+    ----------
+    x : (..., 3) array_like
+        State [v_x [m/s], v_y [m/s], r [rad/s]].
+    steer_rad : (...) array_like
+        Applied front wheel angle delta [rad].
+    p : VehicleParams
+        The vehicle.
+
+    Returns
+    -------
+    F_yf, F_yr : (...) ndarray
+        The front and rear lateral forces [N].
     """
     x = np.asarray(x, dtype=float)
     k = p.symbols()
@@ -93,11 +116,24 @@ def tire_forces(x: ArrayLike, steer_rad: ArrayLike, p: VehicleParams) -> tuple[F
 
 
 def longitudinal_resistance_n(x: ArrayLike, steer_rad: ArrayLike, p: VehicleParams) -> FloatArray:
-    """The forces against the motion that eq. (1) leaves out: F_r + F_yf sin(delta) [N], shape (...).
+    """The forces against the motion that eq. (1) leaves out: F_r + F_yf sin(delta) [N].
 
-    x : (..., 3) state; steer_rad : (...) applied front road-wheel angle delta [rad]. F_r is the rolling
-    resistance, F_yf sin(delta) the front lateral force of eq. (2) projected on the vehicle's x axis
-    (only with ``cornering_drag``). Zero in the paper's profile.
+    F_r is the rolling resistance, F_yf sin(delta) the front lateral force of eq. (2) projected on the vehicle's
+    x axis (only with ``cornering_drag``). Zero in the paper's profile.
+
+    Parameters
+    ----------
+    x : (..., 3) array_like
+        State [v_x [m/s], v_y [m/s], r [rad/s]].
+    steer_rad : (...) array_like
+        Applied front road-wheel angle delta [rad].
+    p : VehicleParams
+        The vehicle.
+
+    Returns
+    -------
+    (...) ndarray
+        The resistance [N].
     """
     x = np.asarray(x, dtype=float)
     steer_rad = np.asarray(steer_rad, dtype=float)
@@ -108,18 +144,26 @@ def longitudinal_resistance_n(x: ArrayLike, steer_rad: ArrayLike, p: VehiclePara
     return resistance
 
 
-def continuous_dynamics(
-    x: ArrayLike,
-    u_d: ArrayLike,
-    w: ArrayLike,
-    f: ArrayLike,
-    p: VehicleParams,
-) -> FloatArray:
+def continuous_dynamics(x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike, p: VehicleParams) -> FloatArray:
     """dx/dt of eqs. (1), (2) and (5): the plant as physics, not as a matrix form.
 
-    x : (..., 3) [m/s, m/s, rad/s]; u_d : (..., 2) demanded [N m, rad];
-    w : (...) lateral wind force F_w [N]; f : (..., 2) faults [N m, rad].
-    Returns (..., 3).
+    Parameters
+    ----------
+    x : (..., 3) array_like
+        State [v_x [m/s], v_y [m/s], r [rad/s]].
+    u_d : (..., 2) array_like
+        Demanded [T_d [N m], delta_d [rad]].
+    w : (...) array_like
+        Lateral wind force F_w [N].
+    f : (..., 2) array_like
+        Faults [T_f [N m], delta_f [rad]].
+    p : VehicleParams
+        The vehicle.
+
+    Returns
+    -------
+    (..., 3) ndarray
+        dx/dt [m/s^2, m/s^2, rad/s^2].
     """
     x = np.asarray(x, dtype=float)
     u_d = np.asarray(u_d, dtype=float)
@@ -139,8 +183,22 @@ def continuous_dynamics(
 
 
 def state_matrix(x: ArrayLike, p: VehicleParams) -> FloatArray:
-    """A_v(x) of eq. (3), shape (..., 3, 3), such that
-    dx/dt = A_v(x) x + B_v u + D_v w + F_v f - e_1 longitudinal_resistance_n(x, delta) / m_eff."""
+    """A_v(x) of eq. (3), such that dx/dt = A_v(x) x + B_v u + D_v w + F_v f - e_1 R(x, delta) / m_eff.
+
+    R is :func:`longitudinal_resistance_n`.
+
+    Parameters
+    ----------
+    x : (..., 3) array_like
+        State [v_x [m/s], v_y [m/s], r [rad/s]].
+    p : VehicleParams
+        The vehicle.
+
+    Returns
+    -------
+    (..., 3, 3) ndarray
+        A_v(x).
+    """
     x = np.asarray(x, dtype=float)
     k = p.symbols()
     v_x, v_y = x[..., 0], x[..., 1]
@@ -161,12 +219,25 @@ def state_matrix(x: ArrayLike, p: VehicleParams) -> FloatArray:
 
 
 def lagged_steer(steer_demand_rad: ArrayLike, p: VehicleParams, initial_rad: ArrayLike | None = None) -> FloatArray:
-    """The road-wheel angle over each sample for a demand sequence held over the samples, (K, ...) like the demand.
+    """The road-wheel angle over each sample for a demand sequence held over the samples.
 
     The mean over [t_k, t_k+1) of a first-order actuator lag, delta_k + c (delta_d,k - delta_k), with
-    delta_{k+1} = a delta_k + (1 - a) delta_d,k (``VehicleParams.steer_lag_factor``, ``steer_lag_mean_factor``);
-    delta_0 = ``initial_rad`` (default: the first demand, an actuator at rest). The ideal actuator (tau = 0)
-    returns the demand itself.
+    delta_{k+1} = a delta_k + (1 - a) delta_d,k (``VehicleParams.steer_lag_factor``, ``steer_lag_mean_factor``).
+    The ideal actuator (tau = 0) returns the demand itself.
+
+    Parameters
+    ----------
+    steer_demand_rad : (K, ...) array_like
+        The demanded angle delta_d at each sample [rad].
+    p : VehicleParams
+        The vehicle (its steering time constant).
+    initial_rad : (...) array_like, optional
+        delta_0 [rad]; by default the first demand (an actuator at rest).
+
+    Returns
+    -------
+    (K, ...) ndarray
+        The mean road-wheel angle over each sample [rad].
     """
     demand = np.asarray(steer_demand_rad, dtype=float)
     a, c = p.steer_lag_factor, p.steer_lag_mean_factor
@@ -180,14 +251,19 @@ def lagged_steer(steer_demand_rad: ArrayLike, p: VehicleParams, initial_rad: Arr
     return out
 
 
-def euler_step(
-    x: ArrayLike,
-    u_d: ArrayLike,
-    w: ArrayLike,
-    f: ArrayLike,
-    p: VehicleParams,
-) -> FloatArray:
-    """One step of eq. (12): x_{k+1} = x_k + s * dx/dt(x_k), shape (..., 3)."""
+def euler_step(x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike, p: VehicleParams) -> FloatArray:
+    """One step of eq. (12): x_{k+1} = x_k + s dx/dt(x_k).
+
+    Parameters
+    ----------
+    x, u_d, w, f, p
+        As for :func:`continuous_dynamics`.
+
+    Returns
+    -------
+    (..., 3) ndarray
+        x_{k+1} [m/s, m/s, rad/s].
+    """
     x = np.asarray(x, dtype=float)
     return x + p.sample_period_s * continuous_dynamics(x, u_d, w, f, p)
 
@@ -200,7 +276,20 @@ def rk4_step(
     p: VehicleParams,
     dt_s: float,
 ) -> FloatArray:
-    """One classical Runge-Kutta step of length ``dt_s`` [s] with inputs held, shape (..., 3)."""
+    """One classical Runge-Kutta step of :func:`continuous_dynamics` with the inputs held.
+
+    Parameters
+    ----------
+    x, u_d, w, f, p
+        As for :func:`continuous_dynamics`.
+    dt_s : float
+        The step [s].
+
+    Returns
+    -------
+    (..., 3) ndarray
+        The state after ``dt_s`` [m/s, m/s, rad/s].
+    """
     x = np.asarray(x, dtype=float)
     k1 = continuous_dynamics(x, u_d, w, f, p)
     k2 = continuous_dynamics(x + 0.5 * dt_s * k1, u_d, w, f, p)

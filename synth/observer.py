@@ -42,7 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from synth.augmented import N_STATES, VY_INDEX, front_force_bound_n
+from synth.augmented import N_STATES, VY_INDEX, AugmentedEstimate, front_force_bound_n
 from synth.errors import BadParameters, check_shape
 from synth.fuzzy import RULE_CORNERS
 from synth.gains import ObserverGains
@@ -55,8 +55,18 @@ G_FEATURES = ("v_x^2", "r/v_x", "v_x r")
 
 
 def g_feature_matrix(gains: ObserverGains) -> FloatArray:
-    """(3, 3) matrix K with g(v_x, r) = K @ [v_x^2, r / v_x, v_x r] + g_0 (eq. 15, corrected; g_0 of
-    :func:`g_constant`)."""
+    """The monomial map of the measured consequent g of eq. (15) (corrected).
+
+    Parameters
+    ----------
+    gains : ObserverGains
+        The gains whose vehicle and sample period define g.
+
+    Returns
+    -------
+    (3, 3) ndarray
+        K with g(v_x, r) = K @ [v_x^2, r / v_x, v_x r] + g_0 (g_0 of :func:`g_constant`).
+    """
     k = gains.params.symbols()
     s = k["s"]
     K = np.zeros((3, 3))
@@ -68,7 +78,18 @@ def g_feature_matrix(gains: ObserverGains) -> FloatArray:
 
 
 def g_constant(gains: ObserverGains) -> FloatArray:
-    """(3,) the constant part of g: the rolling resistance, g_0 = [-s F_r / m_eff, 0, 0]."""
+    """The constant part of g: the rolling resistance, g_0 = [-s F_r / m_eff, 0, 0].
+
+    Parameters
+    ----------
+    gains : ObserverGains
+        Their vehicle's F_r [N] and m_eff [kg], and the sample period s [s].
+
+    Returns
+    -------
+    (3,) ndarray
+        g_0 [m/s].
+    """
     k = gains.params.symbols()
     return np.array([-k["s"] * k["F_r"] / k["m_eff"], 0.0, 0.0])
 
@@ -164,6 +185,22 @@ class RuntimeGains:
 
     @classmethod
     def from_gains(cls, gains: ObserverGains) -> RuntimeGains:
+        """The runtime form of ``gains``: stacked, transposed feature weights for one GEMM per step.
+
+        Parameters
+        ----------
+        gains : ObserverGains
+            Verified gains of the 4-rule model.
+
+        Returns
+        -------
+        RuntimeGains
+
+        Raises
+        ------
+        BadParameters
+            The gains do not have the 4 rules of eq. (16).
+        """
         aug = gains.model
         r, n, _ = gains.N.shape
         if r != len(RULE_CORNERS):
@@ -173,18 +210,10 @@ class RuntimeGains:
         sets = [gains] if quiet is None or rule is None else [gains, quiet]
         # every row of the reported estimate out of the small GEMM (no copy of the rest) when a set has an output gain
         K_rows = np.arange(n) if any(np.any(g.output_gain) for g in sets) else np.arange(0)
-        innovation_scale = None
-        if rule is not None and len(sets) == 2:
-            noise = gains.options.noise
-            weight = np.sqrt(0.5 * (1.0 - rule.forgetting))
-            innovation_scale = weight / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
+        innovation_scale = _innovation_scale(gains) if rule is not None and len(sets) == 2 else None
         stacked = [_stacked_gains(g, K_rows, innovation_scale) for g in sets]
-        # x' = x[:m]: the rows of x = [y; z] that some set's premise-dependent blocks (Q_V, Q_r, Q_Vr) use
+        m = _blended_rows([W for W, _ in stacked], n)
         n2 = n + 2
-        used = np.zeros(n2, dtype=bool)
-        for W, _ in stacked:
-            used |= np.any(W[n2 : 4 * n2].reshape(3, n2, n) != 0.0, axis=(0, 2))
-        m = int(np.flatnonzero(used)[-1]) + 1 if used.any() else 0
         rolling, cornering = gains.params.rolling_resistance_n != 0.0, aug.nts.has_cornering_drag
         n_tail = 6 + int(rolling) + int(cornering)
         keep = np.r_[
@@ -241,6 +270,25 @@ class RuntimeGains:
         return self.WT_quiet is not None
 
 
+def _innovation_scale(gains: ObserverGains) -> FloatArray:
+    """(2,) the switching statistic's weights of the innovation: sqrt((1 - lambda) / 2) over the sensor sigmas."""
+    rule, noise = gains.options.switching, gains.options.noise
+    if rule is None:
+        raise BadParameters("the innovation statistic needs a switched design (options.switching)")
+    weight = np.sqrt(0.5 * (1.0 - rule.forgetting))
+    return weight / np.array([noise.vx_sigma_mps, noise.r_sigma_radps])
+
+
+def _blended_rows(W: list[FloatArray], n: int) -> int:
+    """m, such that x' = x[:m] holds the rows of x = [y; z] that some set's premise-dependent blocks (Q_V, Q_r,
+    Q_Vr) of its feature weights W (n_features, n) use."""
+    n2 = n + 2
+    used = np.zeros(n2, dtype=bool)
+    for W_set in W:
+        used |= np.any(W_set[n2 : 4 * n2].reshape(3, n2, n) != 0.0, axis=(0, 2))
+    return int(np.flatnonzero(used)[-1]) + 1 if used.any() else 0
+
+
 def _stacked_gains(
     gains: ObserverGains, K_rows: np.ndarray, innovation_scale: FloatArray | None
 ) -> tuple[FloatArray, FloatArray]:
@@ -286,7 +334,7 @@ def _stacked_gains(
 
 
 @dataclass(slots=True)
-class StepResult:
+class StepResult(AugmentedEstimate):
     """Output of one observer step for a batch.
 
     x_hat : (nv, n) reported estimate of x_bar_k: [v_x, v_y, r, T_f, delta_f, ...] (with the output gain)
@@ -306,26 +354,28 @@ class StepResult:
     #: so that its squared norm is the switching statistic's increment (switched designs; None otherwise)
     innovation: FloatArray | None = None
 
-    @property
-    def state(self) -> FloatArray:
-        """(nv, 3) estimated [v_x, v_y, r]."""
-        return self.x_hat[:, :3]
-
-    @property
-    def faults(self) -> FloatArray:
-        """(nv, 2) estimated [T_f [N m], delta_f [rad]]."""
-        return self.x_hat[:, 3:5]
-
 
 def initial_observer_state(
     rt: RuntimeGains, y: ArrayLike, x_hat0: ArrayLike | None = None, u0: ArrayLike | None = None
 ) -> FloatArray:
-    """z_0 such that x_hat_0 = z_0 - E y_0 equals ``x_hat0``, shape (nv, state_size).
+    """z_0 such that x_hat_0 = z_0 - E y_0 equals ``x_hat0``.
 
-    y : (nv, 2) first measurement; x_hat0 : (nv, n), (nv, 3) or None. A 3-vector
-    sets the vehicle state with zero faults; None means [v_x, 0, r] from y.
-    u0 : (nv, 2) first demand: with a steering actuator lag, its model starts at
-    rest on the demanded angle (at 0 without u0).
+    Parameters
+    ----------
+    rt : RuntimeGains
+        The gains in runtime form.
+    y : (nv, 2) array_like
+        First measurement [v_x [m/s], r [rad/s]].
+    x_hat0 : (nv, n) or (nv, 3) array_like, optional
+        The initial estimate; a 3-vector sets the vehicle state with zero faults. None: [v_x, 0, r] from y.
+    u0 : (nv, 2) array_like, optional
+        First demand [T_d [N m], delta_d [rad]]: with a steering actuator lag, its model starts at rest on the
+        demanded angle (at 0 without u0).
+
+    Returns
+    -------
+    (nv, state_size) ndarray
+        z_0.
     """
     y = np.atleast_2d(np.asarray(y, dtype=float))
     nv = y.shape[0]
@@ -351,24 +401,70 @@ def observer_step(
     fast: np.ndarray | None = None,
     mixed: bool | None = None,
 ) -> tuple[FloatArray, StepResult]:
-    """One step of Algorithm 1 for a batch: returns (z_{k+1}, result at k).
+    """One step of Algorithm 1 for a batch.
 
-    z : (nv, n) observer state; y : (nv, 2) measured [v_x [m/s], r [rad/s]];
-    u : (nv, 2) demanded [T_d [N m], delta_d [rad]]. Inputs must be finite.
-    fast : (nv,) for a switched design, which vehicles use the fast set (None: all of them);
-    the features are shared, so a mixed batch costs one GEMM with both sets stacked.
-    mixed : whether ``fast`` has both True and False, when the caller knows already.
-
-    Internally the batch is laid out vehicles-last (structure of arrays), so
-    every elementwise loop runs over the fleet; the returned z_{k+1} is the
-    transpose of a contiguous (n, nv) array, which makes the next call's
+    Internally the batch is laid out vehicles-last (structure of arrays), so every elementwise loop runs over the
+    fleet; the returned z_{k+1} is the transpose of a contiguous (n, nv) array, which makes the next call's
     transposes free.
+
+    Parameters
+    ----------
+    rt : RuntimeGains
+        The gains in runtime form.
+    z : (nv, state_size) ndarray
+        Observer state z_k.
+    y : (nv, 2) array_like
+        Measured [v_x [m/s], r [rad/s]]; finite.
+    u : (nv, 2) array_like
+        Demanded [T_d [N m], delta_d [rad]]; finite.
+    fast : (nv,) bool ndarray, optional
+        For a switched design, which vehicles use the fast set (None: all of them). The features are shared, so a
+        mixed batch costs one GEMM with both sets stacked.
+    mixed : bool, optional
+        Whether ``fast`` has both True and False, when the caller knows already.
+
+    Returns
+    -------
+    z_next : (nv, state_size) ndarray
+        z_{k+1}.
+    result : StepResult
+        The estimate at k and its flags.
+
+    Raises
+    ------
+    ShapeError
+        y, u or z does not have the batch's shape (the message names it).
     """
     y = np.asarray(y, dtype=float)
     u = np.asarray(u, dtype=float)
     nv = y.shape[0]
     if y.shape != (nv, 2) or u.shape != (nv, 2) or z.shape != (nv, rt.state_size):
         _check_batch(rt, z, y, u)
+    Phi, x, in_domain, vy_in_bounds = _features(rt, z, y, u)
+    z_rows, x_rows = _gain_products(rt, Phi, x, fast, mixed)
+    n, k = rt.n, rt.K_rows.size
+    lagged = rt.steer_lag != 0.0
+    z_next = (_with_actuator(rt, z_rows, z, u) if lagged else z_rows).T
+    # the reported estimate: x_hat_k + K (y_k - C_bar x_hat_k), every row out of the small GEMM, when
+    # there is an output gain; else x_hat_k = z_k - E y_k (line 8)
+    z_obs = z[:, :n] if lagged else z
+    x_hat = x_rows[:k].T if k else (z_obs if rt.E_is_zero else z_obs - y @ rt.E.T)
+    innovation = x_rows[k:].T if rt.WT_quiet is not None else None
+    mask = None if rt.WT_quiet is None else (_constant_mask(nv, True) if fast is None else fast)
+    return z_next, StepResult(
+        x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds, fast=mask, innovation=innovation
+    )
+
+
+def _features(
+    rt: RuntimeGains, z: FloatArray, y: FloatArray, u: FloatArray
+) -> tuple[FloatArray, FloatArray, np.ndarray, np.ndarray]:
+    """Lines 8-9 of Algorithm 1 up to the gains: the feature matrix Phi, shape (n_features, nv), vehicles last.
+
+    Returns (Phi, x, in_domain, vy_in_bounds): x = Phi[:n + 2] is the constant block [y; z] (without the
+    actuator's column), in_domain and vy_in_bounds are those of :class:`StepResult`.
+    """
+    nv = y.shape[0]
     n, n2, m = rt.n, rt.n + 2, rt.m
     tail = n2 + 3 * m  # first row after the rule blend: [v_x^2, r/v_x, v_x r, u, phi, (1), (phi_c)]
     Phi = np.empty((rt.n_features, nv))
@@ -405,41 +501,42 @@ def observer_step(
     if rt.cornering:
         vy_in_bounds &= _cornering_drag(rt, Phi[-1], x, z, y, Phi[tail + 4], vy_sat, r, V_x)
     np.multiply(vy_sat, vy_sat, out=vy_sat)
-    k = rt.K_rows.size
+    return Phi, x, in_domain, vy_in_bounds
+
+
+def _gain_products(
+    rt: RuntimeGains, Phi: FloatArray, x: FloatArray, fast: np.ndarray | None, mixed: bool | None
+) -> tuple[FloatArray, FloatArray]:
+    """Line 9's z_{k+1} rows W^T Phi, shape (n, nv), and the reported rows X^T x (the output gain's estimate,
+    then the weighted innovation), from the set each vehicle runs: one GEMM each for a batch on one set, or
+    for a mixed batch both sets stacked, the fast vehicles' columns copied over the quiet ones."""
+    n, nv, k = rt.n, Phi.shape[1], rt.K_rows.size
     WT_quiet, WT_pair, XT_quiet, XT_pair = rt.WT_quiet, rt.WT_pair, rt.XT_quiet, rt.XT_pair
     if mixed is None and fast is not None:
         mixed = 0 < np.count_nonzero(fast) < nv
     all_fast = fast is None or (not mixed and (nv == 0 or bool(fast[0])))
     if WT_quiet is None or WT_pair is None or XT_quiet is None or XT_pair is None or all_fast:
-        z_rows = rt.WT @ Phi
-        x_rows = rt.XT @ x
-    elif not mixed:
-        z_rows = WT_quiet @ Phi
-        x_rows = XT_quiet @ x
-    else:  # a mixed batch: both sets in one GEMM each, the fast vehicles' columns copied over the quiet ones
-        both = WT_pair @ Phi
-        z_rows = both[n:]
-        np.copyto(z_rows, both[:n], where=fast)
-        x_both = XT_pair @ x  # [fast set's reported rows; quiet set's; innovation]
-        x_rows = x_both[k:]
-        np.copyto(x_rows[:k], x_both[:k], where=fast)
-    if lagged:
-        # the actuator model: delta_{k+1} = a delta_k + (1 - a) delta_d,k
-        full = np.empty((n + 1, nv))
-        full[:n] = z_rows
-        np.multiply(z[:, n], rt.steer_lag, out=full[n])
-        full[n] += (1.0 - rt.steer_lag) * u[:, 1]
-        z_rows = full
-    z_next = z_rows.T
-    # the reported estimate: x_hat_k + K (y_k - C_bar x_hat_k), every row out of the small GEMM, when
-    # there is an output gain; else x_hat_k = z_k - E y_k (line 8)
-    z_obs = z[:, :n] if lagged else z
-    x_hat = x_rows[:k].T if k else (z_obs if rt.E_is_zero else z_obs - y @ rt.E.T)
-    innovation = x_rows[k:].T if rt.WT_quiet is not None else None
-    mask = None if rt.WT_quiet is None else (_constant_mask(nv, True) if fast is None else fast)
-    return z_next, StepResult(
-        x_hat=x_hat, in_domain=in_domain, vy_in_bounds=vy_in_bounds, fast=mask, innovation=innovation
-    )
+        return rt.WT @ Phi, rt.XT @ x
+    if not mixed:
+        return WT_quiet @ Phi, XT_quiet @ x
+    both = WT_pair @ Phi
+    z_rows = both[n:]
+    np.copyto(z_rows, both[:n], where=fast)
+    x_both = XT_pair @ x  # [fast set's reported rows; quiet set's; innovation]
+    x_rows = x_both[k:]
+    np.copyto(x_rows[:k], x_both[:k], where=fast)
+    return z_rows, x_rows
+
+
+def _with_actuator(rt: RuntimeGains, z_rows: FloatArray, z: FloatArray, u: FloatArray) -> FloatArray:
+    """z_{k+1}'s rows, shape (n + 1, nv), with the steering actuator's model appended as the last row."""
+    n, nv = rt.n, z_rows.shape[1]
+    # the actuator model: delta_{k+1} = a delta_k + (1 - a) delta_d,k
+    full = np.empty((n + 1, nv))
+    full[:n] = z_rows
+    np.multiply(z[:, n], rt.steer_lag, out=full[n])
+    full[n] += (1.0 - rt.steer_lag) * u[:, 1]
+    return full
 
 
 def _check_batch(rt: RuntimeGains, z: FloatArray, y: FloatArray, u: FloatArray) -> None:
@@ -498,17 +595,41 @@ def _constant_mask(nv: int, value: bool) -> np.ndarray:
 def switched_step(
     rt: RuntimeGains, z: FloatArray, stat: FloatArray, left: np.ndarray, y: ArrayLike, u: ArrayLike
 ) -> tuple[FloatArray, FloatArray, np.ndarray, StepResult]:
-    """One step with the switching rule: returns (z_{k+1}, statistic s_k, fast samples left, result at k).
+    """One step with the switching rule.
 
-    stat : (nv,) the statistic s_{k-1}; left : (nv,) samples the fast set still has to run, counting
-    this one (``rt.start_samples`` at a (re)start; 0 and a statistic of 0 are a settled vehicle).
-    For gains with one set this is :func:`observer_step`, with stat and left passed through.
+    For gains with one set this is :func:`observer_step`, with ``stat`` and ``left`` passed through. Otherwise::
 
         fast set at k if left > 0;   nu_k = (y_k - C x_hat_k) / sigma   (out of the small GEMM on [y; z])
         s_k = lambda s_{k-1} + (1 - lambda) |nu_k|^2 / 2
         left <- max(left - 1, 0), then max(left, hold) where s_k > threshold
 
     so a statistic above the threshold at k puts the fast set on from k + 1 for ``hold`` samples.
+
+    Parameters
+    ----------
+    rt, z, y, u
+        As for :func:`observer_step`.
+    stat : (nv,) ndarray
+        The statistic s_{k-1}.
+    left : (nv,) int ndarray
+        Samples the fast set still has to run, counting this one (``rt.start_samples`` at a (re)start; 0 and a
+        statistic of 0 are a settled vehicle).
+
+    Returns
+    -------
+    z_next : (nv, state_size) ndarray
+        z_{k+1}.
+    stat : (nv,) ndarray
+        s_k.
+    left : (nv,) int ndarray
+        Fast samples left after this one.
+    result : StepResult
+        The estimate at k, with the set each vehicle ran.
+
+    Raises
+    ------
+    ShapeError
+        y, u or z does not have the batch's shape.
     """
     if rt.WT_quiet is None:
         z_next, result = observer_step(rt, z, y, u)
@@ -552,7 +673,20 @@ class FuzzyObserver:
         return int(self.z.shape[0])
 
     def step(self, y: ArrayLike, u: ArrayLike) -> StepResult:
-        """Consume y_k, u_k; return the estimate at k and advance to k + 1."""
+        """Consume y_k, u_k; return the estimate at k and advance to k + 1.
+
+        Parameters
+        ----------
+        y : (nv, 2) array_like
+            Measured [v_x [m/s], r [rad/s]].
+        u : (nv, 2) array_like
+            Demanded [T_d [N m], delta_d [rad]].
+
+        Returns
+        -------
+        StepResult
+            The estimate at k.
+        """
         self.z, self.stat, self.left, result = switched_step(
             self.runtime, self.z, self.stat, self.left, np.atleast_2d(y), np.atleast_2d(u)
         )

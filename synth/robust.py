@@ -77,7 +77,7 @@ from synth.model import FloatArray
 from synth.options import DesignOptions, NoiseModel
 from synth.params import OperatingBounds, VehicleParams
 from synth.solver import SolveInfo, solve
-from synth.symmetry import Parametrisation, columns_sign
+from synth.symmetry import MirrorSymmetry, Parametrisation, columns_sign
 
 
 @dataclass(frozen=True)
@@ -95,7 +95,20 @@ class NoiseInputs:
 
 
 def noise_inputs(aug: AugmentedModel, noise: NoiseModel) -> NoiseInputs:
-    """Build the input and performance matrices of the H2 problem from the noise model."""
+    """The input and performance matrices of the H2 problem, from the noise model.
+
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model (physical coordinates).
+    noise : NoiseModel
+        Sensor sigmas, wind RMS, fault drift rates and the cost scales of the fault errors.
+
+    Returns
+    -------
+    NoiseInputs
+        The fixed inputs' matrix B_fixed, the sensor covariance Sigma_v and the performance output C_z.
+    """
     n = aug.n
     s = aug.nts.params.sample_period_s
     last = slice(n - N_FAULTS, n)
@@ -116,11 +129,21 @@ def noise_inputs(aug: AugmentedModel, noise: NoiseModel) -> NoiseInputs:
 def error_scales(aug: AugmentedModel, noise: NoiseModel) -> FloatArray:
     """Units of the solver coordinates for the H2 problem: the expected size of each estimation error.
 
-    v_x and r: their sensor sigmas; v_y: 0.05 m/s; fault f: the cost scales; the
-    differences of the fault chain: the per-sample drift. Every
-    coordinate of the error is then O(1), which is what lets the interior-point
-    solver find the optimum rather than a point that is 'optimal' to tolerance
-    but thousands of times worse (measured: cost 7.4e3 instead of 0.3).
+    v_x and r: their sensor sigmas; v_y: 0.05 m/s; fault f: the cost scales; the differences of the fault chain:
+    the per-sample drift. Every coordinate of the error is then O(1), which is what lets the interior-point
+    solver find the optimum rather than a point that is 'optimal' to tolerance but far worse.
+
+    Parameters
+    ----------
+    aug : AugmentedModel
+        The augmented model.
+    noise : NoiseModel
+        The noise model the scales come from.
+
+    Returns
+    -------
+    (n,) ndarray
+        The scale of each augmented state's error, in its unit.
     """
     s = aug.nts.params.sample_period_s
     drift = np.array([noise.torque_fault_rate_nm_per_s * s, noise.steer_fault_rate_rad_per_s * s])
@@ -177,15 +200,7 @@ class H2LMIs:
         m = m_fixed + p
         n_P = r if lyapunov == "fuzzy" else 1
         self.dc = dc
-        self.symmetry = dc.mirror_symmetry() if use_symmetry else None
-        input_sign = fault_sign = None
-        if self.symmetry is not None:
-            fixed_sign = columns_sign(B_fixed, self.symmetry.state_sign)
-            fault_sign = columns_sign(C_z.T, self.symmetry.state_sign)
-            if fixed_sign is None or fault_sign is None:
-                self.symmetry = None
-            else:
-                input_sign = np.concatenate([fixed_sign, self.symmetry.output_sign])
+        self.symmetry, input_sign, fault_sign = _mirror_signs(dc, B_fixed, C_z, use_symmetry)
         var = Parametrisation(self.symmetry)
         self.P = var.per_rule_square(n, r, "P", symmetric=True) if n_P > 1 else [var.square(n, "P", symmetric=True)]
         self.R = var.square(n, "R")
@@ -251,7 +266,22 @@ class H2LMIs:
 
 
 def output_matrices(lmis: H2LMIs, K_s: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """C_1 (n_z, n) and D_1 (n_z, m) of the filtered performance output, design coordinates."""
+    """The filtered performance output's matrices, in design coordinates.
+
+    Parameters
+    ----------
+    lmis : H2LMIs
+        The solved LMIs (their C_z, Sigma_v and design coordinates).
+    K_s : (n_z, p) ndarray
+        The scaled fault-filter gain.
+
+    Returns
+    -------
+    C_1 : (n_z, n) ndarray
+        C_z - K_s Sigma_v^-1 C_bar.
+    D_1 : (n_z, m) ndarray
+        [0, -K_s].
+    """
     Sigma_v_inv = np.diag(1.0 / np.diag(lmis.Sigma_v))
     C_1 = lmis.C_z - K_s @ Sigma_v_inv @ lmis.dc.C
     D_1 = np.hstack([np.zeros((K_s.shape[0], lmis.B_fixed.shape[1])), -K_s])
@@ -267,11 +297,35 @@ def verify_h2_bound(
     R: FloatArray,
     K_s: FloatArray,
 ) -> tuple[float, float]:
-    """Recompute the guaranteed cost in numpy: (bound, min eigenvalue of the cost-weighted Lyapunov LMIs).
+    """Recompute the guaranteed cost in numpy.
 
     bound = max_ij trace(B_i^T R^T (R + R^T - P_j)^-1 R B_i) + |D_1|_F^2 >= trace(B_i^T P_j B_i + D_1^T D_1),
     valid when every [[alpha^2 P_i - C_1^T C_1, (R N_i(rho))^T], [R N_i(rho), R + R^T - P_j]] is
     positive definite.
+
+    Parameters
+    ----------
+    dc : DesignCoordinates
+        The design coordinates of the solve.
+    lmis : H2LMIs
+        The solved LMIs.
+    N : (r, n, n) ndarray
+        N_i in design coordinates.
+    H : (r, n, p) ndarray
+        H_i = R^-1 X_i.
+    P : (r or 1, n, n) ndarray
+        The Lyapunov matrices.
+    R : (n, n) ndarray
+        The slack matrix.
+    K_s : (n_z, p) ndarray
+        The scaled fault-filter gain.
+
+    Returns
+    -------
+    bound : float
+        The guaranteed cost (dimensionless).
+    min_eigenvalue : float
+        The smallest eigenvalue of the cost-weighted Lyapunov LMIs; the bound holds only when it is positive.
     """
     r = N.shape[0]
     n_P = P.shape[0]
@@ -298,7 +352,29 @@ def verify_h2_bound(
 def synthesize_robust(
     params: VehicleParams, bounds: OperatingBounds, options: DesignOptions, *, use_symmetry: bool = True
 ) -> ObserverGains:
-    """Design the noise-aware observer; same guarantees and errors as :func:`synth.design.synthesize`."""
+    """Design the noise-aware observer (an H2 guaranteed cost, the fuzzy structure kept); see synthesize.
+
+    Parameters
+    ----------
+    params, bounds : VehicleParams, OperatingBounds
+        The vehicle and the operating box the certificate covers.
+    options : DesignOptions
+        The design options (noise model, cost form, switching, solvers); ``design`` must be "robust".
+    use_symmetry : bool, default True
+        Pose the LMIs on mirror-invariant points when the data have the left-right symmetry.
+
+    Returns
+    -------
+    ObserverGains
+        Verified gains, certificate and guaranteed cost; for a switched design both gain sets.
+
+    Raises
+    ------
+    Infeasible, SolverFailed, VerificationFailed
+        As :func:`synth.design.synthesize` (here Infeasible: the augmented model is not detectable).
+    BadParameters
+        ``options.design`` is not "robust", or a solver is not installed.
+    """
     if options.design != "robust":
         raise BadParameters(f"synthesize_robust needs design='robust', got {options.design!r}")
     started = time.perf_counter()
@@ -354,6 +430,57 @@ def synthesize_robust(
     raise SolverFailed(f"no solver found a point of the {lmis.n_lmis} robust-design LMIs: " + reasons)
 
 
+def _mirror_signs(
+    dc: DesignCoordinates, B_fixed: FloatArray, C_z: FloatArray, use_symmetry: bool
+) -> tuple[MirrorSymmetry | None, FloatArray | None, FloatArray | None]:
+    """The mirror symmetry the H2 LMIs may use, with the signs of the noise inputs' columns (fixed inputs, then
+    the outputs) and of the fault rows of C_z under it; (None, None, None) when the model or the inputs lack it."""
+    symmetry = dc.mirror_symmetry() if use_symmetry else None
+    if symmetry is None:
+        return None, None, None
+    fixed_sign = columns_sign(B_fixed, symmetry.state_sign)
+    fault_sign = columns_sign(C_z.T, symmetry.state_sign)
+    if fixed_sign is None or fault_sign is None:
+        return None, None, None
+    return symmetry, np.concatenate([fixed_sign, symmetry.output_sign]), fault_sign
+
+
+def _fault_output_gain(aug: AugmentedModel, options: DesignOptions, lmis: H2LMIs, K_s: FloatArray) -> FloatArray:
+    """The output gain K, shape (n, 2): the filtered fault output K_f = W_f^-1 K_s Sigma_v^-1 on the rows of f_k."""
+    K_phys = np.zeros((aug.n, 2))
+    fault_scales = np.array([options.noise.torque_fault_scale_nm, options.noise.steer_fault_scale_rad])
+    K_phys[aug.fault_slice] = np.diag(fault_scales) @ K_s @ np.diag(1.0 / np.diag(lmis.Sigma_v))
+    return K_phys
+
+
+def _h2_notes(options: DesignOptions, fast_version: str | None) -> list[str]:
+    """The certificate's notes on the guaranteed cost; ``fast_version``: the fast set's of a switched design."""
+    cost = (
+        "guaranteed H2 cost: time-average E|z|^2 <= h2_cost_bound for white unit-covariance inputs "
+        "scaled by the noise model (sensor sigmas, wind RMS, fault drift rates), every premise trajectory "
+        "and every rho in S_rho; z = errors of the filtered fault estimates f_hat + K (y - C x_hat) "
+        "divided by (torque_fault_scale_nm, steer_fault_scale_rad)"
+    )
+    if fast_version is None:
+        return [
+            cost,
+            f"cost form '{options.robust_cost}': "
+            + (
+                "cost and decay rate certified by the same LMIs"
+                if options.robust_cost == "joint"
+                else "H2 cost LMIs at rate 1, decay rate certified by LMIs of its own"
+            ),
+        ]
+    return [
+        cost.replace("h2_cost_bound", "h2_cost_bound (the quiet set)"),
+        "switched design: the fast set is the one-set 'joint' design of the same options "
+        f"(version {fast_version}; its own guaranteed cost fast_set_h2_cost_bound, under its own "
+        "Lyapunov function); the quiet set bounds the H2 cost at rate 1; both sets satisfy the decay "
+        "LMIs at the requested rate with the same P(h) and R, so the decay rate holds for any switching "
+        "sequence",
+    ]
+
+
 def _verified_gains(
     params: VehicleParams,
     bounds: OperatingBounds,
@@ -382,17 +509,12 @@ def _verified_gains(
     bound, cost_lmi_min = verify_h2_bound(dc, lmis, N, H, P, R, K_s)
     if cost_lmi_min <= 0:
         raise VerificationFailed(f"a cost-weighted Lyapunov LMI fails in numpy (min eigenvalue {cost_lmi_min:.3e})")
-    fast_report = None
-    if fast is not None:
-        fast_report = verify(aug.nts, aug.dmvt_terms, P, R, lmis.alpha, fast.N, M_phys, dc.T)
+    fast_report = None if fast is None else verify(aug.nts, aug.dmvt_terms, P, R, lmis.alpha, fast.N, M_phys, dc.T)
     timings["verify_s"] = time.perf_counter() - mark
     timings["total_s"] = time.perf_counter() - started
     L_phys = np.einsum("ab,ibc->iac", dc.T_inv, H)
     E_phys = np.zeros((n, 2))
-    # the filtered fault output: K_f = W_f^-1 K_s Sigma_v^-1 on the rows of f_k
-    K_phys = np.zeros((n, 2))
-    fault_scales = np.array([options.noise.torque_fault_scale_nm, options.noise.steer_fault_scale_rad])
-    K_phys[aug.fault_slice] = np.diag(fault_scales) @ K_s @ np.diag(1.0 / np.diag(lmis.Sigma_v))
+    K_phys = _fault_output_gain(aug, options, lmis, K_s)
     quiet = None
     performance = {
         "h2_cost_bound": bound,
@@ -400,18 +522,7 @@ def _verified_gains(
         "weighted_fault_error_rms_bound": float(np.sqrt(bound)),
         "cost_lmi_min_eigenvalue": cost_lmi_min,
     }
-    notes = [
-        "guaranteed H2 cost: time-average E|z|^2 <= h2_cost_bound for white unit-covariance inputs "
-        "scaled by the noise model (sensor sigmas, wind RMS, fault drift rates), every premise trajectory "
-        "and every rho in S_rho; z = errors of the filtered fault estimates f_hat + K (y - C x_hat) "
-        "divided by (torque_fault_scale_nm, steer_fault_scale_rad)",
-        f"cost form '{options.robust_cost}': "
-        + (
-            "cost and decay rate certified by the same LMIs"
-            if options.robust_cost == "joint"
-            else "H2 cost LMIs at rate 1, decay rate certified by LMIs of its own"
-        ),
-    ]
+    notes = _h2_notes(options, None if fast is None else fast.version)
     if fast is not None and fast_report is not None:
         # the runtime's main set is the fast one; the solution just verified is the quiet set
         quiet = GainSet(N=N_phys, L=L_phys, K=K_phys)
@@ -419,14 +530,6 @@ def _verified_gains(
         performance["fast_set_h2_cost_bound"] = fast.certificate.performance["h2_cost_bound"]
         performance["quiet_set_decay_rate"] = report.certified_decay_rate
         performance["fast_set_decay_rate"] = fast_report.certified_decay_rate
-        notes[0] = notes[0].replace("h2_cost_bound", "h2_cost_bound (the quiet set)")
-        notes[1] = (
-            "switched design: the fast set is the one-set 'joint' design of the same options "
-            f"(version {fast.version}; its own guaranteed cost fast_set_h2_cost_bound, under its own "
-            "Lyapunov function); the quiet set bounds the H2 cost at rate 1; both sets satisfy the decay "
-            "LMIs at the requested rate with the same P(h) and R, so the decay rate holds for any switching "
-            "sequence"
-        )
         report = merged(fast_report, report)
     certificate = build_certificate(
         options,

@@ -46,7 +46,23 @@ class SolveInfo:
 
 
 def solver_version(solver: str) -> str:
-    """'clarabel 0.9.0, cvxpy 1.5.2': the solver package and cvxpy versions, for the certificate."""
+    """The solver package's and cvxpy's versions, for the certificate.
+
+    Parameters
+    ----------
+    solver : str
+        A cvxpy solver name ("CLARABEL", "SCS").
+
+    Returns
+    -------
+    str
+        For example 'clarabel 0.9.0, cvxpy 1.5.2'.
+
+    Raises
+    ------
+    BadParameters
+        The solver's package is not installed.
+    """
     package = {"CLARABEL": "clarabel", "SCS": "scs"}.get(solver, solver.lower())
     try:
         return f"{package} {metadata.version(package)}, cvxpy {metadata.version('cvxpy')}"
@@ -60,10 +76,33 @@ def solve(
     time_limit_s: float,
     tolerances: dict[str, float] | None = None,
 ) -> SolveInfo:
-    """Solve ``problem`` with ``solver`` within ``time_limit_s``; raise :class:`SolverFailed` without a usable point.
+    """Solve ``problem`` with ``solver`` within ``time_limit_s``.
 
-    ``tolerances`` override the solver's defaults (for example a looser duality gap for an H2 objective
-    that converges to 6-7 digits). A status other than optimal or optimal_inaccurate is a failure.
+    A status other than optimal or optimal_inaccurate is a failure.
+
+    Parameters
+    ----------
+    problem : cvxpy.Problem
+        The LMI problem.
+    solver : str
+        A solver of :data:`TIME_LIMIT_OPTION`.
+    time_limit_s : float
+        The solver's time limit [s].
+    tolerances : dict, optional
+        Overrides of the solver's defaults (for example a looser duality gap for an H2 objective that converges
+        to 6-7 digits).
+
+    Returns
+    -------
+    SolveInfo
+        Solver, status, iterations and timings of the solve.
+
+    Raises
+    ------
+    BadParameters
+        The solver is unknown.
+    SolverFailed
+        The solver stopped without a usable point (the message gives its status or error).
     """
     import cvxpy as cp
 

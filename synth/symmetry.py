@@ -70,7 +70,18 @@ class MirrorSymmetry:
 
 
 def physical_mirror_sign(n: int) -> FloatArray:
-    """(n,) signature of the mirror in physical shift coordinates [v_x, v_y, r, T_f, delta_f, ...]."""
+    """The mirror's signature in physical shift coordinates [v_x, v_y, r, T_f, delta_f, ...].
+
+    Parameters
+    ----------
+    n : int
+        The augmented state's size.
+
+    Returns
+    -------
+    (n,) ndarray
+        +1 on v_x and the torque faults, -1 on v_y, r and the steering faults.
+    """
     sign = np.ones(n)
     sign[1:3] = -1.0  # v_y, r
     sign[4::2] = -1.0  # every delta_f component of the fault chain
@@ -88,15 +99,27 @@ def find_mirror_symmetry(
     C: FloatArray,
     dmvt_terms: Sequence[tuple[FloatArray, float]],
 ) -> MirrorSymmetry | None:
-    """The mirror symmetry of the design data, or None when the data do not have it.
+    """The mirror symmetry of the design data.
 
-    T, T_inv : (n, n) design coordinates x' = T x_bar; A : (r, n, n) vertex
-    matrices, C : (p, n), dmvt_terms : each DMVT term G_k c_k^T (n, n) with the
-    centre of its rho interval, all in design coordinates. None when the
-    signature is not diagonal in these coordinates, when some S A_i S is not
-    another vertex (asymmetric yaw-rate bounds), when C is not invariant, or
-    when a DMVT term is neither invariant nor odd (S G c^T S = -G c^T) with its
-    interval centred on zero (then rho -> -rho maps the interval onto itself).
+    None when the signature is not diagonal in these coordinates, when some S A_i S is not another vertex
+    (asymmetric yaw-rate bounds), when C is not invariant, or when a DMVT term is neither invariant nor odd
+    (S G c^T S = -G c^T) with its interval centred on zero (then rho -> -rho maps the interval onto itself).
+
+    Parameters
+    ----------
+    T, T_inv : (n, n) ndarray
+        The design coordinates x' = T x_bar and back.
+    A : (r, n, n) ndarray
+        The vertex matrices, design coordinates.
+    C : (p, n) ndarray
+        The output matrix, design coordinates.
+    dmvt_terms : sequence of ((n, n) ndarray, float)
+        Each DMVT term G_k c_k^T with the centre of its rho interval.
+
+    Returns
+    -------
+    MirrorSymmetry or None
+        The symmetry (signature, rule map), or None when the data do not have it.
     """
     n = A.shape[1]
     p = C.shape[0]
@@ -128,7 +151,20 @@ def find_mirror_symmetry(
 
 
 def columns_sign(B: FloatArray, state_sign: FloatArray) -> FloatArray | None:
-    """(m,) sign of each column of B under the mirror (S b = +-b), or None if some column has no parity."""
+    """The sign of each column of B under the mirror (S b = +-b).
+
+    Parameters
+    ----------
+    B : (n, m) ndarray
+        The columns.
+    state_sign : (n,) ndarray
+        The mirror's signature S.
+
+    Returns
+    -------
+    (m,) ndarray or None
+        +1 or -1 per column, or None if some column has no parity.
+    """
     signs = []
     for col in B.T:
         if _close(state_sign * col, col):

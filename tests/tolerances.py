@@ -20,3 +20,41 @@ STEADY_STATE_RTOL = 0.02
 MAX_ALARM_DELAY_S = 8.0
 #: Samples per vehicle that may vanish without error when a router dies (put before zenoh notices).
 SILENT_LOSS_PER_VEHICLE = 30
+
+# -- the same quantity computed two ways ---------------------------------------------------------
+#: Values one or two floating-point operations apart (a product by a constant, the mirror's sign flips, a
+#: recursion against its closed form): the last bits of numbers of order one, absolute.
+LAST_BITS_ATOL = 1e-15
+#: One formula written two ways (a matrix form against the equations, the observer's output map against its
+#: equation written out, a step of a batch against the same vehicle alone): rounding only, relative and absolute.
+FORMULA_EQUALITY_RTOL = 1e-12
+FORMULA_EQUALITY_ATOL = 1e-12
+#: The same through a chain that amplifies rounding (an observer step with gains of order 10^3, a simulated
+#: actuator's applied fault), relative and absolute [state units].
+AMPLIFIED_ROUNDING_RTOL = 1e-9
+AMPLIFIED_ROUNDING_ATOL = 1e-9
+#: A batch's observer step against its equation written out with einsum over the vehicles, relative and absolute.
+OBSERVER_EQUATION_TOL = 1e-10
+#: A sample mean by trapezoid quadrature on 20,000 intervals against its closed form, relative.
+QUADRATURE_RTOL = 1e-9
+#: Central differences with step 1e-6 against an analytical Jacobian (truncation and cancellation).
+FINITE_DIFFERENCE_TOL = 1e-6
+#: The reference integration (DOP853) a plant step is compared with, relative and absolute [state units].
+REFERENCE_INTEGRATION_RTOL = 1e-12
+REFERENCE_INTEGRATION_ATOL = 1e-13
+#: Beyond half a DBC scaling step, for the rounding of the scaled signal value (can2csv).
+QUANTISATION_SLACK = 1e-9
+#: Sample standard deviation of 2,000 samples of simulated sensor noise against its sigma, relative.
+NOISE_SIGMA_RTOL = 0.1
+
+# -- estimates written to CSV (9 significant digits) ---------------------------------------------
+#: Estimates read back from a replay's CSV against the same estimates in memory, relative and absolute.
+CSV_ROUND_TRIP_RTOL = 1e-8
+CSV_ROUND_TRIP_ATOL = 1e-9
+#: A replay's estimates against the simulation's on the same recording, both read from CSV [N m], [rad].
+REPLAY_TORQUE_FAULT_ATOL_NM = 1e-6
+REPLAY_STEER_FAULT_ATOL_RAD = 1e-9
+#: (alpha - 1) times the demand against the total minus the bias, each read from CSV [N m].
+CSV_PRODUCT_ATOL_NM = 1e-4
+#: A time stamp on the sample grid against a delay or duration computed in floating point [s].
+SAMPLE_GRID_ATOL_S = 1e-9

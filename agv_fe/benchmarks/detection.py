@@ -100,8 +100,8 @@ BRAKE_RANGE_MPS2 = (0.5, 4.0)
 END_CRUISE_S = 2.0
 #: The healthy fleet: vehicles x duration [s] (31 min: 1,031 vehicle-hours after the 3 s warm-ups), driven in
 #: segments [s] (each a new scenario, the vehicle's state, estimators and alarm levels carried on), in WORKERS
-#: processes; the EKF runs on the first EKF_SHARE of each process's vehicles (measured: the EKF on every vehicle
-#: adds about 30 % to the fleet's 8 minutes on two cores, so it runs on all of them).
+#: processes; the EKF runs on the first EKF_SHARE of each process's vehicles (the report gives the run's time
+#: per stage).
 HEALTHY_VEHICLES = 2000
 HEALTHY_DURATION_S = 1860.0
 SEGMENT_S = 310.0
@@ -1399,6 +1399,23 @@ def _hours(value: float) -> str:
 DEFAULT_PARAMETER_SETS = rv.DEFAULT_PARAMETER_SETS
 
 
+@dataclass(frozen=True)
+class DetectionPlan:
+    """The sizes of one run, resolved from the options of :func:`run`."""
+
+    sets: tuple[int, ...]
+    quick: bool
+    workers: int
+    vehicles: int
+    duration_s: float
+    fault_s: float
+    segment_s: float
+    per_case: int
+    mb_drives: int
+    mb_drive_s: float
+    ekf_share: float
+
+
 def run(
     out_dir: Path,
     parameter_sets: Sequence[int] = DEFAULT_PARAMETER_SETS,
@@ -1418,78 +1435,66 @@ def run(
     data; empty: no multi-body section). The other options replace the plan's sizes; ``ekf_share`` of the
     healthy vehicles also run through the EKF.
     """
-    started = time.perf_counter()
-    sets = tuple(int(s) for s in parameter_sets)
-    vehicles = healthy_vehicles or (QUICK_HEALTHY_VEHICLES if quick else HEALTHY_VEHICLES)
     duration = healthy_duration_s or (QUICK_HEALTHY_DURATION_S if quick else HEALTHY_DURATION_S)
-    fault_s = QUICK_FAULT_RUN_S if quick else FAULT_RUN_S
-    segment = min(QUICK_SEGMENT_S if quick else SEGMENT_S, duration)
-    per_case = vehicles_per_case or (QUICK_VEHICLES_PER_CASE if quick else VEHICLES_PER_CASE)
-    mb_drives = multibody_drives or (QUICK_MB_DRIVES if quick else MB_DRIVES)
-    mb_drive_s = multibody_drive_s or (QUICK_MB_DRIVE_S if quick else MB_DRIVE_S)
-    if vehicles < 1 or per_case < 1 or mb_drives < 1 or workers < 1 or not 0.0 <= ekf_share <= 1.0:
+    plan = DetectionPlan(
+        sets=tuple(int(s) for s in parameter_sets),
+        quick=quick,
+        workers=workers,
+        vehicles=healthy_vehicles or (QUICK_HEALTHY_VEHICLES if quick else HEALTHY_VEHICLES),
+        duration_s=duration,
+        fault_s=QUICK_FAULT_RUN_S if quick else FAULT_RUN_S,
+        segment_s=min(QUICK_SEGMENT_S if quick else SEGMENT_S, duration),
+        per_case=vehicles_per_case or (QUICK_VEHICLES_PER_CASE if quick else VEHICLES_PER_CASE),
+        mb_drives=multibody_drives or (QUICK_MB_DRIVES if quick else MB_DRIVES),
+        mb_drive_s=multibody_drive_s or (QUICK_MB_DRIVE_S if quick else MB_DRIVE_S),
+        ekf_share=ekf_share,
+    )
+    if plan.vehicles < 1 or plan.per_case < 1 or plan.mb_drives < 1 or workers < 1 or not 0.0 <= ekf_share <= 1.0:
         raise ValueError(
             f"vehicles, vehicles_per_case, multibody_drives and workers must be >= 1 and ekf_share in [0, 1], got "
-            f"{vehicles}, {per_case}, {mb_drives}, {workers}, {ekf_share}"
+            f"{plan.vehicles}, {plan.per_case}, {plan.mb_drives}, {workers}, {ekf_share}"
         )
-    if len(set(sets)) != len(sets):
+    if len(set(plan.sets)) != len(plan.sets):
         raise ValueError(f"parameter_sets must be distinct set ids, got {parameter_sets!r}")
+    document = measure(plan)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    plot_operating_curve(document["operating_curve"], out_dir / "detection.png", plan.fault_s - ONSET_RANGE_S[1])
+    (out_dir / "detection.json").write_text(json.dumps(rv._clean(document), indent=1) + "\n")
+    path = out_dir / "detection.md"
+    path.write_text(render(document))
+    return path
+
+
+def measure(plan: DetectionPlan) -> dict[str, Any]:
+    """Calibrate the car, run the healthy fleet, the fault runs and the multi-body drives: the run's document
+    (what detection.json holds and :func:`render` reads)."""
+    started = time.perf_counter()
     timings: dict[str, float] = {}
     print("  calibrating the car from its two-minute drive ...", flush=True)
     calibrated = calibrate_car()
     timings["calibration_s"] = time.perf_counter() - started
     mark = time.perf_counter()
-    check = substep_check(calibrated, 2 if quick else 20, 10.0 if quick else 60.0)
+    check = substep_check(calibrated, 2 if plan.quick else 20, 10.0 if plan.quick else 60.0)
     timings["substep_check_s"] = time.perf_counter() - mark
-    print(f"  healthy fleet: {vehicles} vehicles x {duration / 60:.0f} min in {workers} processes ...", flush=True)
+    print(
+        f"  healthy fleet: {plan.vehicles} vehicles x {plan.duration_s / 60:.0f} min in {plan.workers} processes ...",
+        flush=True,
+    )
     mark = time.perf_counter()
-    healthy = healthy_fleet(calibrated, vehicles, duration, segment, ekf_share, workers)
+    healthy = healthy_fleet(calibrated, plan.vehicles, plan.duration_s, plan.segment_s, plan.ekf_share, plan.workers)
     timings["healthy_fleet_s"] = time.perf_counter() - mark
-    print(f"  fault runs: {per_case} per case, {len(FAULT_CASES)} cases ...", flush=True)
+    print(f"  fault runs: {plan.per_case} per case, {len(FAULT_CASES)} cases ...", flush=True)
     mark = time.perf_counter()
-    faults = fault_runs(calibrated, per_case, fault_s, workers)
+    faults = fault_runs(calibrated, plan.per_case, plan.fault_s, plan.workers)
     timings["fault_runs_s"] = time.perf_counter() - mark
     mark = time.perf_counter()
-    multibody = multibody_figures(sets, mb_drives, mb_drive_s, workers, quick) if sets else []
+    multibody = (
+        multibody_figures(plan.sets, plan.mb_drives, plan.mb_drive_s, plan.workers, plan.quick) if plan.sets else []
+    )
     timings["multibody_s"] = time.perf_counter() - mark
-    report = calibrated.report
     document: dict[str, Any] = {
         "benchmark": "detection",
-        "plan": {
-            "quick": quick,
-            "workers": workers,
-            "car": CAR.model_dump(mode="json"),
-            "base": base_params(),
-            "noise": {"vx_sigma_mps": NOISE.vx_sigma_mps, "r_sigma_radps": NOISE.r_sigma_radps},
-            "calibration": {"duration_s": CALIBRATION_DURATION_S, "seed": CALIBRATION_SEED},
-            "healthy": {
-                "vehicles": vehicles,
-                "duration_s": duration,
-                "segment_s": segment,
-                "ekf_share": ekf_share,
-                "speed_range_mps": list(SPEED_RANGE_MPS),
-                "max_lateral_accel_mps2": MAX_LATERAL_ACCEL_MPS2,
-                "box_share": BOX_SHARE,
-                "substeps": FLEET_SUBSTEPS,
-            },
-            "faults": {
-                "vehicles_per_case": per_case,
-                "duration_s": fault_s,
-                "onset_range_s": list(ONSET_RANGE_S),
-                "sizes": list(FAULT_SIZES),
-                "nominal_torque_nm": report.nominal_torque_nm,
-                "nominal_steer_rad": NOMINAL_STEER_RAD,
-                "sine_omega_radps": SINE_OMEGA_RADPS,
-                "loss_rate_per_s": LOSS_RATE_PER_S,
-                "steer_fault_speed_range_mps": list(STEER_FAULT_SPEED_RANGE_MPS),
-                "loss_accel_mps2": LOSS_ACCEL_MPS2,
-                "loss_speeds_mps": list(LOSS_SPEEDS_MPS),
-                "loss_turn_speed_mps": list(LOSS_TURN_SPEED_MPS),
-            },
-            "threshold_factors": list(THRESHOLD_FACTORS),
-            "multibody": {"parameter_sets": list(sets), "drives": mb_drives, "drive_s": mb_drive_s},
-            "cusum_rule": "cusum" in healthy["observer"]["rules"],
-        },
+        "plan": _plan_document(plan, calibrated, "cusum" in healthy["observer"]["rules"]),
         "calibration": calibration_figures(calibrated),
         "substep_check": check,
         "healthy": healthy,
@@ -1501,12 +1506,46 @@ def run(
     document["must_show"] = must_show(healthy, faults)
     timings["total_s"] = time.perf_counter() - started
     document["timings"] = timings
-    out_dir.mkdir(parents=True, exist_ok=True)
-    plot_operating_curve(document["operating_curve"], out_dir / "detection.png", fault_s - ONSET_RANGE_S[1])
-    (out_dir / "detection.json").write_text(json.dumps(rv._clean(document), indent=1) + "\n")
-    path = out_dir / "detection.md"
-    path.write_text(render(document))
-    return path
+    return document
+
+
+def _plan_document(plan: DetectionPlan, calibrated: Calibrated, cusum_rule: bool) -> dict[str, Any]:
+    """The document's "plan": the run's sizes, the car, the noise, the fault cases, the rules."""
+    return {
+        "quick": plan.quick,
+        "workers": plan.workers,
+        "car": CAR.model_dump(mode="json"),
+        "base": base_params(),
+        "noise": {"vx_sigma_mps": NOISE.vx_sigma_mps, "r_sigma_radps": NOISE.r_sigma_radps},
+        "calibration": {"duration_s": CALIBRATION_DURATION_S, "seed": CALIBRATION_SEED},
+        "healthy": {
+            "vehicles": plan.vehicles,
+            "duration_s": plan.duration_s,
+            "segment_s": plan.segment_s,
+            "ekf_share": plan.ekf_share,
+            "speed_range_mps": list(SPEED_RANGE_MPS),
+            "max_lateral_accel_mps2": MAX_LATERAL_ACCEL_MPS2,
+            "box_share": BOX_SHARE,
+            "substeps": FLEET_SUBSTEPS,
+        },
+        "faults": {
+            "vehicles_per_case": plan.per_case,
+            "duration_s": plan.fault_s,
+            "onset_range_s": list(ONSET_RANGE_S),
+            "sizes": list(FAULT_SIZES),
+            "nominal_torque_nm": calibrated.report.nominal_torque_nm,
+            "nominal_steer_rad": NOMINAL_STEER_RAD,
+            "sine_omega_radps": SINE_OMEGA_RADPS,
+            "loss_rate_per_s": LOSS_RATE_PER_S,
+            "steer_fault_speed_range_mps": list(STEER_FAULT_SPEED_RANGE_MPS),
+            "loss_accel_mps2": LOSS_ACCEL_MPS2,
+            "loss_speeds_mps": list(LOSS_SPEEDS_MPS),
+            "loss_turn_speed_mps": list(LOSS_TURN_SPEED_MPS),
+        },
+        "threshold_factors": list(THRESHOLD_FACTORS),
+        "multibody": {"parameter_sets": list(plan.sets), "drives": plan.mb_drives, "drive_s": plan.mb_drive_s},
+        "cusum_rule": cusum_rule,
+    }
 
 
 def calibration_figures(calibrated: Calibrated) -> dict[str, Any]:

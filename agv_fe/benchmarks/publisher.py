@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -25,6 +24,8 @@ from typing import Any
 import numpy as np
 
 from agv_fe.benchmarks import report_header
+from agv_fe.benchmarks.harness import free_port
+from edge_client.pacing import PacingStats
 
 SIZES = (50, 100, 200, 400, 800)
 RUN_S = 10.0
@@ -36,13 +37,10 @@ OVERRUN_TOLERANCE = 0.01
 @dataclass(frozen=True)
 class SizeResult:
     vehicles: int
+    #: samples published per vehicle and second [Hz]
     rate_hz: float
-    lateness_p50_ms: float
-    lateness_p99_ms: float
-    max_lag_ms: float
-    late: int
-    overruns: int
-    ticks: int
+    #: the loop's lateness, late ticks and overruns (edge_client.pacing)
+    pacing: PacingStats
     source_p50_ms: float
     source_p99_ms: float
     publish_p50_ms: float
@@ -52,13 +50,28 @@ class SizeResult:
 
     @property
     def keeps_up(self) -> bool:
-        return abs(self.rate_hz - 100.0) <= 100.0 * RATE_TOLERANCE and self.overruns <= OVERRUN_TOLERANCE * self.ticks
+        on_rate = abs(self.rate_hz - 100.0) <= 100.0 * RATE_TOLERANCE
+        return on_rate and self.pacing.overruns <= OVERRUN_TOLERANCE * self.pacing.ticks
 
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    def record(self) -> dict[str, Any]:
+        """The row of publisher.json: every figure at the top level, the pacing's among them."""
+        p = self.pacing
+        return {
+            "vehicles": self.vehicles,
+            "rate_hz": self.rate_hz,
+            "lateness_p50_ms": p.lateness_p50_ms,
+            "lateness_p99_ms": p.lateness_p99_ms,
+            "max_lag_ms": p.max_lag_ms,
+            "late": p.late,
+            "overruns": p.overruns,
+            "ticks": p.ticks,
+            "source_p50_ms": self.source_p50_ms,
+            "source_p99_ms": self.source_p99_ms,
+            "publish_p50_ms": self.publish_p50_ms,
+            "publish_p99_ms": self.publish_p99_ms,
+            "delivered_fraction": self.delivered_fraction,
+            "load_before": self.load_before,
+        }
 
 
 def sink_main(port: int) -> None:
@@ -108,16 +121,10 @@ def measure(vehicles: int, endpoint: str, run_s: float = RUN_S) -> SizeResult:
     finally:
         probe.close()
         close_session(session)
-    p = report.pacing
     return SizeResult(
         vehicles=vehicles,
         rate_hz=report.sample_rate_hz,
-        lateness_p50_ms=p.lateness_p50_ms,
-        lateness_p99_ms=p.lateness_p99_ms,
-        max_lag_ms=p.max_lag_ms,
-        late=p.late,
-        overruns=p.overruns,
-        ticks=p.ticks,
+        pacing=report.pacing,
         source_p50_ms=report.work_ms["source_p50"],
         source_p99_ms=report.work_ms["source_p99"],
         publish_p50_ms=report.work_ms["publish_p50"],
@@ -128,7 +135,7 @@ def measure(vehicles: int, endpoint: str, run_s: float = RUN_S) -> SizeResult:
 
 
 def run(out_dir: Path, sizes: tuple[int, ...] = SIZES, run_s: float = RUN_S) -> Path:
-    port = _free_port()
+    port = free_port()
     sink = subprocess.Popen(
         [sys.executable, "-m", "agv_fe.benchmarks.publisher", "sink", str(port)],
         stdin=subprocess.PIPE,
@@ -144,11 +151,11 @@ def run(out_dir: Path, sizes: tuple[int, ...] = SIZES, run_s: float = RUN_S) -> 
             result = measure(n, f"tcp/127.0.0.1:{port}", run_s)
             results.append(result)
             print(
-                f"  {n} vehicles: {result.rate_hz:.2f} Hz, lateness p99 {result.lateness_p99_ms:.2f} ms, "
-                f"overruns {result.overruns}, work p50 {result.source_p50_ms + result.publish_p50_ms:.2f} ms",
+                f"  {n} vehicles: {result.rate_hz:.2f} Hz, lateness p99 {result.pacing.lateness_p99_ms:.2f} ms, "
+                f"overruns {result.pacing.overruns}, work p50 {result.source_p50_ms + result.publish_p50_ms:.2f} ms",
                 flush=True,
             )
-            if not result.keeps_up and result.overruns > 0.2 * result.ticks:
+            if not result.keeps_up and result.pacing.overruns > 0.2 * result.pacing.ticks:
                 break  # far past capacity: larger fleets only take longer to say so
     finally:
         if sink.stdin is not None:
@@ -160,7 +167,7 @@ def run(out_dir: Path, sizes: tuple[int, ...] = SIZES, run_s: float = RUN_S) -> 
             sink.wait()
     path = out_dir / "publisher.md"
     path.write_text(_report(results, run_s))
-    (out_dir / "publisher.json").write_text(json.dumps([r.__dict__ for r in results], indent=2))
+    (out_dir / "publisher.json").write_text(json.dumps([r.record() for r in results], indent=2))
     return path
 
 
@@ -180,8 +187,9 @@ def _report(results: list[SizeResult], run_s: float) -> str:
     ]
     for r in results:
         lines.append(
-            f"| {r.vehicles} | {r.rate_hz:.2f} | {r.lateness_p50_ms:.2f} / {r.lateness_p99_ms:.2f} / "
-            f"{r.max_lag_ms:.1f} | {r.late} | {r.overruns} | {r.source_p50_ms:.2f} / {r.source_p99_ms:.2f} "
+            f"| {r.vehicles} | {r.rate_hz:.2f} | {r.pacing.lateness_p50_ms:.2f} / {r.pacing.lateness_p99_ms:.2f} / "
+            f"{r.pacing.max_lag_ms:.1f} | {r.pacing.late} | {r.pacing.overruns} "
+            f"| {r.source_p50_ms:.2f} / {r.source_p99_ms:.2f} "
             f"| {r.publish_p50_ms:.2f} / {r.publish_p99_ms:.2f} | {r.delivered_fraction:.1%} | {r.load_before:.1f} "
             f"| {'yes' if r.keeps_up else 'no'} |"
         )

@@ -1122,8 +1122,19 @@ def run(
     replace the plan's. A set whose calibration from the scripted drive is refused (or whose design fails)
     is reported with the reason, as a failed target, and not evaluated further.
     """
-    started = time.perf_counter()
     plan = Plan.make(parameter_sets, quick, workers, healthy_seeds, healthy_duration_s, fault_seeds, sensitivity_seeds)
+    document = measure(plan)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "real_vehicle.json").write_text(json.dumps(_clean(document), indent=1) + "\n")
+    path = out_dir / "real_vehicle.md"
+    path.write_text(render(document))
+    return path
+
+
+def measure(plan: Plan) -> dict[str, Any]:
+    """Calibrate every set from its scripted drive, simulate its healthy and faulty drives and evaluate it: the
+    run's document (what real_vehicle.json holds and :func:`render` reads)."""
+    started = time.perf_counter()
     print(f"  simulating the calibration drives of set(s) {', '.join(map(str, plan.parameter_sets))} ...", flush=True)
     n_random = len(plan.sensitivity_seeds)
     calibration_jobs = [job for s in plan.parameter_sets for job in [calibration_job(s), *sensitivity_jobs(s, plan)]]
@@ -1166,27 +1177,9 @@ def run(
             sensitivity=random_runs[s],
         )
         results.append(evaluate_set(s, reports[s], runs, paper_gains, plan))
-    document = {
+    return {
         "benchmark": "real_vehicle",
-        "plan": {
-            "parameter_sets": list(plan.parameter_sets),
-            "quick": plan.quick,
-            "calibration": {
-                "drive": "calibration_drive",
-                "noise_seeds": [CALIBRATION_SEED_OFFSET + s for s in plan.parameter_sets],
-                "duration_s": len(scripted[0]) * mb.SAMPLE_PERIOD_S,
-            },
-            "sensitivity": {"seeds": list(plan.sensitivity_seeds), "duration_s": plan.sensitivity_duration_s},
-            "healthy": {"seeds": list(plan.healthy_seeds), "duration_s": plan.healthy_duration_s},
-            "faults": {
-                "seeds": list(plan.fault_seeds),
-                "duration_s": plan.fault_duration_s,
-                "onset_s": plan.fault_onset_s,
-            },
-            "noise": {"vx_sigma_mps": mb.DEFAULT_SPEED_SIGMA_MPS, "r_sigma_radps": mb.DEFAULT_YAW_RATE_SIGMA_RADPS},
-            "max_lateral_accel_mps2": MAX_LATERAL_ACCEL_MPS2,
-            "workers": plan.workers,
-        },
+        "plan": _plan_document(plan, len(scripted[0]) * mb.SAMPLE_PERIOD_S),
         "paper_profile": {
             "gain_version": paper_gains.version,
             "alarms": AlarmThresholds().model_dump(mode="json"),
@@ -1195,11 +1188,29 @@ def run(
         "uncommitted_files": uncommitted_files(),
         "runtime_s": time.perf_counter() - started,
     }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "real_vehicle.json").write_text(json.dumps(_clean(document), indent=1) + "\n")
-    path = out_dir / "real_vehicle.md"
-    path.write_text(render(document))
-    return path
+
+
+def _plan_document(plan: Plan, calibration_duration_s: float) -> dict[str, Any]:
+    """The document's "plan": the sets, the drives' seeds and durations, the noise."""
+    return {
+        "parameter_sets": list(plan.parameter_sets),
+        "quick": plan.quick,
+        "calibration": {
+            "drive": "calibration_drive",
+            "noise_seeds": [CALIBRATION_SEED_OFFSET + s for s in plan.parameter_sets],
+            "duration_s": calibration_duration_s,
+        },
+        "sensitivity": {"seeds": list(plan.sensitivity_seeds), "duration_s": plan.sensitivity_duration_s},
+        "healthy": {"seeds": list(plan.healthy_seeds), "duration_s": plan.healthy_duration_s},
+        "faults": {
+            "seeds": list(plan.fault_seeds),
+            "duration_s": plan.fault_duration_s,
+            "onset_s": plan.fault_onset_s,
+        },
+        "noise": {"vx_sigma_mps": mb.DEFAULT_SPEED_SIGMA_MPS, "r_sigma_radps": mb.DEFAULT_YAW_RATE_SIGMA_RADPS},
+        "max_lateral_accel_mps2": MAX_LATERAL_ACCEL_MPS2,
+        "workers": plan.workers,
+    }
 
 
 def uncommitted_files() -> list[str]:

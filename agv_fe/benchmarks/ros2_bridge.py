@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import resource
-import socket
 import subprocess
 import sys
 import tempfile
@@ -32,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from agv_fe.benchmarks import report_header
+from agv_fe.benchmarks.harness import free_port
 
 RUN_S = 30.0
 VEHICLE = "bench-ros2"
@@ -59,12 +59,6 @@ class BridgeLatency:
     decode_us: float
     bridge_cpu_fraction: float
     run_s: float
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _router(port: int) -> Any:
@@ -141,7 +135,7 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
     store = typestore_for(mapping)
     builders = _messages(store)
     decode_us = _decode_us(store, builders, mapping)
-    port = _free_port()
+    port = free_port()
     session = _router(port)
     received: list[tuple[int, int, int]] = []  # (sample number, measurement time stamp, receipt) [ns, wall clock]
     lock = threading.Lock()

@@ -31,7 +31,6 @@ import gc
 import json
 import multiprocessing
 import os
-import signal
 import struct
 import subprocess
 import sys
@@ -44,6 +43,7 @@ from typing import Any
 import httpx
 
 from agv_fe.benchmarks import report_header
+from agv_fe.benchmarks.harness import free_port, service_process
 
 FLEET_SIZES = (100, 250, 500, 750, 1000, 1250, 1500, 2000)
 STEP_S = 10.0
@@ -73,48 +73,29 @@ RATE_HZ = 100.0
 KEEP_UP_P99_MS = 100.0
 #: A step passes when the generator reached this fraction of the target rate.
 PACE_FRACTION = 0.99
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+#: The longest the service may take to become ready: the first start designs the default profile's gains [s].
+READY_S = 300.0
 
 
 @contextlib.contextmanager
 def serving(env: dict[str, str]) -> Iterator[tuple[str, httpx.Client, subprocess.Popen[bytes], Path]]:
     """`agv-fe serve` in a process of its own until it is ready: the embedded router on a free loopback port, a
     fresh data directory, bearer token 'bench', congestion control BLOCK, and ``env`` on top. Yields (Zenoh
-    endpoint, HTTP client, process, data directory); stops the service with SIGINT on the way out."""
-    http_port, zenoh_port = _free_port(), _free_port()
-    endpoint = f"tcp/127.0.0.1:{zenoh_port}"
+    endpoint, HTTP client, process, data directory); stops the service (and what it spawned) on the way out."""
+    from service.settings import Settings
+
     with tempfile.TemporaryDirectory() as data_dir:
-        env = {**os.environ, "AGV_FE_AUTH__TOKEN": "bench", "AGV_FE_ZENOH__ESTIMATE_CONGESTION": "block", **env}
-        cmd = [sys.executable, "-m", "agv_fe", "serve", "--http-port", str(http_port), "--zenoh-endpoint", endpoint,
-               "--data-dir", data_dir, "--log-level", "warning"]  # fmt: skip
-        proc = subprocess.Popen(cmd, env=env)
-        http = httpx.Client(base_url=f"http://127.0.0.1:{http_port}", timeout=30)
-        try:
-            deadline = time.monotonic() + 300
-            while time.monotonic() < deadline:
-                try:
-                    if http.get("/ready").json()["ready"]:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.5)
-            else:
-                raise RuntimeError("the service did not become ready within 300 s")
-            yield endpoint, http, proc, Path(data_dir)
-        finally:
-            http.close()
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        settings = Settings(
+            data_dir=Path(data_dir),
+            http={"port": free_port()},
+            auth={"token": "bench"},
+            zenoh={"endpoint": endpoint, "estimate_congestion": "block"},
+        )
+        with service_process(settings, Path(data_dir) / "service.log", "--log-level", "warning", env=env) as server:
+            server.wait_ready(READY_S)
+            assert server.process is not None
+            yield endpoint, server.http, server.process, Path(data_dir)
 
 
 def _templates(ids: list[str]) -> list[bytearray]:
@@ -230,6 +211,18 @@ def _metric(text: str, name: str) -> float:
     return total
 
 
+#: The service's counters a step reads before and after it, from /metrics.
+STEP_COUNTERS = (
+    "agv_fe_measurements_received_total",
+    "agv_fe_measurements_accepted_total",
+    "agv_fe_measurements_rejected_total",
+    "agv_fe_samples_missing_total",
+    "agv_fe_estimates_published_total",
+    "agv_fe_fleet_estimates_published_total",
+    "agv_fe_tick_batch_measurements_count",
+)
+
+
 def _step(
     endpoint: str,
     http: httpx.Client,
@@ -240,7 +233,56 @@ def _step(
     stream: str = "vehicle",
     arrival: str = "spread",
 ) -> dict[str, Any]:
+    """One step of a sweep: n vehicles at 100 Hz for duration_s against the service of process ``pid``; its
+    counts, latencies [ms], CPU shares and verdicts (zero loss, paced)."""
     duration_s = STEP_S if duration_s is None else duration_s
+    gen, rec, diff, cpu = _drive(endpoint, http, pid, n, duration_s, stream, arrival)
+    latency = _latencies(rec)
+    expected_estimates = gen["sent"] // every_n
+    rate = gen["sent"] / gen["elapsed_s"]
+    result = {
+        "vehicles": n,
+        "sent": gen["sent"],
+        "rate_msg_s": rate,
+        "target_msg_s": n * RATE_HZ,
+        "late_ticks": gen["late_ticks"],
+        "ticks": gen["ticks"],
+        "accepted": int(diff["agv_fe_measurements_accepted_total"]),
+        "rejected": int(diff["agv_fe_measurements_rejected_total"]),
+        "missing": int(diff["agv_fe_samples_missing_total"]),
+        "estimates_received": rec["received"],
+        "estimates_expected": expected_estimates,
+        "p50_ms": latency["p50_ms"],
+        "p99_ms": latency["p99_ms"],
+        "max_ms": latency["max_ms"],
+        "p99_all_ms": latency["p99_all_ms"],
+        "service_cpu": cpu["service_s"] / gen["elapsed_s"],
+        "receiver_cpu": cpu["receiver_s"] / gen["elapsed_s"],
+        "estimate_every_n": every_n,
+        "stream": stream,
+        "published_per_vehicle": int(diff["agv_fe_estimates_published_total"]),
+        "published_in_fleet_stream": int(diff["agv_fe_fleet_estimates_published_total"]),
+        "service_ticks": int(diff["agv_fe_tick_batch_measurements_count"]),
+        "arrival": arrival,
+        "duration_s": duration_s,
+        "p99_windows_ms": latency["p99_windows_ms"],
+    }
+    result["zero_loss"] = (
+        result["accepted"] == result["sent"]
+        and result["missing"] == 0
+        and result["rejected"] == 0
+        and result["estimates_received"] == expected_estimates
+    )
+    result["paced"] = rate >= PACE_FRACTION * n * RATE_HZ
+    return result
+
+
+def _drive(
+    endpoint: str, http: httpx.Client, pid: int, n: int, duration_s: float, stream: str, arrival: str
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, float], dict[str, float]]:
+    """Run the receiver and the generator processes for one step. Returns what the generator and the receiver
+    reported, the change of the service's STEP_COUNTERS, and the CPU time [s] the service and the receiver
+    used while the generator ran ("service_s", "receiver_s")."""
     ctx = multiprocessing.get_context("spawn")
     gen_q, rec_q = ctx.Queue(), ctx.Queue()
     ready = ctx.Event()
@@ -260,25 +302,20 @@ def _step(
     rec = rec_q.get(timeout=duration_s + 120)
     receiver.join(30)
     after = http.get("/metrics").text
-    diff = {
-        name: _metric(after, name) - _metric(before, name)
-        for name in (
-            "agv_fe_measurements_received_total",
-            "agv_fe_measurements_accepted_total",
-            "agv_fe_measurements_rejected_total",
-            "agv_fe_samples_missing_total",
-            "agv_fe_estimates_published_total",
-            "agv_fe_fleet_estimates_published_total",
-            "agv_fe_tick_batch_measurements_count",
-        )
-    }
-    # latency in steady state: the first WARMUP_S of a step register the new vehicles and declare their publishers
+    diff = {name: _metric(after, name) - _metric(before, name) for name in STEP_COUNTERS}
+    return gen, rec, diff, {"service_s": cpu1 - cpu0, "receiver_s": receiver_cpu1 - receiver_cpu0}
+
+
+def _latencies(rec: dict[str, Any]) -> dict[str, Any]:
+    """Percentiles of the receiver's latencies [ms]: p50, p99 and max in steady state (after the first WARMUP_S
+    of the step, which register the new vehicles and declare their publishers), p99 of all, and the p99 of each
+    STEP_S window after the warm-up (one window for a sweep step, several for the hold; windows of fewer than
+    100 estimates are left out)."""
     stamps = array.array("q", rec["stamps_ns"])
     everything = array.array("q", rec["latencies_ns"])
     settled = min(stamps, default=0) + int(WARMUP_S * 1e9)
     lat = sorted(x for x, t in zip(everything, stamps, strict=True) if t >= settled)
     warm = sorted(everything)
-    # p99 of each STEP_S window after the warm-up (one window for a sweep step, several for the hold)
     windows: list[list[int]] = []
     for x, t in zip(everything, stamps, strict=True):
         if t >= settled:
@@ -287,44 +324,14 @@ def _step(
                 windows.append([])
             windows[k].append(x)
     window_p99 = [sorted(w)[min(len(w) - 1, int(0.99 * len(w)))] / 1e6 for w in windows if len(w) >= 100]
-    expected_estimates = gen["sent"] // every_n
-    rate = gen["sent"] / gen["elapsed_s"]
     pct = lambda q: lat[min(len(lat) - 1, int(q * len(lat)))] / 1e6 if lat else float("nan")  # noqa: E731
-    result = {
-        "vehicles": n,
-        "sent": gen["sent"],
-        "rate_msg_s": rate,
-        "target_msg_s": n * RATE_HZ,
-        "late_ticks": gen["late_ticks"],
-        "ticks": gen["ticks"],
-        "accepted": int(diff["agv_fe_measurements_accepted_total"]),
-        "rejected": int(diff["agv_fe_measurements_rejected_total"]),
-        "missing": int(diff["agv_fe_samples_missing_total"]),
-        "estimates_received": rec["received"],
-        "estimates_expected": expected_estimates,
+    return {
         "p50_ms": pct(0.50),
         "p99_ms": pct(0.99),
         "max_ms": lat[-1] / 1e6 if lat else float("nan"),
         "p99_all_ms": warm[min(len(warm) - 1, int(0.99 * len(warm)))] / 1e6 if warm else float("nan"),
-        "service_cpu": (cpu1 - cpu0) / gen["elapsed_s"],
-        "receiver_cpu": (receiver_cpu1 - receiver_cpu0) / gen["elapsed_s"],
-        "estimate_every_n": every_n,
-        "stream": stream,
-        "published_per_vehicle": int(diff["agv_fe_estimates_published_total"]),
-        "published_in_fleet_stream": int(diff["agv_fe_fleet_estimates_published_total"]),
-        "service_ticks": int(diff["agv_fe_tick_batch_measurements_count"]),
-        "arrival": arrival,
-        "duration_s": duration_s,
         "p99_windows_ms": window_p99,
     }
-    result["zero_loss"] = (
-        result["accepted"] == result["sent"]
-        and result["missing"] == 0
-        and result["rejected"] == 0
-        and result["estimates_received"] == expected_estimates
-    )
-    result["paced"] = rate >= PACE_FRACTION * n * RATE_HZ
-    return result
 
 
 ENGINE_TICKS = 300

@@ -115,12 +115,51 @@ def _wait_ready(url: str, service: subprocess.Popen[bytes], log_path: Path, stop
     raise CommandError(f"the service was not ready within {READY_TIMEOUT_S:.0f} s; its log: {log_path}")
 
 
+def _check_args(args: argparse.Namespace) -> None:
+    """Raise :class:`CommandError` naming the option out of its range."""
+    if args.duration is not None and not 5 <= args.duration <= OPEN_ENDED_S:
+        raise CommandError(f"--duration: expected 5 to {OPEN_ENDED_S:.0f} seconds, got {args.duration}")
+    if not 1 <= args.vehicles <= 2000:
+        raise CommandError(f"--vehicles: expected 1 to 2000, got {args.vehicles}")
+
+
+def _fleet_arguments(args: argparse.Namespace, endpoint: str, summary_path: Path) -> list[str]:
+    """`agv-fe fleet`'s command line: the demo's vehicles for its duration (open-ended without one)."""
+    duration = args.duration if args.duration is not None else OPEN_ENDED_S
+    return [
+        "fleet",
+        "--vehicles",
+        str(args.vehicles),
+        "--duration",
+        str(duration),
+        "--scenario-mix",
+        args.scenario_mix,
+        "--seed",
+        str(args.seed),
+        "--connect",
+        endpoint,
+        "--summary-json",
+        str(summary_path),
+    ]
+
+
+def _announce(args: argparse.Namespace, url: str, endpoint: str, data_dir: Path) -> None:
+    """Where to look: the web dashboard, the REST API and its token, the terminal view, the logs."""
+    token_file = data_dir / "api-token"
+    print(f"web dashboard     {url}/")
+    print(f"REST API          {url}/docs  (write token in {token_file})")
+    print(f"terminal view     agv-fe dashboard --connect {endpoint}")
+    print(f"logs              {data_dir / 'service.log'}, {data_dir / 'fleet.log'}")
+    print(
+        f"{args.vehicles} simulated vehicles at 100 Hz "
+        + (f"for {args.duration:g} s" if args.duration is not None else "until Ctrl-C"),
+        flush=True,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     try:
-        if args.duration is not None and not 5 <= args.duration <= OPEN_ENDED_S:
-            raise CommandError(f"--duration: expected 5 to {OPEN_ENDED_S:.0f} seconds, got {args.duration}")
-        if not 1 <= args.vehicles <= 2000:
-            raise CommandError(f"--vehicles: expected 1 to 2000, got {args.vehicles}")
+        _check_args(args)
     except CommandError as exc:
         return fail(exc)
     data_dir = Path(args.data_dir) if args.data_dir else Path(tempfile.mkdtemp(prefix="agv-fe-demo-"))
@@ -146,35 +185,8 @@ def run(args: argparse.Namespace) -> int:
         _wait_ready(url, service, data_dir / "service.log", stop)
         if stop.is_set():
             return 130
-        duration = args.duration if args.duration is not None else OPEN_ENDED_S
-        fleet = _child(
-            [
-                "fleet",
-                "--vehicles",
-                str(args.vehicles),
-                "--duration",
-                str(duration),
-                "--scenario-mix",
-                args.scenario_mix,
-                "--seed",
-                str(args.seed),
-                "--connect",
-                endpoint,
-                "--summary-json",
-                str(summary_path),
-            ],
-            fleet_log,
-        )
-        token_file = data_dir / "api-token"
-        print(f"web dashboard     {url}/")
-        print(f"REST API          {url}/docs  (write token in {token_file})")
-        print(f"terminal view     agv-fe dashboard --connect {endpoint}")
-        print(f"logs              {data_dir / 'service.log'}, {data_dir / 'fleet.log'}")
-        print(
-            f"{args.vehicles} simulated vehicles at 100 Hz "
-            + (f"for {args.duration:g} s" if args.duration is not None else "until Ctrl-C"),
-            flush=True,
-        )
+        fleet = _child(_fleet_arguments(args, endpoint, summary_path), fleet_log)
+        _announce(args, url, endpoint, data_dir)
         threading.Thread(target=_set_when_done, args=(fleet, stop), daemon=True).start()
         if args.no_dashboard or not sys.stdout.isatty():
             stop.wait()  # off a terminal the summary below is the report

@@ -75,7 +75,7 @@ def _check(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     from agv_fe.commands.simulate import parse_noise
     from edge_client.fleet import FleetConfig, run_fleet, write_summary_json
-    from edge_client.fleet_mix import MixError, build_fleet
+    from edge_client.fleet_mix import MixError
     from edge_client.publisher import PublisherOptions
     from edge_client.scenario import ScenarioError
     from edge_client.transport import TransportError
@@ -95,15 +95,7 @@ def run(args: argparse.Namespace) -> int:
             log_path=Path(args.log) if args.log else None,
         )
         try:
-            members = build_fleet(
-                config.mix,
-                config.n_vehicles,
-                config.duration_s,
-                seed=config.seed,
-                noise=config.noise,
-                id_prefix=config.id_prefix,
-                gusts=config.gusts,
-            )
+            members = config.members()
         except (MixError, ScenarioError, ValueError) as exc:
             raise CommandError(f"--scenario-mix: {exc}") from exc
     except CommandError as exc:

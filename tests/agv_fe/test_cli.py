@@ -7,6 +7,8 @@ import sys
 import numpy as np
 import pytest
 
+from tests.tolerances import REPLAY_STEER_FAULT_ATOL_RAD, REPLAY_TORQUE_FAULT_ATOL_NM
+
 
 def agv_fe(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "agv_fe", *args], capture_output=True, text=True, timeout=600)
@@ -88,8 +90,8 @@ def test_simulate_then_replay_reproduces_the_estimates(tmp_path, gains_file):
         "t", "vx_hat", "vy_hat", "r_hat", "torque_fault_hat", "steer_fault_hat", "in_domain",
         "torque_level", "steer_level",
     )  # fmt: skip
-    np.testing.assert_allclose(b["torque_fault_hat"], a["torque_fault_hat"], atol=1e-6)
-    np.testing.assert_allclose(b["steer_fault_hat"], a["steer_fault_hat"], atol=1e-9)
+    np.testing.assert_allclose(b["torque_fault_hat"], a["torque_fault_hat"], atol=REPLAY_TORQUE_FAULT_ATOL_NM)
+    np.testing.assert_allclose(b["steer_fault_hat"], a["steer_fault_hat"], atol=REPLAY_STEER_FAULT_ATOL_RAD)
 
 
 def test_replay_names_the_bad_row(tmp_path, gains_file):

@@ -14,6 +14,7 @@ from edge_client.faults import LossOfEffectivenessFault
 from edge_client.recording import OUTPUT_COLUMNS, write_recording
 from edge_client.scenario import REALISTIC_NOISE, Scenario, SpeedPoint
 from edge_client.simulation import simulate_plant
+from tests.tolerances import CSV_PRODUCT_ATOL_NM
 
 EXTRA = ("torque_bias_hat", "steer_bias_hat", "torque_alpha_hat", "steer_alpha_hat")
 
@@ -65,7 +66,7 @@ def test_replay_writes_the_total_faults_and_the_bias_and_effectiveness_columns(t
     total = np.array([float(r["torque_fault_hat"]) for r in rows])
     bias = np.array([float(r["torque_bias_hat"]) for r in rows])
     demand = np.array([float(line.split(",")[3]) for line in rec.read_text().splitlines()[1:]])
-    np.testing.assert_allclose(total - bias, (alpha - 1.0) * demand, rtol=0, atol=1e-4)  # 9 digits in the CSV
+    np.testing.assert_allclose(total - bias, (alpha - 1.0) * demand, rtol=0, atol=CSV_PRODUCT_ATOL_NM)
     # the profile can switch the stage on itself; without either, the replay is the additive design's
     on = tmp_path / "on.json"
     on.write_text(json.dumps({"effectiveness": {"enabled": True, "torque_sigma_nm": 6.0}}))

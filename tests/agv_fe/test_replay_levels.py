@@ -30,6 +30,7 @@ from synth.design import synthesize
 from synth.options import DesignOptions
 from synth.params import VehicleParams
 from tests.service.helpers import T0_NS, WAIT_S, make_settings, running
+from tests.tolerances import CSV_ROUND_TRIP_ATOL, CSV_ROUND_TRIP_RTOL
 
 PERIOD_NS = 10_000_000
 #: Torque bias of the unit recording [N m] and its onset [s].
@@ -317,7 +318,10 @@ def test_replay_levels_equal_the_services_for_the_same_stream(tmp_path, capsys):
     assert {e["gain_version"] for e in estimates} == {json.loads(gains.text)["version"]}
     # the same observer: the estimates agree to the replay's 9 written digits
     np.testing.assert_allclose(
-        [e["torque_fault"] for e in estimates], [float(r["torque_fault_hat"]) for r in rows], rtol=1e-8, atol=1e-9
+        [e["torque_fault"] for e in estimates],
+        [float(r["torque_fault_hat"]) for r in rows],
+        rtol=CSV_ROUND_TRIP_RTOL,
+        atol=CSV_ROUND_TRIP_ATOL,
     )
 
     # every alarm transition of each fault channel, at the sample the replay changes level
@@ -386,7 +390,7 @@ def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_
     online = np.array([[e.vx, e.vy, e.r, e.torque_fault, e.steer_fault] for e in estimates])
     offline = np.array([[float(r[c]) for c in ("vx_hat", "vy_hat", "r_hat", "torque_fault_hat", "steer_fault_hat")]
                         for r in rows])  # fmt: skip
-    np.testing.assert_allclose(online, offline, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(online, offline, rtol=CSV_ROUND_TRIP_RTOL, atol=CSV_ROUND_TRIP_ATOL)
     for kind, column in (("torque_fault", "torque_level"), ("steer_fault", "steer_level")):
         service = [(a.t_ns - T0_NS, a.level if a.state == "raised" else "OK") for a in alarms if a.kind == kind]
         assert service == transitions(rows, column), kind

@@ -10,26 +10,22 @@ the test's router (the docker compose topology).
 
 from __future__ import annotations
 
-import os
-import socket
 import subprocess
 import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
-import httpx
 import pytest
 
+from agv_fe.benchmarks.harness import ServiceProcess
+from agv_fe.benchmarks.harness import free_port as free_port
 from edge_client.transport import TransportOptions
+from service.settings import Settings
 
 ROUTER_SCRIPT = Path(__file__).with_name("zenoh_router.py")
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+#: The longest the service may take to become ready: the first start designs the default profile's gains [s].
+READY_S = 120.0
 
 
 class Router:
@@ -84,51 +80,21 @@ def router() -> Iterator[Router]:
         r.stop()
 
 
-class RealService:
-    """`agv-fe serve` in a child process: client of the router, HTTP on a free port, data in a temp dir."""
+class RealService(ServiceProcess):
+    """`agv-fe serve` in a child process: client of the router, HTTP on a free port, data in ``data_dir``."""
 
     #: The service publishes an estimate for every accepted sample (AGV_FE_INGEST__ESTIMATE_EVERY_N=1).
     answers_every_sample = True
     TOKEN = "edge-tests-token"
 
     def __init__(self, router: Router, data_dir: Path) -> None:
-        self.http_port = free_port()
-        self.url = f"http://127.0.0.1:{self.http_port}"
-        env = {**os.environ, "AGV_FE_AUTH__TOKEN": self.TOKEN, "AGV_FE_ZENOH__CONNECT_TIMEOUT_MS": "-1"}
-        command = [
-            sys.executable, "-m", "agv_fe", "serve", "--zenoh-mode", "client", "--zenoh-endpoint", router.endpoint,
-            "--http-port", str(self.http_port), "--data-dir", str(data_dir), "--log-level", "warning",
-        ]  # fmt: skip
-        self.log = (data_dir / "service.log").open("w")
-        self.process = subprocess.Popen(command, env=env, stdout=self.log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 120  # the first start designs the default profile's gains
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError(f"agv-fe serve exited with {self.process.returncode}: {self.read_log()}")
-            try:
-                if httpx.get(f"{self.url}/ready", timeout=1.0).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        else:
-            self.close()
-            raise RuntimeError(f"agv-fe serve was not ready within 120 s: {self.read_log()}")
-        time.sleep(0.3)  # let its subscriptions reach the router
-
-    def read_log(self) -> str:
-        self.log.flush()
-        return Path(self.log.name).read_text()[-3000:]
-
-    def close(self) -> None:
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(timeout=10)
-        self.log.close()
+        settings = Settings(
+            data_dir=data_dir,
+            http={"port": free_port()},
+            auth={"token": self.TOKEN},
+            zenoh={"mode": "client", "endpoint": router.endpoint, "connect_timeout_ms": -1},
+        )
+        super().__init__(settings, data_dir / "service.log", "--log-level", "warning")
 
 
 @pytest.fixture
@@ -138,6 +104,9 @@ def estimation_service(router: Router, tmp_path: Path) -> Iterator[RealService]:
     data_dir.mkdir()
     service = RealService(router, data_dir)
     try:
+        service.start()
+        service.wait_ready(READY_S)
+        time.sleep(0.3)  # let its subscriptions reach the router
         yield service
     finally:
         service.close()

@@ -10,6 +10,7 @@ from edge_client.faults import (
     SinusoidalFault,
     fault_tables,
 )
+from tests.tolerances import LAST_BITS_ATOL
 
 T = np.arange(0, 20, 0.01)
 
@@ -25,7 +26,7 @@ def test_loss_of_effectiveness_follows_eqs_9_11():
     f = LossOfEffectivenessFault(channel="torque", onset_s=4.0, rate_per_s=0.02, alpha_min=0.7)
     add, gain = fault_tables([f], T)
     alpha = np.where(T >= 4.0, np.maximum(1 - 0.02 * (T - 4.0), 0.7), 1.0)
-    np.testing.assert_allclose(gain[:, 0], alpha - 1.0, atol=1e-15)
+    np.testing.assert_allclose(gain[:, 0], alpha - 1.0, atol=LAST_BITS_ATOL)
     u_d = 200.0
     assert (add[:, 0] + gain[:, 0] * u_d)[T >= 19.0].min() == pytest.approx(-0.3 * u_d)
 
@@ -33,7 +34,7 @@ def test_loss_of_effectiveness_follows_eqs_9_11():
 def test_sinusoidal_and_intermittent_signals():
     s = SinusoidalFault(channel="steer", amplitude=0.1, omega_radps=0.5, onset_s=2.0)
     add, _ = fault_tables([s], T)
-    np.testing.assert_allclose(add[:, 1], np.where(T >= 2.0, 0.1 * np.sin(0.5 * (T - 2.0)), 0.0), atol=1e-15)
+    np.testing.assert_allclose(add[:, 1], np.where(T >= 2.0, 0.1 * np.sin(0.5 * (T - 2.0)), 0.0), atol=LAST_BITS_ATOL)
     i = IntermittentFault(channel="steer", magnitude=0.02, period_s=4.0, on_s=1.0, onset_s=2.0)
     add, _ = fault_tables([i], T)
     on = (T >= 2.0) & (np.mod(T - 2.0, 4.0) < 1.0)

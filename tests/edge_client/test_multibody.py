@@ -14,6 +14,7 @@ import pytest
 from edge_client import multibody as mb
 from edge_client.faults import BiasFault, LossOfEffectivenessFault
 from edge_client.recording import read_recording
+from tests.tolerances import AMPLIFIED_ROUNDING_RTOL, FORMULA_EQUALITY_RTOL, LAST_BITS_ATOL
 
 SETS = (1, 3)
 #: Measured a_x against T / (R_w m_eff), relative.
@@ -56,7 +57,7 @@ def test_steering_servo_follows_demand_plus_bias_fault():
     run = mb.simulate(mb.OpenLoopDemand("sine steer", 15.0, u), 1, faults=[bias], noise=NO_NOISE)
 
     target = u[:, 1] + np.where(t >= 0.5, 0.01, 0.0)
-    np.testing.assert_allclose(run.f[:, 1], target - u[:, 1], atol=1e-15)
+    np.testing.assert_allclose(run.f[:, 1], target - u[:, 1], atol=LAST_BITS_ATOL)
     np.testing.assert_array_equal(run.f[:, 0], 0.0)
     # the bias alone (u_d = 0): a first-order step of time constant 1/k_steer
     lag_s = 1.0 / mb.STEER_SERVO_GAIN_PER_S
@@ -112,8 +113,8 @@ def test_loss_of_effectiveness_scales_the_applied_torque():
     run = mb.simulate(drive, 1, faults=[fault], seed=2)
     after = t >= 1.01
     assert run.u[after, 0].min() > 300.0
-    np.testing.assert_allclose(run.torque_nm[after], 0.6 * run.u[after, 0], rtol=1e-12)
-    np.testing.assert_allclose(run.f[after, 0], -0.4 * run.u[after, 0], rtol=1e-9)
+    np.testing.assert_allclose(run.torque_nm[after], 0.6 * run.u[after, 0], rtol=FORMULA_EQUALITY_RTOL)
+    np.testing.assert_allclose(run.f[after, 0], -0.4 * run.u[after, 0], rtol=AMPLIFIED_ROUNDING_RTOL)
     np.testing.assert_array_equal(run.f[t < 1.0], 0.0)
     np.testing.assert_array_equal(run.f[:, 1], 0.0)
     # the speed loop makes up for the lost torque: the demand grows by about 1/0.6 and the speed error fades

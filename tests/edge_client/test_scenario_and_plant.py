@@ -10,7 +10,13 @@ from edge_client.plant import PlantSimulator
 from edge_client.scenario import Scenario, ScenarioError, SensorNoise, load_scenario
 from synth.model import continuous_dynamics
 from synth.params import OperatingBounds
-from tests.tolerances import PLANT_STEP_ATOL
+from tests.tolerances import (
+    FORMULA_EQUALITY_ATOL,
+    NOISE_SIGMA_RTOL,
+    PLANT_STEP_ATOL,
+    REFERENCE_INTEGRATION_ATOL,
+    REFERENCE_INTEGRATION_RTOL,
+)
 
 
 def test_one_plant_sample_matches_the_continuous_model():
@@ -30,7 +36,9 @@ def test_one_plant_sample_matches_the_continuous_model():
     def rhs(_t: float, x: np.ndarray) -> np.ndarray:
         return continuous_dynamics(x, sample.u[0], sample.wind[0], sample.f[0], p)
 
-    ref = solve_ivp(rhs, (0.0, 0.01), sample.x[0], rtol=1e-12, atol=1e-13, method="DOP853").y[:, -1]
+    ref = solve_ivp(
+        rhs, (0.0, 0.01), sample.x[0], rtol=REFERENCE_INTEGRATION_RTOL, atol=REFERENCE_INTEGRATION_ATOL, method="DOP853"
+    ).y[:, -1]
     np.testing.assert_allclose(plant.state[0, :3], ref, atol=PLANT_STEP_ATOL)
     assert sample.f[0, 1] == 0.02
 
@@ -43,7 +51,7 @@ def test_batch_of_vehicles_steps_independently():
     for _ in range(300):
         s_both = both.step()
         s_alone = alone.step()
-    np.testing.assert_allclose(s_both.x[1], s_alone.x[0], atol=1e-12)
+    np.testing.assert_allclose(s_both.x[1], s_alone.x[0], atol=FORMULA_EQUALITY_ATOL)
 
 
 @pytest.mark.parametrize("name", sorted(BUILTIN_SCENARIOS))
@@ -60,7 +68,7 @@ def test_sensor_noise_has_the_requested_sigma():
     s = builtin_scenario("paper-1", noise=SensorNoise(vx_sigma_mps=0.05, r_sigma_radps=0.005))
     plant = PlantSimulator([s])
     err = np.array([(lambda smp: smp.y[0] - smp.x[0, [0, 2]])(plant.step()) for _ in range(2000)])
-    np.testing.assert_allclose(err.std(axis=0), [0.05, 0.005], rtol=0.1)
+    np.testing.assert_allclose(err.std(axis=0), [0.05, 0.005], rtol=NOISE_SIGMA_RTOL)
 
 
 def test_sensor_bias_offsets_every_measurement_by_exactly_the_bias(tmp_path):

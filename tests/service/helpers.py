@@ -3,16 +3,11 @@
 from __future__ import annotations
 
 import json
-import os
 import re
-import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager, suppress
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,6 +17,13 @@ import numpy as np
 import uvicorn
 import zenoh
 
+# the harness the benchmarks and the tests share, imported by the tests from here
+from agv_fe.benchmarks.harness import WAIT_S as WAIT_S
+from agv_fe.benchmarks.harness import ServiceProcess as ServiceProcess
+from agv_fe.benchmarks.harness import free_port as free_port
+from agv_fe.benchmarks.harness import service_process as service_process
+from agv_fe.benchmarks.harness import settings_env as settings_env
+from agv_fe.benchmarks.harness import wait_for as wait_for
 from edge_client.library import paper_1
 from edge_client.plant import PlantSimulator
 from service.app import Service
@@ -33,26 +35,8 @@ from service.transport import open_session
 #: A design that solves in well under a second: tests that need some certified gains use it.
 FAST_DESIGN: dict[str, Any] = {"design": "paper", "fault_order": 1, "lyapunov": "common", "optimise_decay_rate": False}
 TOKEN = "test-token-0123456789"
-#: Upper bound of any wait in these tests [s]; they poll for a condition and fail after it.
-WAIT_S = 60.0
 T0_NS = 1_700_000_000_000_000_000
 PERIOD_NS = 10_000_000
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def wait_for(condition: Callable[[], Any], timeout: float = WAIT_S, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def write_profiles(path: Path, profiles: dict[str, dict[str, Any]]) -> Path:
@@ -74,119 +58,6 @@ def make_settings(tmp_path: Path, profiles: dict[str, dict[str, Any]] | None = N
     for key, value in overrides.items():
         data[key] = {**data[key], **value} if isinstance(value, dict) and isinstance(data.get(key), dict) else value
     return Settings.model_validate(data)
-
-
-def settings_env(settings: Settings) -> dict[str, str]:
-    """The environment that makes ``agv-fe serve`` build ``settings``: AGV_FE_* variables, nested with ``__``."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("AGV_FE_")}
-    dumped = settings.model_dump(mode="json", exclude={"auth": {"token"}, "database": {"url"}})
-    if settings.auth.token is not None:
-        dumped["auth"]["token"] = settings.auth.token.get_secret_value()
-    if settings.database_url is not None:
-        dumped["database"]["url"] = settings.database_url
-
-    def text(value: Any) -> str:
-        return json.dumps(value) if isinstance(value, bool | list | dict) else str(value)
-
-    for key, value in dumped.items():
-        if isinstance(value, dict):
-            env.update({f"AGV_FE_{key}__{k}".upper(): text(v) for k, v in value.items() if v is not None})
-        elif value is not None:
-            env[f"AGV_FE_{key}".upper()] = text(value)
-    return env
-
-
-class ServiceProcess:
-    """``agv-fe serve`` as a separate process, in its own session, so that a test can kill it as a crash would.
-
-    The process and the synthesis workers it spawns form one process group; :meth:`close` ends what is left of it.
-    Its log (stdout and stderr) goes to ``log_path``.
-    """
-
-    def __init__(self, settings: Settings, log_path: Path, *args: str) -> None:
-        self.settings = settings
-        self.log_path = log_path
-        self.args = args
-        self.url = f"http://127.0.0.1:{settings.http.port}"
-        self.http = httpx.Client(base_url=self.url, timeout=30.0)
-        self.auth = {"Authorization": f"Bearer {TOKEN}"}
-        self.process: subprocess.Popen[bytes] | None = None
-
-    def start(self, wait_healthy: bool = True) -> ServiceProcess:
-        """Start the process; by default, wait until /health answers 200."""
-        with self.log_path.open("ab") as log:
-            self.process = subprocess.Popen(
-                [sys.executable, "-m", "agv_fe", "serve", *self.args],
-                env=settings_env(self.settings),
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
-        if wait_healthy:
-            wait_for(self._answers, what=f"the service process to answer on {self.url}")
-        return self
-
-    def _answers(self) -> bool:
-        if self.process is None or self.process.poll() is not None:
-            raise AssertionError(f"the service process exited:\n{self.log()}")
-        try:
-            return self.http.get("/health", timeout=1.0).status_code == 200
-        except httpx.TransportError:
-            return False
-
-    def wait_ready(self) -> None:
-        wait_for(lambda: self.http.get("/ready").status_code == 200, what="/ready")
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def get(self, path: str, **kw: Any) -> httpx.Response:
-        return self.http.get(path, **kw)
-
-    def kill(self) -> None:
-        """SIGKILL the service process, as a crash or the OOM killer would: no shutdown code runs."""
-        if self.process is None:
-            raise AssertionError("the service process was not started")
-        self.process.send_signal(signal.SIGKILL)
-        self.process.wait(WAIT_S)
-
-    def survivors(self) -> list[int]:
-        """Live processes (not zombies) left in the service's process group: its synthesis workers, if any."""
-        if self.process is None:
-            return []
-        pids = []
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                state, _ppid, pgrp = stat.read_text().rsplit(")", 1)[1].split()[:3]
-            except (OSError, ValueError):
-                continue  # the process ended while we looked
-            if int(pgrp) == self.process.pid and state != "Z":
-                pids.append(int(stat.parent.name))
-        return pids
-
-    def close(self) -> None:
-        """Stop the process if it still runs (SIGTERM, then SIGKILL), then any process left in its group."""
-        self.http.close()
-        if self.process is None:
-            return
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(WAIT_S)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(WAIT_S)
-        with suppress(ProcessLookupError):
-            os.killpg(self.process.pid, signal.SIGKILL)
-
-
-@contextmanager
-def service_process(settings: Settings, log_path: Path, *args: str) -> Iterator[ServiceProcess]:
-    server = ServiceProcess(settings, log_path, *args)
-    try:
-        yield server.start()
-    finally:
-        server.close()
 
 
 class RunningService:

@@ -5,6 +5,7 @@ from synth.augmented import AugmentedModel, difference_coordinates, fault_chain_
 from synth.errors import BadParameters
 from synth.fuzzy import NTSModel
 from synth.params import OperatingBounds, VehicleParams
+from tests.tolerances import FORMULA_EQUALITY_ATOL
 
 NTS = NTSModel.build(VehicleParams(), OperatingBounds())
 
@@ -46,7 +47,7 @@ def test_difference_coordinates_give_a_jordan_block(order):
     n = 3 + 2 * order
     jordan = (T @ np.pad(chain, ((3, 0), (3, 0))) @ np.linalg.inv(T))[3:, 3:]
     expected = np.eye(2 * order) + np.eye(2 * order, k=2)
-    np.testing.assert_allclose(jordan, expected, atol=1e-12)
+    np.testing.assert_allclose(jordan, expected, atol=FORMULA_EQUALITY_ATOL)
     assert T.shape == (n, n)
 
 

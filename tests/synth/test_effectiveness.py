@@ -14,6 +14,7 @@ from synth.errors import BadParameters
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver
 from synth.options import EffectivenessOptions
+from tests.tolerances import AMPLIFIED_ROUNDING_ATOL, FORMULA_EQUALITY_ATOL
 
 ONSET_S, RATE_PER_S, ALPHA_MIN = 8.0, 0.04, 0.6
 RAMP_END_S = ONSET_S + (1.0 - ALPHA_MIN) / RATE_PER_S
@@ -82,15 +83,15 @@ def test_a_torque_loss_of_effectiveness_is_recovered_and_tracked_without_the_lag
     alone = np.array(
         [plain.step(loss_drive.y[k : k + 1, 0], loss_drive.u[k : k + 1, 0]).faults[0] for k in range(len(t))]
     )
-    np.testing.assert_allclose(additive, alone, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(additive, alone, rtol=0, atol=AMPLIFIED_ROUNDING_ATOL)
 
 
 def test_without_a_changing_demand_alpha_holds_and_the_total_is_the_observers(robust_gains_default, loss_drive):
     # the steering channel of that drive: a demand of zero throughout, so its alpha never moves from 1
     total, alpha, additive = run(robust_gains_default, loss_drive)
     assert np.abs(loss_drive.u[:, 0, 1]).max() == 0.0
-    np.testing.assert_allclose(alpha[:, 1], 1.0, atol=1e-12)
-    np.testing.assert_allclose(total[:, 1], additive[:, 1], atol=1e-12)
+    np.testing.assert_allclose(alpha[:, 1], 1.0, atol=FORMULA_EQUALITY_ATOL)
+    np.testing.assert_allclose(total[:, 1], additive[:, 1], atol=FORMULA_EQUALITY_ATOL)
 
 
 def test_the_stage_refuses_designs_it_cannot_read(paper_gains, robust_gains_default):

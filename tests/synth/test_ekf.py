@@ -7,6 +7,7 @@ from synth.ekf import AugmentedEKF, jacobian
 from synth.model import continuous_dynamics
 from synth.options import NoiseModel
 from synth.params import OperatingBounds, VehicleParams
+from tests.tolerances import FINITE_DIFFERENCE_TOL
 
 P = VehicleParams()
 
@@ -22,7 +23,7 @@ def test_jacobian_matches_finite_differences():
         dx = np.zeros(3)
         dx[j] = h
         fd = (continuous_dynamics(x + dx, u, 0.0, f, P) - continuous_dynamics(x - dx, u, 0.0, f, P)) / (2 * h)
-        np.testing.assert_allclose(J[:, :, j], fd, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(J[:, :, j], fd, rtol=FINITE_DIFFERENCE_TOL, atol=FINITE_DIFFERENCE_TOL)
 
 
 @pytest.fixture(scope="module")

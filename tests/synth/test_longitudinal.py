@@ -34,7 +34,14 @@ from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
 from tests.calibration_data import CAR as CALIBRATION_CAR
 from tests.synth import strategies as st
-from tests.tolerances import MODEL_EQUALITY_ATOL
+from tests.tolerances import (
+    FORMULA_EQUALITY_ATOL,
+    FORMULA_EQUALITY_RTOL,
+    LAST_BITS_ATOL,
+    MODEL_EQUALITY_ATOL,
+    OBSERVER_EQUATION_TOL,
+    QUADRATURE_RTOL,
+)
 
 #: The calibration tests' car (a torque at a 0.33 m wheel, rolling resistance, cornering drag), with an ideal
 #: steering actuator: the runtime test below feeds the demand to the model directly.
@@ -60,7 +67,9 @@ def test_matrix_form_plus_the_longitudinal_resistance_is_the_physics(vx, vy, r, 
     resistance = longitudinal_resistance_n(x, steer, CAR)
     matrix_form = state_matrix(x, CAR) @ x + cm.B_v @ u + cm.D_v[:, 0] * w + cm.F_v @ f
     matrix_form[0] -= resistance / CAR.effective_mass_kg
-    np.testing.assert_allclose(continuous_dynamics(x, u, w, f, CAR), matrix_form, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        continuous_dynamics(x, u, w, f, CAR), matrix_form, rtol=FORMULA_EQUALITY_RTOL, atol=FORMULA_EQUALITY_ATOL
+    )
 
 
 def test_the_drive_torque_acts_at_the_wheel_radius_on_the_effective_mass():
@@ -200,7 +209,7 @@ def test_the_runtime_step_is_eq_19_with_the_cornering_drag(car_gains):
         + (vy**2)[:, None] * (quiet.M @ aug.G_bar)[:, 0]
         + phi_c[:, None] * (quiet.M @ aug.G_c_bar)[:, 0]
     )
-    np.testing.assert_allclose(z_next, expected, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(z_next, expected, rtol=OBSERVER_EQUATION_TOL, atol=OBSERVER_EQUATION_TOL)
 
 
 def test_the_step_names_a_batch_of_the_wrong_shape(car_gains):
@@ -220,10 +229,10 @@ def test_the_lagged_steering_is_the_exact_mean_of_a_first_order_actuator():
     a = np.exp(-0.01 / 0.04)
     got = lagged_steer(np.ones(50), p, initial_rad=0.0)
     k = np.arange(50)
-    np.testing.assert_allclose(got, 1.0 - a**k * (0.04 / 0.01) * (1.0 - a), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(got, 1.0 - a**k * (0.04 / 0.01) * (1.0 - a), rtol=0, atol=LAST_BITS_ATOL)
     # the mean, by quadrature of the continuous lag 1 - exp(-t / tau) over [t_k, t_k+1)
     t = np.linspace(0.0, 0.01, 20001)
-    np.testing.assert_allclose(got[3], np.trapezoid(1.0 - np.exp(-(0.03 + t) / 0.04), t) / 0.01, rtol=1e-9)
+    np.testing.assert_allclose(got[3], np.trapezoid(1.0 - np.exp(-(0.03 + t) / 0.04), t) / 0.01, rtol=QUADRATURE_RTOL)
     np.testing.assert_array_equal(lagged_steer(np.arange(5.0), VehicleParams()), np.arange(5.0))  # ideal actuator
 
 
@@ -248,7 +257,7 @@ def test_the_plants_actuator_follows_the_same_lag():
     for d in demands:
         state = a * state + (1 - a) * d
         expected.append(state)
-    np.testing.assert_allclose(angles, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(angles, expected, rtol=0, atol=FORMULA_EQUALITY_ATOL)
 
 
 def test_an_observer_with_a_lag_is_the_lag_free_observer_fed_the_lagged_demand(car_gains):
@@ -266,7 +275,7 @@ def test_an_observer_with_a_lag_is_the_lag_free_observer_fed_the_lagged_demand(c
     assert a.z.shape[1] == b.z.shape[1] + 1
     for k in range(K):
         ra, rb = a.step(y[k : k + 1], u[k : k + 1]), b.step(y[k : k + 1], lagged[k : k + 1])
-        np.testing.assert_allclose(ra.x_hat, rb.x_hat, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(ra.x_hat, rb.x_hat, rtol=FORMULA_EQUALITY_RTOL, atol=FORMULA_EQUALITY_ATOL)
 
 
 def test_the_paper_profile_keeps_the_designs_made_before_the_physical_fields():

@@ -4,7 +4,7 @@ from hypothesis import given, settings
 from synth.model import continuous_dynamics, continuous_matrices, euler_step, rk4_step, state_matrix
 from synth.params import VehicleParams
 from tests.synth import strategies as st
-from tests.tolerances import MODEL_EQUALITY_ATOL
+from tests.tolerances import FORMULA_EQUALITY_ATOL, FORMULA_EQUALITY_RTOL, MODEL_EQUALITY_ATOL
 
 P = VehicleParams()
 
@@ -17,7 +17,9 @@ def test_matrix_form_of_eq_6_equals_the_physics_of_eqs_1_2(vx, vy, r, T, d, w, T
     f = np.array([Tf, df])
     cm = continuous_matrices(P)
     matrix_form = state_matrix(x, P) @ x + cm.B_v @ u + cm.D_v[:, 0] * w + cm.F_v @ f
-    np.testing.assert_allclose(continuous_dynamics(x, u, w, f, P), matrix_form, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        continuous_dynamics(x, u, w, f, P), matrix_form, rtol=FORMULA_EQUALITY_RTOL, atol=FORMULA_EQUALITY_ATOL
+    )
 
 
 def test_euler_step_is_eq_12():

@@ -4,7 +4,14 @@ import pytest
 from edge_client.library import builtin_scenario
 from edge_client.simulation import observer_factory, run
 from synth.observer import FuzzyObserver, RuntimeGains, initial_observer_state, observer_step
-from tests.tolerances import BATCH_EQUALITY_ATOL, CONVERGENCE_FRACTION
+from tests.tolerances import (
+    AMPLIFIED_ROUNDING_ATOL,
+    AMPLIFIED_ROUNDING_RTOL,
+    BATCH_EQUALITY_ATOL,
+    CONVERGENCE_FRACTION,
+    FORMULA_EQUALITY_ATOL,
+    FORMULA_EQUALITY_RTOL,
+)
 
 
 @pytest.mark.parametrize("name", ["paper-1", "paper-2"])
@@ -50,9 +57,9 @@ def test_step_implements_algorithm_1(paper_gains_order1):
         + g.M @ g.model.T1 @ (nts.g(14.0, 0.2) + nts.B @ u[0])
         + g.M @ g.model.G_bar[:, 0] * x_hat[1] ** 2
     )
-    np.testing.assert_allclose(result.x_hat[0], x_hat, atol=1e-12)
-    np.testing.assert_allclose(result.x_hat[0, :3], [13.0, 0.4, 0.1], atol=1e-12)
-    np.testing.assert_allclose(z_next[0], expected, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(result.x_hat[0], x_hat, atol=FORMULA_EQUALITY_ATOL)
+    np.testing.assert_allclose(result.x_hat[0, :3], [13.0, 0.4, 0.1], atol=FORMULA_EQUALITY_ATOL)
+    np.testing.assert_allclose(z_next[0], expected, rtol=FORMULA_EQUALITY_RTOL, atol=AMPLIFIED_ROUNDING_ATOL)
 
 
 def test_out_of_domain_premise_is_clipped_and_flagged(paper_gains_order1):
@@ -76,7 +83,7 @@ def test_phi_uses_the_saturated_lateral_speed(paper_gains_order1):
     # the difference is the linear part only: N(h) (far - edge), no phi difference
     h = g.model.nts.memberships(g.model.nts.premise(12.0, 0.1))
     linear = np.einsum("i,ijk->jk", h, g.N) @ (far - edge)[0]
-    np.testing.assert_allclose(z_far[0] - z_edge[0], linear, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(z_far[0] - z_edge[0], linear, rtol=AMPLIFIED_ROUNDING_RTOL, atol=AMPLIFIED_ROUNDING_ATOL)
 
 
 def test_the_reported_estimate_adds_the_output_gain_and_leaves_the_dynamics_alone(robust_gains_default):
@@ -95,5 +102,5 @@ def test_the_reported_estimate_adds_the_output_gain_and_leaves_the_dynamics_alon
     z_plain, plain = observer_step(rt_unfiltered, z, y, u)
     np.testing.assert_array_equal(z_next, z_plain)
     expected = plain.x_hat + (y - plain.x_hat[:, [0, 2]]) @ g.output_gain.T
-    np.testing.assert_allclose(result.x_hat, expected, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(result.x_hat, expected, rtol=FORMULA_EQUALITY_RTOL, atol=FORMULA_EQUALITY_ATOL)
     assert not np.allclose(result.faults, plain.faults)

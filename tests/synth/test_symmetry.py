@@ -11,6 +11,7 @@ from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
 from synth.robust import H2LMIs, error_scales, noise_inputs
 from synth.symmetry import Parametrisation, physical_mirror_sign
+from tests.tolerances import FORMULA_EQUALITY_ATOL, LAST_BITS_ATOL
 
 
 def _coordinates(bounds: OperatingBounds, order: int = 3):
@@ -28,7 +29,7 @@ def test_the_paper_bounds_are_mirror_symmetric(order):
     assert sym.rule_map == (1, 0, 3, 2)
     S = np.diag(physical_mirror_sign(aug.n))
     for i, j in enumerate(sym.rule_map):
-        np.testing.assert_allclose(S @ aug.A_bar[i] @ S, aug.A_bar[j], atol=1e-15)
+        np.testing.assert_allclose(S @ aug.A_bar[i] @ S, aug.A_bar[j], atol=LAST_BITS_ATOL)
     np.testing.assert_array_equal(np.diag([1.0, -1.0]) @ aug.C_bar @ S, aug.C_bar)
 
 
@@ -74,7 +75,7 @@ def test_a_reduced_design_is_verified_on_every_vertex_lmi_of_the_full_family(pap
     # the fuzzy Lyapunov matrices of mirrored rules are mirror images: S P_i S = P_sigma(i)
     S = np.diag(np.sign(np.diag(paper_gains.T @ np.diag(physical_mirror_sign(9)) @ np.linalg.inv(paper_gains.T))))
     for i, j in enumerate((1, 0, 3, 2)):
-        np.testing.assert_allclose(S @ paper_gains.P[i] @ S, paper_gains.P[j], atol=1e-12)
+        np.testing.assert_allclose(S @ paper_gains.P[i] @ S, paper_gains.P[j], atol=FORMULA_EQUALITY_ATOL)
 
 
 def test_asymmetric_bounds_are_designed_in_full_and_verified():
