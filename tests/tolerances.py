@@ -58,3 +58,6 @@ REPLAY_STEER_FAULT_ATOL_RAD = 1e-9
 CSV_PRODUCT_ATOL_NM = 1e-4
 #: A time stamp on the sample grid against a delay or duration computed in floating point [s].
 SAMPLE_GRID_ATOL_S = 1e-9
+#: The service's effectiveness stage (biases, total faults) against the offline stage on the same measurements:
+#: rows stepped in batches of another size sum in another order [N m], [rad].
+STAGE_BATCH_ATOL = 1e-6

@@ -16,7 +16,7 @@ from synth.effectiveness import EffectivenessObserver
 from synth.gains import ObserverGains
 from tests.service.helpers import make_settings, plant_measurements, probe, running, wait_for
 from tests.synth.test_effectiveness import ALPHA_MIN, OPTIONS, RAMP_END_S, torque_loss_scenario
-from tests.tolerances import BATCH_EQUALITY_ATOL
+from tests.tolerances import BATCH_EQUALITY_ATOL, STAGE_BATCH_ATOL
 
 pytestmark = pytest.mark.network
 
@@ -53,9 +53,9 @@ def test_the_service_runs_the_effectiveness_stage_and_alarms_on_alpha(tmp_path):
         alpha = np.array([[e.torque_alpha, e.steer_alpha] for e in got], dtype=float)
         np.testing.assert_allclose(alpha, np.vstack([s.alpha for s in expected]), atol=BATCH_EQUALITY_ATOL)
         bias = np.array([[e.torque_bias, e.steer_bias] for e in got], dtype=float)
-        np.testing.assert_allclose(bias, np.vstack([s.bias for s in expected]), atol=1e-6)
+        np.testing.assert_allclose(bias, np.vstack([s.bias for s in expected]), atol=STAGE_BATCH_ATOL)
         total = np.array([[e.torque_fault, e.steer_fault] for e in got])
-        np.testing.assert_allclose(total, np.vstack([s.faults for s in expected]), atol=1e-6)
+        np.testing.assert_allclose(total, np.vstack([s.faults for s in expected]), atol=STAGE_BATCH_ATOL)
         # the effectiveness recovered within 3 % two seconds after the ramp ends, steering untouched
         at = round((RAMP_END_S + 2.0) * 100)
         assert abs(got[at].torque_alpha - ALPHA_MIN) <= 0.03 * ALPHA_MIN  # type: ignore[operator]
