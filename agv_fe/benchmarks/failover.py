@@ -19,7 +19,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -30,8 +29,9 @@ import httpx
 import zenoh
 
 from agv_fe.benchmarks import report_header
+from agv_fe.benchmarks.harness import SteadyFleet
 from agv_fe.pg_cluster import PostgresServer, free_port
-from service.protocol import N_BUCKETS, Estimate, Measurement, bucket_of, fleet_selector
+from service.protocol import N_BUCKETS, bucket_of
 from service.transport import open_session
 
 KILLS = 5
@@ -103,46 +103,6 @@ def _balanced(replicas: list[Replica]) -> dict[str, set[str]] | None:
     return shares if ok else None
 
 
-class Fleet:
-    """The vehicles at 100 Hz on a thread, and when each estimate arrived."""
-
-    def __init__(self, session: zenoh.Session) -> None:
-        self.seq = dict.fromkeys(VEHICLES, 0)
-        self.arrivals: list[tuple[float, str, int]] = []
-        self._pubs = {v: session.declare_publisher(f"agv/v1/{bucket_of(v)}/{v}/meas") for v in VEHICLES}
-        self._sub = session.declare_subscriber(fleet_selector("estimate"), self._arrived)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._send, daemon=True)
-        self._thread.start()
-
-    def _arrived(self, sample: zenoh.Sample) -> None:
-        estimate = Estimate.decode(sample.payload.to_bytes())
-        self.arrivals.append((time.monotonic(), estimate.vehicle, estimate.seq))
-
-    def _send(self) -> None:
-        t0_ns = time.time_ns()
-        while not self._stop.is_set():
-            for vehicle, pub in self._pubs.items():
-                k = self.seq[vehicle]
-                pub.put(Measurement(vehicle, k, t0_ns + k * 10_000_000, 10.0, 0.0, 60.0, 0.0).encode())
-                self.seq[vehicle] = k + 1
-            self._stop.wait(0.01)
-
-    def first_after(self, t0: float, marks: dict[str, int]) -> dict[str, float]:
-        first: dict[str, float] = {}
-        for arrived, vehicle, seq in list(self.arrivals):
-            if arrived >= t0 and seq >= marks.get(vehicle, 0) and vehicle not in first:
-                first[vehicle] = arrived
-        return first
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(30)
-        entities: list[Any] = [self._sub, *self._pubs.values()]
-        for entity in entities:
-            entity.undeclare()
-
-
 @contextmanager
 def _cluster(work: Path) -> Iterator[tuple[zenoh.Session, list[Replica]]]:
     with ExitStack() as stack:
@@ -161,7 +121,7 @@ def _cluster(work: Path) -> Iterator[tuple[zenoh.Session, list[Replica]]]:
         yield session, replicas
 
 
-def _one_kill(fleet: Fleet, replicas: list[Replica]) -> dict[str, Any]:
+def _one_kill(fleet: SteadyFleet, replicas: list[Replica]) -> dict[str, Any]:
     shares = _wait(lambda: _balanced(replicas), "balanced buckets")
     victim = max(replicas, key=lambda r: (len(shares[r.name]), r.name))
     its = [v for v in VEHICLES if bucket_of(v) in shares[victim.name]]
@@ -169,7 +129,7 @@ def _one_kill(fleet: Fleet, replicas: list[Replica]) -> dict[str, Any]:
     victim.kill()
     marks = dict(fleet.seq)
     first = _wait(
-        lambda: (lambda f: f if set(its) <= set(f) else None)(fleet.first_after(killed_at, marks)), "takeover"
+        lambda: (lambda f: f if set(its) <= set(f) else None)(fleet.estimated_since(killed_at, marks)), "takeover"
     )
     delays = sorted(first[v] - killed_at for v in its)
     survivors = [r for r in replicas if r is not victim]
@@ -182,9 +142,9 @@ def _one_kill(fleet: Fleet, replicas: list[Replica]) -> dict[str, Any]:
 def run(out_dir: Path, kills: int = KILLS) -> Path:
     results = []
     with tempfile.TemporaryDirectory() as work, _cluster(Path(work)) as (session, replicas):
-        fleet = Fleet(session)
+        fleet = SteadyFleet(session, VEHICLES, max_s=3600.0).start()
         try:
-            _wait(lambda: set(fleet.first_after(0.0, {})) == set(VEHICLES), "estimates of every vehicle")
+            _wait(lambda: set(fleet.estimated_since(0.0, {})) == set(VEHICLES), "estimates of every vehicle")
             for _ in range(kills):
                 results.append(_one_kill(fleet, replicas))
         finally:

@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager, suppress
@@ -19,7 +20,9 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import zenoh
 
+from service.protocol import Estimate, Measurement, fleet_selector, vehicle_key
 from service.settings import Settings
 
 #: Upper bound of a wait for the service [s]; a wait polls for its condition and fails after it.
@@ -163,3 +166,59 @@ def service_process(
         yield server.start()
     finally:
         server.close()
+
+
+class SteadyFleet:
+    """Vehicles each sending a constant sample at 100 Hz from a thread of their own (bounded by ``max_s``), and when
+    every estimate arrived, by vehicle: the load of the failover benchmark and of the bucket-lease tests.
+
+    The caller owns ``session`` (and closes it after :meth:`close`); a vehicle put in :attr:`silenced` stops sending.
+    """
+
+    def __init__(self, session: zenoh.Session, vehicles: list[str], max_s: float = 600.0) -> None:
+        self.seq = dict.fromkeys(vehicles, 0)
+        self.silenced: set[str] = set()
+        #: (time.monotonic(), vehicle, seq) of each estimate, appended by Zenoh's thread
+        self.arrivals: list[tuple[float, str, int]] = []
+        self._pubs = {
+            v: session.declare_publisher(vehicle_key(v, "meas"), congestion_control=zenoh.CongestionControl.BLOCK)
+            for v in vehicles
+        }
+        self._sub = session.declare_subscriber(fleet_selector("estimate"), self._arrived)
+        self._max_s = max_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._send, name="steady-fleet", daemon=True)
+
+    def start(self) -> SteadyFleet:
+        self._thread.start()
+        return self
+
+    def _arrived(self, sample: zenoh.Sample) -> None:
+        estimate = Estimate.decode(sample.payload.to_bytes())
+        self.arrivals.append((time.monotonic(), estimate.vehicle, estimate.seq))
+
+    def _send(self) -> None:
+        t0_ns = time.time_ns()
+        deadline = time.monotonic() + self._max_s
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            for vehicle, pub in self._pubs.items():
+                if vehicle not in self.silenced:
+                    k = self.seq[vehicle]
+                    pub.put(Measurement(vehicle, k, t0_ns + k * 10_000_000, 10.0, 0.0, 60.0, 0.0).encode())
+                    self.seq[vehicle] = k + 1
+            self._stop.wait(0.01)
+
+    def estimated_since(self, t0: float, marks: dict[str, int]) -> dict[str, float]:
+        """For each vehicle: when its first estimate of a sample at or beyond its mark arrived after ``t0``."""
+        first: dict[str, float] = {}
+        for arrived, vehicle, seq in list(self.arrivals):
+            if arrived >= t0 and seq >= marks.get(vehicle, 0) and vehicle not in first:
+                first[vehicle] = arrived
+        return first
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(30)
+        entities: list[Any] = [self._sub, *self._pubs.values()]
+        for entity in entities:
+            entity.undeclare()

@@ -7,7 +7,6 @@ comes back the buckets rebalance."""
 from __future__ import annotations
 
 import statistics
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -15,17 +14,16 @@ from pathlib import Path
 
 import psycopg
 import pytest
-import zenoh
 
+from agv_fe.benchmarks.harness import SteadyFleet
 from service.bucket_leases import BUCKET_LOCKS
-from service.protocol import N_BUCKETS, Estimate, bucket_of, fleet_selector
+from service.protocol import N_BUCKETS, bucket_of
 from service.transport import open_session
 from tests.faults.helpers import RouterProcess
 from tests.service.helpers import (
     FAST_DESIGN,
     WAIT_S,
     ServiceProcess,
-    constant_measurement,
     free_port,
     make_settings,
     wait_for,
@@ -35,57 +33,6 @@ pytestmark = pytest.mark.network
 
 VEHICLES = [f"veh-{k:02d}" for k in range(60)]
 PROFILES = {"default": {"design": FAST_DESIGN, "alarms": {"stale_after_s": 1.0}}}
-
-
-class Fleet:
-    """60 vehicles at 100 Hz from a thread of their own, and every estimate's arrival time, by vehicle."""
-
-    def __init__(self, endpoint: str) -> None:
-        self.session = open_session("client", endpoint)
-        self.seq = dict.fromkeys(VEHICLES, 0)
-        self.silenced: set[str] = set()
-        self.arrivals: list[tuple[float, str, int]] = []  # (time.monotonic(), vehicle, seq), appended by Zenoh
-        self._pubs = {
-            v: self.session.declare_publisher(
-                f"agv/v1/{bucket_of(v)}/{v}/meas", congestion_control=zenoh.CongestionControl.BLOCK
-            )
-            for v in VEHICLES
-        }
-        self._sub = self.session.declare_subscriber(fleet_selector("estimate"), self._arrived)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._send, name="fleet", daemon=True)
-
-    def _arrived(self, sample: zenoh.Sample) -> None:
-        estimate = Estimate.decode(sample.payload.to_bytes())
-        self.arrivals.append((time.monotonic(), estimate.vehicle, estimate.seq))
-
-    def _send(self) -> None:
-        deadline = time.monotonic() + 15 * WAIT_S  # bounded even if the test forgets to stop it
-        while not self._stop.is_set() and time.monotonic() < deadline:
-            for vehicle, pub in self._pubs.items():
-                if vehicle not in self.silenced:
-                    pub.put(constant_measurement(vehicle, self.seq[vehicle]).encode())
-                    self.seq[vehicle] += 1
-            self._stop.wait(0.01)
-
-    def start(self) -> Fleet:
-        self._thread.start()
-        return self
-
-    def estimated_since(self, t0: float, marks: dict[str, int]) -> dict[str, float]:
-        """For each vehicle: when its first estimate of a sample at or beyond its mark arrived after ``t0``."""
-        first: dict[str, float] = {}
-        for arrived, vehicle, seq in list(self.arrivals):
-            if arrived >= t0 and seq >= marks.get(vehicle, 0) and vehicle not in first:
-                first[vehicle] = arrived
-        return first
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(WAIT_S)
-        for entity in [self._sub, *self._pubs.values()]:
-            entity.undeclare()
-        self.session.close()
 
 
 def replica(tmp_path: Path, name: str, router: RouterProcess, url: str) -> ServiceProcess:
@@ -169,15 +116,17 @@ def test_a_killed_replicas_buckets_are_taken_over_and_rebalanced_when_it_returns
         answer = replicas["r0"].get("/replicas").json()
         assert answer["replicas"] == ["r0", "r1", "r2"] and answer["lease_replicas"] == 3
         assert sorted(len(s) for s in shares.values()) == [5, 5, 6]
-        fleet = Fleet(router.endpoint).start()
+        session = open_session("client", router.endpoint)
+        fleet = SteadyFleet(session, VEHICLES, max_s=15 * WAIT_S).start()
         try:
             check_the_takeover(fleet, replicas, shares, postgres_url, tmp_path)
         finally:
             fleet.close()
+            session.close()
 
 
 def check_the_takeover(
-    fleet: Fleet, replicas: dict[str, ServiceProcess], shares: dict[str, set[str]], url: str, tmp_path: Path
+    fleet: SteadyFleet, replicas: dict[str, ServiceProcess], shares: dict[str, set[str]], url: str, tmp_path: Path
 ) -> None:
     wait_for(lambda: set(fleet.estimated_since(0.0, {})) == set(VEHICLES), what="estimates of all 60 vehicles")
     victim = "r1"
@@ -222,7 +171,7 @@ def check_the_takeover(
     check_the_return(fleet, replicas, victim, tmp_path)
 
 
-def check_the_return(fleet: Fleet, replicas: dict[str, ServiceProcess], victim: str, tmp_path: Path) -> None:
+def check_the_return(fleet: SteadyFleet, replicas: dict[str, ServiceProcess], victim: str, tmp_path: Path) -> None:
     back = ServiceProcess(replicas[victim].settings, tmp_path / f"{victim}-again.log")
     replicas[victim] = back
     try:
