@@ -107,6 +107,23 @@ class UnknownProfile(FleetError, KeyError):
     pass
 
 
+@dataclass(frozen=True, slots=True)
+class Stepped:
+    """One observer step of a profile's rows, as the stages after it (detectors, publication) read it.
+
+    idx : (k,) the rows' positions in ``rows``; slots : (k,) their slots in ``bank``; out : the step's output;
+    t : (k,) the rows' sample time stamps [ns]; all_finite : every estimate is finite (no row needs picking out).
+    """
+
+    bank: ProfileBank
+    rows: Rows
+    idx: np.ndarray
+    slots: np.ndarray
+    out: StepOutput
+    t: np.ndarray
+    all_finite: bool
+
+
 @dataclass(frozen=True)
 class EngineConfig:
     """The ingest settings the engine needs (a plain copy of :class:`service.settings.IngestSettings`)."""
@@ -672,26 +689,17 @@ class FleetEngine:
         result: TickResult,
     ) -> None:
         """Stages 5-6 after one observer step of a profile's rows: the detectors, then what to publish."""
-        t = t_ns[idx]
         all_finite = bool(out.finite.all())  # the common case: no row needs picking out
         if not all_finite:
             self.stats["numerical_restarts"] += int((~out.finite).sum())
-        self._detectors(bank, rows, idx, slots, out, t, all_finite, result)
-        self._publish_selection(bank, rows, idx, slots, out, seq, t, values, all_finite, result)
+        step = Stepped(bank, rows, idx, slots, out, t_ns[idx], all_finite)
+        self._detectors(step, result)
+        self._publish_selection(step, seq, values, result)
 
-    def _detectors(
-        self,
-        bank: ProfileBank,
-        rows: Rows,
-        idx: np.ndarray,
-        slots: np.ndarray,
-        out: StepOutput,
-        t: np.ndarray,
-        all_finite: bool,
-        result: TickResult,
-    ) -> None:
+    def _detectors(self, step: Stepped, result: TickResult) -> None:
         """Stage 5: the fault channels after the warm-up (FaultLevels, as `agv-fe replay` runs them), the domain
         always, the effectiveness when the profile runs its stage; alarm records follow the rows that changed."""
+        bank, slots, t, out, all_finite = step.bank, step.slots, step.t, step.out, step.all_finite
         est, in_domain, vy_in_bounds, finite = out.values, out.in_domain, out.vy_in_bounds, out.finite
         usable = None if self._shortcuts and all_finite else finite
         changed: set[int] = set(bank.faults.update(slots, est[:, FAULTS], t, usable).tolist())
@@ -705,23 +713,16 @@ class FleetEngine:
             f = np.flatnonzero(finite)
             changed.update(f[bank.effectiveness.update(slots[f], est[f, ALPHAS], t[f])].tolist())
         for j in sorted(changed):
-            self._alarm_transitions(bank, rows.vehicles[idx[j]], int(t[j]), est[j], result)
+            self._alarm_transitions(bank, step.rows.vehicles[step.idx[j]], int(t[j]), est[j], result)
 
-    def _publish_selection(
-        self,
-        bank: ProfileBank,
-        rows: Rows,
-        idx: np.ndarray,
-        slots: np.ndarray,
-        out: StepOutput,
-        seq: np.ndarray,
-        t: np.ndarray,
-        values: np.ndarray,
-        all_finite: bool,
-        result: TickResult,
-    ) -> None:
+    def _publish_selection(self, step: Stepped, seq: np.ndarray, values: np.ndarray, result: TickResult) -> None:
         """Stage 6: the counts, and which estimates to publish (every n-th finite estimate of each vehicle) as the
-        tick's batch of this profile, with the estimate events of the vehicles someone follows."""
+        tick's batch of this profile, with the estimate events of the vehicles someone follows.
+
+        seq : (n,) and values : (n, 4) the sequence numbers and measurements of the n rows of ``step.rows``, which
+        ``step.idx`` indexes.
+        """
+        bank, idx, slots, t, out, all_finite = step.bank, step.idx, step.slots, step.t, step.out, step.all_finite
         est, in_domain, finite = out.values, out.in_domain, out.finite
         bank.accepted[slots] += 1
         every_n = self.config.estimate_every_n
@@ -744,7 +745,7 @@ class FleetEngine:
             fast = None if out.fast is None else out.fast[pub]
         level = bank.levels(pub_slots)
         at = pub_idx.tolist()
-        vehicles = rows.vehicles
+        vehicles = step.rows.vehicles
         ids = [vehicles[i].id for i in at]
         # every vehicle of the tick had its STALE state cleared before it was stepped (stage 3)
         names = [LEVEL_NAMES[lvl] for lvl in level.tolist()]
