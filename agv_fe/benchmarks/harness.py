@@ -73,14 +73,24 @@ class ServiceProcess:
 
     The process and the synthesis workers it spawns form one process group; :meth:`close` ends what is left of it.
     Its log (stdout and stderr) goes to ``log_path``; ``args`` follow ``agv-fe serve`` on its command line and
-    ``env`` is laid over the environment of ``settings``.
+    ``env`` is laid over the environment of ``settings``. ``cwd``, when given, is the directory the process starts
+    in: a checkout there is the code it runs (``python -m`` puts the working directory first on the import path),
+    which lets a benchmark run an earlier commit's service beside this one.
     """
 
-    def __init__(self, settings: Settings, log_path: Path, *args: str, env: Mapping[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        log_path: Path,
+        *args: str,
+        env: Mapping[str, str] | None = None,
+        cwd: Path | None = None,
+    ) -> None:
         self.settings = settings
         self.log_path = log_path
         self.args = args
         self.env = {**settings_env(settings), **(env or {})}
+        self.cwd = cwd
         self.url = f"http://127.0.0.1:{settings.http.port}"
         self.http = httpx.Client(base_url=self.url, timeout=30.0)
         token = settings.auth.token
@@ -93,6 +103,7 @@ class ServiceProcess:
             self.process = subprocess.Popen(
                 [sys.executable, "-m", "agv_fe", "serve", *self.args],
                 env=self.env,
+                cwd=self.cwd,
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
@@ -158,10 +169,14 @@ class ServiceProcess:
 
 @contextmanager
 def service_process(
-    settings: Settings, log_path: Path, *args: str, env: Mapping[str, str] | None = None
+    settings: Settings,
+    log_path: Path,
+    *args: str,
+    env: Mapping[str, str] | None = None,
+    cwd: Path | None = None,
 ) -> Iterator[ServiceProcess]:
     """A started :class:`ServiceProcess` (healthy, not necessarily ready), closed on the way out."""
-    server = ServiceProcess(settings, log_path, *args, env=env)
+    server = ServiceProcess(settings, log_path, *args, env=env, cwd=cwd)
     try:
         yield server.start()
     finally:

@@ -78,10 +78,13 @@ READY_S = 300.0
 
 
 @contextlib.contextmanager
-def serving(env: dict[str, str]) -> Iterator[tuple[str, httpx.Client, subprocess.Popen[bytes], Path]]:
+def serving(
+    env: dict[str, str], cwd: Path | None = None
+) -> Iterator[tuple[str, httpx.Client, subprocess.Popen[bytes], Path]]:
     """`agv-fe serve` in a process of its own until it is ready: the embedded router on a free loopback port, a
-    fresh data directory, bearer token 'bench', congestion control BLOCK, and ``env`` on top. Yields (Zenoh
-    endpoint, HTTP client, process, data directory); stops the service (and what it spawned) on the way out."""
+    fresh data directory, bearer token 'bench', congestion control BLOCK, and ``env`` on top; ``cwd``: a checkout
+    whose code the service runs (default: this one). Yields (Zenoh endpoint, HTTP client, process, data
+    directory); stops the service (and what it spawned) on the way out."""
     from service.settings import Settings
 
     with tempfile.TemporaryDirectory() as data_dir:
@@ -92,7 +95,8 @@ def serving(env: dict[str, str]) -> Iterator[tuple[str, httpx.Client, subprocess
             auth={"token": "bench"},
             zenoh={"endpoint": endpoint, "estimate_congestion": "block"},
         )
-        with service_process(settings, Path(data_dir) / "service.log", "--log-level", "warning", env=env) as server:
+        log = Path(data_dir) / "service.log"
+        with service_process(settings, log, "--log-level", "warning", env=env, cwd=cwd) as server:
             server.wait_ready(READY_S)
             assert server.process is not None
             yield endpoint, server.http, server.process, Path(data_dir)

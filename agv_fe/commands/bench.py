@@ -19,6 +19,7 @@ BENCHMARKS = {
     "ros2_bridge": "agv_fe.benchmarks.ros2_bridge",
     "failover": "agv_fe.benchmarks.failover",
     "storage_capacity": "agv_fe.benchmarks.storage_capacity",
+    "service_config": "agv_fe.benchmarks.service_config",
 }
 
 
