@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edge_client.recording import Recording, RecordingError
-from edge_client.sources import Tick
+from edge_client.sources import OneVehicleSource, Tick
 from synth.model import FloatArray
 
 COLUMNS = ("vx", "r", "torque", "steer")
@@ -112,7 +112,7 @@ class LiveHold:
 ENDLESS = 2**62
 
 
-class LiveSource:
+class LiveSource(OneVehicleSource):
     """One vehicle's live signals as a :class:`~edge_client.sources.SampleSource` on the grid (the module's rule).
 
     A bridge (ROS 2, CAN) feeds :attr:`hold` from its transport's threads and counts what it refused; this class
@@ -124,15 +124,13 @@ class LiveSource:
     def __init__(
         self, vehicle_id: str, sample_period_s: float, max_age_s: float, wait_s: float, clock: Callable[[], int]
     ) -> None:
+        super().__init__(vehicle_id, sample_period_s)
         self.hold = LiveHold(max_age_s)
         self.wait_s = wait_s
         self.ticks = 0
         self.sampled = 0
         self.stale_ticks = dict.fromkeys(COLUMNS, 0)
-        self._ids = [vehicle_id]
-        self._period = sample_period_s
         self._clock = clock
-        self._k = 0
         self._first = threading.Event()
         #: values used per column, and values refused as not finite (transport threads count under the lock)
         self.used = dict.fromkeys(COLUMNS, 0)
@@ -155,14 +153,6 @@ class LiveSource:
 
     def used_text(self) -> str:
         return ", ".join(f"{column} {count}" for column, count in self.used.items())
-
-    @property
-    def vehicle_ids(self) -> list[str]:
-        return self._ids
-
-    @property
-    def sample_period_s(self) -> float:
-        return self._period
 
     @property
     def n_samples(self) -> int:

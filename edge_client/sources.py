@@ -96,12 +96,12 @@ class SimulatedSource:
         return Tick(k=sample.k, y=sample.y, u=sample.u, active=sample.active, x=sample.x, f=sample.f)
 
 
-class RecordingSource:
-    """One vehicle's recorded stream, sample by sample; no ground truth."""
+class OneVehicleSource:
+    """What every source of a single vehicle shares: its id, its sample period [s] and ``_k``, the index of the
+    next sample it gives."""
 
-    def __init__(self, vehicle_id: str, recording: Recording, sample_period_s: float = 0.01) -> None:
+    def __init__(self, vehicle_id: str, sample_period_s: float) -> None:
         self._ids = [vehicle_id]
-        self.recording = recording
         self._period = sample_period_s
         self._k = 0
 
@@ -112,6 +112,14 @@ class RecordingSource:
     @property
     def sample_period_s(self) -> float:
         return self._period
+
+
+class RecordingSource(OneVehicleSource):
+    """One vehicle's recorded stream, sample by sample; no ground truth."""
+
+    def __init__(self, vehicle_id: str, recording: Recording, sample_period_s: float = 0.01) -> None:
+        super().__init__(vehicle_id, sample_period_s)
+        self.recording = recording
 
     @property
     def n_samples(self) -> int:
