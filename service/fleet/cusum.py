@@ -96,31 +96,15 @@ class CusumDetector:
     """Two-level two-sided CUSUM on block means of one fault channel, one row per vehicle slot.
 
     thresholds : (WARN, FAULT) of the threshold rule [N m or rad], the shifts each level is tuned for;
-    sigma : the healthy block means' standard deviation [N m or rad]; block_n : samples per block;
-    false_alarms_per_1000_h : the in-control rate each level is designed for; clear_after_ns : how long a
-    level's statistic must go without crossing before the level drops one step. Same interface as
-    :class:`service.fleet.alarms.LevelDetector` (``level``, ``grow``, ``reset``, ``update``).
+    sigma : the healthy block means' standard deviation [N m or rad]; block_n : samples per block; block_s : a
+    block's duration [s]; false_alarms_per_1000_h : the in-control rate each level is designed for;
+    clear_after_ns : how long a level's statistic must go without crossing before the level drops one step. Same
+    interface as :class:`service.fleet.alarms.LevelDetector` (``level``, ``grow``, ``reset``, ``update``).
     """
 
     def __init__(
         self,
         capacity: int,
-        thresholds: tuple[float, float],
-        sigma: float,
-        block_n: int,
-        false_alarms_per_1000_h: float,
-        block_s: float,
-        clear_after_ns: int,
-    ) -> None:
-        self.level = np.zeros(capacity, dtype=np.int8)
-        self._sum = np.zeros(capacity)
-        self._count = np.zeros(capacity, dtype=np.int64)
-        self._g = np.zeros((2, 2, capacity))  # level (WARN, FAULT) x side (+, -)
-        self._crossed_t_ns = np.full((2, capacity), _NOT_HOLDING, dtype=np.int64)
-        self.configure(thresholds, sigma, block_n, false_alarms_per_1000_h, block_s, clear_after_ns)
-
-    def configure(
-        self,
         thresholds: tuple[float, float],
         sigma: float,
         block_n: int,
@@ -136,6 +120,11 @@ class CusumDetector:
         #: drift k and threshold h per level, in units of sigma
         self.drift = np.array([t / (2.0 * sigma) for t in thresholds])
         self.h = np.array([cusum_threshold(round(float(k), 9), arl) for k in self.drift])
+        self.level = np.zeros(capacity, dtype=np.int8)
+        self._sum = np.zeros(capacity)
+        self._count = np.zeros(capacity, dtype=np.int64)
+        self._g = np.zeros((2, 2, capacity))  # level (WARN, FAULT) x side (+, -)
+        self._crossed_t_ns = np.full((2, capacity), _NOT_HOLDING, dtype=np.int64)
 
     def grow(self, capacity: int) -> None:
         extra = capacity - self.level.shape[0]
