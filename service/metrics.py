@@ -322,6 +322,14 @@ class ServiceCollector(Collector):
         yield _one(
             CounterMetricFamily("agv_fe_alarm_events_published", "alarm events stored and published"), m.alarms_out
         )
+        dropped = CounterMetricFamily(
+            "agv_fe_events_dropped",
+            "fleet events an in-process subscriber (the dashboards' hub) fell behind on and lost, by kind",
+            labels=["kind"],
+        )
+        for kind, n in engine.events.dropped.items():
+            dropped.add_metric([kind], n)
+        yield dropped
 
     def _jobs_and_storage(self) -> Iterator[Metric]:
         src = self.source

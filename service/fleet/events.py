@@ -2,11 +2,12 @@
 
 A dashboard (SSE or WebSocket) calls :meth:`EventBus.subscribe` and iterates
 the returned :class:`Subscription`. Publishing never blocks and never raises:
-a subscriber that falls behind loses its oldest events and sees the count in
-``Subscription.dropped``. Estimate events are only built while someone
-listens (:attr:`EventBus.has_subscribers`), so the hook costs nothing
-otherwise; a subscription may follow only some vehicles (``vehicles``), and
-then only their estimate events are built (:meth:`EventBus.audience`).
+a subscriber that falls behind loses its oldest events, counted by kind in
+:attr:`EventBus.dropped` (``agv_fe_events_dropped_total`` on /metrics).
+Estimate events are only built while someone listens
+(:attr:`EventBus.has_subscribers`), so the hook costs nothing otherwise; a
+subscription may follow only some vehicles (``vehicles``), and then only their
+estimate events are built (:meth:`EventBus.audience`).
 Everything runs on the asyncio loop that owns the fleet.
 """
 
@@ -15,11 +16,12 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from service.protocol import Alarm, Estimate
 
 EventKind = Literal["estimate", "alarm", "vehicle"]
+EVENT_KINDS: tuple[EventKind, ...] = get_args(EventKind)
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,21 +50,21 @@ class Subscription:
         self.kinds = kinds
         #: only events of these vehicles (None: every vehicle); change it with :meth:`follow`
         self.vehicles = vehicles
-        self.dropped = 0
 
     def follow(self, vehicles: frozenset[str] | None) -> None:
         """From now on take only the events of ``vehicles`` (None: of every vehicle)."""
         self.vehicles = vehicles
 
-    def _offer(self, event: FleetEvent) -> None:
+    def _offer(self, event: FleetEvent) -> FleetEvent | None:
+        """Queue ``event`` if this subscription takes it; when the queue is full, the oldest event makes room and
+        is returned (it is lost to this listener)."""
         if event.kind not in self.kinds:
-            return
+            return None
         if self.vehicles is not None and event.vehicle not in self.vehicles:
-            return
-        if self._queue.full():
-            self._queue.get_nowait()
-            self.dropped += 1
+            return None
+        lost = self._queue.get_nowait() if self._queue.full() else None
         self._queue.put_nowait(event)
+        return lost
 
     async def get(self) -> FleetEvent:
         return await self._queue.get()
@@ -95,6 +97,9 @@ class EventBus:
 
     def __init__(self) -> None:
         self._subscriptions: list[Subscription] = []
+        #: events a subscription fell behind on and lost (its oldest, to make room), by kind; each subscription
+        #: that loses an event counts it, and closed subscriptions' losses stay counted
+        self.dropped: dict[EventKind, int] = dict.fromkeys(EVENT_KINDS, 0)
 
     @property
     def has_subscribers(self) -> bool:
@@ -129,4 +134,5 @@ class EventBus:
 
     def publish(self, event: FleetEvent) -> None:
         for subscription in self._subscriptions:
-            subscription._offer(event)
+            if (lost := subscription._offer(event)) is not None:
+                self.dropped[lost.kind] += 1

@@ -11,11 +11,11 @@ from prometheus_client import CollectorRegistry
 
 from edge_client.library import paper_1
 from service.app import Service
-from service.fleet import FleetEngine
+from service.fleet import EngineConfig, FleetEngine, FleetEvent
 from service.history import EstimateHistory
 from service.jobs import SynthesisJobs
 from service.metrics import END_TO_END_BUCKETS_S, Histogram, ServiceCollector, ServiceMetrics, exposition
-from service.protocol import Measurement, all_buckets, shard_buckets
+from service.protocol import Alarm, Measurement, all_buckets, shard_buckets
 from service.settings import Settings
 from service.storage_writer import StorageState
 from tests.service.helpers import (
@@ -165,6 +165,42 @@ def test_vehicles_by_level_and_latched_alarms_by_kind_level_and_profile(fast_gai
     scrape = parse_metrics(exposition(registry).decode())
     assert scrape.value("agv_fe_alarms_latched", **fault, acknowledged="true") == 1
     assert ("agv_fe_alarms_latched", frozenset({**fault, "acknowledged": "false"}.items())) not in scrape.samples
+
+
+def test_events_a_slow_subscriber_loses_are_counted_by_kind_and_stay_counted_after_it_closes():
+    """A subscription with room for two events loses its oldest to each new one: the scrape counts each lost
+    event under its own kind (not the kind of the event that pushed it out), a subscription with room loses
+    nothing, and the counter keeps what a closed subscription lost."""
+    engine = FleetEngine(EngineConfig())
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(ServiceCollector(_Source(engine)))
+
+    def dropped() -> dict[str, float]:
+        scrape = parse_metrics(exposition(registry).decode())
+        assert scrape.types["agv_fe_events_dropped_total"] == "counter"
+        return {
+            kind: scrape.value("agv_fe_events_dropped_total", kind=kind) for kind in ("estimate", "alarm", "vehicle")
+        }
+
+    def alarm(n: int) -> FleetEvent:
+        data = Alarm(vehicle="v", id=f"al-{n}", kind="stale", level="STALE", state="raised", t_ns=n, message="")
+        return FleetEvent("alarm", "v", data)
+
+    assert dropped() == {"estimate": 0, "alarm": 0, "vehicle": 0}
+    with (
+        engine.events.subscribe(maxsize=2, kinds=("alarm", "vehicle")) as slow,
+        engine.events.subscribe(maxsize=10, kinds=("alarm",)) as roomy,
+    ):
+        for n in range(3):  # the third pushes out the first
+            engine.events.publish(FleetEvent("vehicle", f"v{n}", {"state": "registered"}))
+        engine.events.publish(alarm(0))  # pushes out the second vehicle event
+        assert dropped() == {"estimate": 0, "alarm": 0, "vehicle": 2}
+        engine.events.publish(alarm(1))  # pushes out the third vehicle event
+        engine.events.publish(alarm(2))  # pushes out alarm 0
+        assert [e.data for e in (slow.get_nowait(), slow.get_nowait())] == [alarm(1).data, alarm(2).data]
+        assert len([roomy.get_nowait() for _ in range(3)]) == 3 and roomy.get_nowait() is None
+    engine.events.publish(alarm(3))  # nobody listens: nothing is queued, nothing lost
+    assert dropped() == {"estimate": 0, "alarm": 1, "vehicle": 3}
 
 
 def test_a_real_service_exposes_its_series_the_process_and_the_end_to_end_delay(tmp_path):
