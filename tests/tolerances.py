@@ -1,5 +1,7 @@
 """Every numerical tolerance of the test suite, named in one place."""
 
+import math
+
 #: N-TS / 8-rule TS model against the Euler step of eqs. (1)-(2), absolute [state units].
 MODEL_EQUALITY_ATOL = 1e-12
 #: Membership functions sum to one.
@@ -29,8 +31,9 @@ LAST_BITS_ATOL = 1e-15
 #: equation written out, a step of a batch against the same vehicle alone): rounding only, relative and absolute.
 FORMULA_EQUALITY_RTOL = 1e-12
 FORMULA_EQUALITY_ATOL = 1e-12
-#: The same through a chain that amplifies rounding (an observer step with gains of order 10^3, a simulated
-#: actuator's applied fault), relative and absolute [state units].
+#: The same through a chain that amplifies rounding (an observer step with gains of order 10^3, the fleet engine's
+#: fast and general tick paths stepping other batches, a simulated actuator's applied fault), relative and
+#: absolute [state units].
 AMPLIFIED_ROUNDING_RTOL = 1e-9
 AMPLIFIED_ROUNDING_ATOL = 1e-9
 #: A batch's observer step against its equation written out with einsum over the vehicles, relative and absolute.
@@ -44,6 +47,13 @@ REFERENCE_INTEGRATION_RTOL = 1e-12
 REFERENCE_INTEGRATION_ATOL = 1e-13
 #: Beyond half a DBC scaling step, for the rounding of the scaled signal value (can2csv).
 QUANTISATION_SLACK = 1e-9
+#: A signal decoded from CAN against its value before encoding: half the scaling step of the test DBC
+#: (tests/edge_client/test_can_log.py) in the protocol's units, plus the slack: 0.01 km/h [m/s], 0.01 deg/s
+#: [rad/s], 0.0001 rad [rad], 0.5 N m [N m].
+CAN_SPEED_ATOL_MPS = 0.01 / 3.6 / 2 + QUANTISATION_SLACK
+CAN_YAW_RATE_ATOL_RADPS = math.radians(0.01) / 2 + QUANTISATION_SLACK
+CAN_STEER_ATOL_RAD = 0.0001 / 2 + QUANTISATION_SLACK
+CAN_TORQUE_ATOL_NM = 0.5 / 2 + QUANTISATION_SLACK
 #: Sample standard deviation of 2,000 samples of simulated sensor noise against its sigma, relative.
 NOISE_SIGMA_RTOL = 0.1
 

@@ -18,7 +18,12 @@ from edge_client.can_log import load_mapping, read_can_log  # noqa: E402
 from edge_client.recording import RecordingError, write_recording  # noqa: E402
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint  # noqa: E402
 from edge_client.simulation import simulate_plant  # noqa: E402
-from tests.tolerances import QUANTISATION_SLACK  # noqa: E402
+from tests.tolerances import (  # noqa: E402
+    CAN_SPEED_ATOL_MPS,
+    CAN_STEER_ATOL_RAD,
+    CAN_TORQUE_ATOL_NM,
+    CAN_YAW_RATE_ATOL_RADPS,
+)
 
 DBC = """VERSION ""
 
@@ -107,14 +112,12 @@ def test_the_log_decodes_onto_the_grid_as_the_drive_was_sampled(files, drive):
     assert n == len(drive.t) - 1 and np.allclose(np.diff(recording.t), 0.01)
     y, u = drive.y[:n, 0], drive.u[:n, 0]
     # half the DBC's scaling steps: 0.01 km/h, 0.01 deg/s, 0.0001 rad, 0.5 N m
-    np.testing.assert_allclose(recording.y[:, 0], y[:, 0], atol=0.01 / 3.6 / 2 + QUANTISATION_SLACK)
-    np.testing.assert_allclose(recording.y[:, 1], y[:, 1], atol=math.radians(0.01) / 2 + QUANTISATION_SLACK)
-    np.testing.assert_allclose(recording.u[:, 1], u[:, 1], atol=0.0001 / 2 + QUANTISATION_SLACK)
+    np.testing.assert_allclose(recording.y[:, 0], y[:, 0], atol=CAN_SPEED_ATOL_MPS)
+    np.testing.assert_allclose(recording.y[:, 1], y[:, 1], atol=CAN_YAW_RATE_ATOL_RADPS)
+    np.testing.assert_allclose(recording.u[:, 1], u[:, 1], atol=CAN_STEER_ATOL_RAD)
     # torque at 50 Hz: fresh on even samples, held on odd ones
-    np.testing.assert_allclose(recording.u[::2, 0], u[::2, 0], atol=0.25 + QUANTISATION_SLACK)
-    np.testing.assert_allclose(
-        recording.u[1::2, 0], u[0:-1:2, 0][: len(recording.u[1::2])], atol=0.25 + QUANTISATION_SLACK
-    )
+    np.testing.assert_allclose(recording.u[::2, 0], u[::2, 0], atol=CAN_TORQUE_ATOL_NM)
+    np.testing.assert_allclose(recording.u[1::2, 0], u[0:-1:2, 0][: len(recording.u[1::2])], atol=CAN_TORQUE_ATOL_NM)
     samples = len(drive.t)
     assert stats.used["vx"] == samples and stats.used["torque"] == (samples + 1) // 2
     assert stats.other == math.ceil(samples / 10) and stats.undecodable == 1

@@ -25,7 +25,7 @@ from service.protocol import (
 )
 from synth.observer import FuzzyObserver
 from tests.service.helpers import FAST_DESIGN, PERIOD_NS, T0_NS, as_array, constant_measurement, plant_measurements
-from tests.tolerances import BATCH_EQUALITY_ATOL
+from tests.tolerances import AMPLIFIED_ROUNDING_ATOL, AMPLIFIED_ROUNDING_RTOL, BATCH_EQUALITY_ATOL
 
 
 class FakeClock:
@@ -624,7 +624,12 @@ def test_the_tick_fast_path_gives_what_one_by_one_sequencing_gives(fast_gains, m
     for v in ids:  # the same samples answered in the same order; values up to the GEMM's rounding (other batches)
         fast_v, slow_v = fast_run[0][v], slow_run[0][v]
         assert [(k, level) for k, _, _, level in fast_v] == [(k, level) for k, _, _, level in slow_v]
-        np.testing.assert_allclose([x[1:3] for x in fast_v], [x[1:3] for x in slow_v], rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(
+            [x[1:3] for x in fast_v],
+            [x[1:3] for x in slow_v],
+            rtol=AMPLIFIED_ROUNDING_RTOL,
+            atol=AMPLIFIED_ROUNDING_ATOL,
+        )
     assert fast_run[1:] == slow_run[1:]
     rejected = fast_run[2]
     assert all(rejected[r] > 0 for r in ("duplicate", "out_of_order", "non_finite", "out_of_range"))
