@@ -70,15 +70,18 @@ export class AlarmList {
   /**
    * @param {HTMLUListElement} list
    * @param {AlarmStore} store
-   * @param {{vehicle?: string|null, empty?: HTMLElement, box?: HTMLElement, onUnauthorized?: () => void}} options
+   * @param {{vehicle?: string|null, empty?: HTMLElement, box?: HTMLElement, onUnauthorized?: () => void,
+   *          onLookBack?: ((alarm: object) => void)|null}} options  onLookBack: a "Look back" button on each alarm
+   *          on the estimates, which calls it with the alarm's record
    */
-  constructor(list, store, { vehicle = null, empty = null, box = null, onUnauthorized = () => {} } = {}) {
+  constructor(list, store, { vehicle = null, empty = null, box = null, onUnauthorized = () => {}, onLookBack = null } = {}) {
     this.list = list;
     this.store = store;
     this.vehicle = vehicle;
     this.empty = empty;
     this.box = box;
     this.onUnauthorized = onUnauthorized;
+    this.onLookBack = onLookBack;
     this.items = new Map();
     this.errors = new Map();
     this.more = null;
@@ -167,6 +170,12 @@ export class AlarmList {
       const query = `start=${(at - 30).toFixed(3)}&end=${(at + 30).toFixed(3)}&format=csv`;
       const href = `/vehicles/${encodeURIComponent(alarm.vehicle)}/estimates?${query}`;
       actions.prepend(el('a', { class: 'around', href, download: '' }, 'Estimates ±30 s (CSV)'));
+      if (this.onLookBack) {
+        const button = el('button', { type: 'button', class: 'look-back' }, 'Look back');
+        button.setAttribute('aria-label', `Look back at the estimates around the ${kind.toLowerCase()} of ${alarm.vehicle}`);
+        button.addEventListener('click', () => this.onLookBack(this.store.alarms.get(alarm.id) || alarm));
+        actions.prepend(button);
+      }
     }
   }
 

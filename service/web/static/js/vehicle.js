@@ -1,9 +1,12 @@
 // The vehicle view: live uPlot time plots of the last history_s seconds, like the paper's Figs. 4 and 6:
 // measured and estimated v_x and r, estimated v_y, the fault estimates with their alarm thresholds, and the
-// simulator's ground truth when it publishes one.
+// simulator's ground truth when it publishes one. "Look back" on an alarm shows instead every estimate of the
+// same span centred on the alarm, from the estimate history (GET /vehicles/{id}/estimates?start=&end=), until
+// "Back to live"; the live stream goes on meanwhile.
 
 import { AlarmList } from './alarms.js';
-import { age, el, fixed, levelBadge, shortHash } from './format.js';
+import { ALARM_KINDS, age, clock, el, fixed, levelBadge, shortHash } from './format.js';
+import { api } from './api.js';
 
 const COLOURS = {
   measured: '#6e7781',
@@ -91,6 +94,12 @@ export class VehicleView {
     this.facts = document.getElementById('vehicle-facts');
     this.missing = document.getElementById('vehicle-missing');
     this.container = document.getElementById('plots');
+    this.lookbackBox = document.getElementById('vehicle-lookback');
+    this.lookbackText = document.getElementById('vehicle-lookback-text');
+    this.liveButton = document.getElementById('vehicle-live');
+    this.liveButton.addEventListener('click', () => this.backToLive());
+    this.lookback = null;
+    this.lookbackRequest = 0;
     this.plots = [];
     this.vehicle = null;
     this.alarmList = null;
@@ -106,6 +115,7 @@ export class VehicleView {
     this.status = null;
     this.historyS = 60;
     this.pointColumns = null;
+    this.pointNames = null;
     this.truthColumns = null;
     this.lastDraw = 0;
     this.timer = 0;
@@ -118,7 +128,9 @@ export class VehicleView {
       vehicle,
       box: document.getElementById('vehicle-alarms-box'),
       onUnauthorized: this.onUnauthorized,
+      onLookBack: (alarm) => this.lookBack(alarm),
     });
+    this.showLive();
     this.build();
   }
 
@@ -133,6 +145,7 @@ export class VehicleView {
     }
     clearTimeout(this.timer);
     this.vehicle = null;
+    this.showLive();
   }
 
   found() {
@@ -176,14 +189,18 @@ export class VehicleView {
         series,
         legend: { live: true },
         cursor: { drag: { x: false, y: false } },
-        scales: {
-          x: {
-            time: true,
-            // the last history_s seconds, or from the first sample while there is less
-            range: (u, min, max) => [Math.max(min, max - this.historyS), max],
-          },
-        },
+        scales: { x: { time: true, range: (u, min, max) => this.xRange(min, max) } },
         axes: [{}, { size: 60 }],
+        hooks: {
+          draw: [(u) => this.markAlarm(u)],
+          setScale: [
+            (u, key) => {
+              if (key !== 'x') return;
+              figure.dataset.xMin = String(u.scales.x.min);
+              figure.dataset.xMax = String(u.scales.x.max);
+            },
+          ],
+        },
       };
       const chart = new uPlot(options, series.map(() => []), figure);
       figure.setAttribute('role', 'group');
@@ -191,6 +208,28 @@ export class VehicleView {
       this.plots.push({ spec, chart, figure });
     }
     this.fit();
+  }
+
+  /** Live: the last history_s seconds, or from the first sample while there is less; a look-back: its span. */
+  xRange(min, max) {
+    if (this.lookback) return [this.lookback.startS, this.lookback.endS];
+    return [Math.max(min, max - this.historyS), max];
+  }
+
+  /** A look-back marks the alarm's time with a vertical line. */
+  markAlarm(u) {
+    if (!this.lookback) return;
+    const x = u.valToPos(this.lookback.atS, 'x', true);
+    const { ctx, bbox } = u;
+    ctx.save();
+    ctx.strokeStyle = COLOURS.fault;
+    ctx.lineWidth = 2 * devicePixelRatio;
+    ctx.setLineDash([4 * devicePixelRatio, 4 * devicePixelRatio]);
+    ctx.beginPath();
+    ctx.moveTo(x, bbox.top);
+    ctx.lineTo(x, bbox.top + bbox.height);
+    ctx.stroke();
+    ctx.restore();
   }
 
   fit() {
@@ -203,6 +242,7 @@ export class VehicleView {
 
   onHello(hello) {
     this.historyS = hello.history_s;
+    this.pointNames = hello.point_columns;
     this.pointColumns = Object.fromEntries(hello.point_columns.map((name, i) => [name, i]));
     this.truthColumns = Object.fromEntries(hello.truth_columns.map((name, i) => [name, i]));
   }
@@ -242,7 +282,66 @@ export class VehicleView {
       this.truth.push(...frame.truth);
     }
     this.trim();
-    this.scheduleDraw();
+    if (!this.lookback) this.scheduleDraw();
+  }
+
+  /** Show the estimates of history_s centred on ``alarm``'s time from the estimate history, until backToLive. */
+  async lookBack(alarm) {
+    if (!this.pointNames) return;
+    const request = ++this.lookbackRequest;
+    const vehicle = this.vehicle;
+    const half = this.historyS / 2;
+    const atS = alarm.raised_t_ns / 1e9;
+    const start = (atS - half).toFixed(3);
+    const end = (atS + half).toFixed(3);
+    const what = `the ${(ALARM_KINDS[alarm.kind] || alarm.kind).toLowerCase()} raised at ${clock(alarm.raised_t_ns)}`;
+    this.showBanner('loading', `Loading the estimates around ${what}…`);
+    let answer;
+    try {
+      const query = new URLSearchParams({ start, end });
+      answer = await api('GET', `/vehicles/${encodeURIComponent(vehicle)}/estimates?${query}`);
+    } catch (err) {
+      if (request !== this.lookbackRequest || vehicle !== this.vehicle) return;
+      this.lookback = null;
+      this.container.dataset.mode = 'live';
+      this.draw();
+      this.showBanner('failed', `Could not load the estimates around ${what}: ${err.message}. The plots show live data.`);
+      if (err.status === 401) this.onUnauthorized();
+      return;
+    }
+    if (request !== this.lookbackRequest || vehicle !== this.vehicle) return; // superseded, or the view left
+    // a plot point per estimate; the history keeps no measurement and no ground truth: those columns stay empty
+    const names = this.pointNames;
+    const points = answer.estimates.map((row) => names.map((name) => (name === 't' ? row.t_ns / 1e9 : (row[name] ?? null))));
+    // what is shown instead of the live plots until backToLive
+    this.lookback = { alarm, atS, startS: Number(start), endS: Number(end), points };
+    Object.assign(this.lookbackBox.dataset, { start, end, alarmT: String(atS), count: String(points.length) });
+    const span = `${clock(Number(start) * 1e9)} to ${clock(Number(end) * 1e9)}`;
+    this.showBanner(
+      'shown',
+      `Looking back: ${points.length} estimates from ${span} around ${what} (dashed red line), from the estimate history (estimates only: it keeps no measurement and no ground truth).`,
+    );
+    this.container.dataset.mode = 'history';
+    this.draw();
+  }
+
+  backToLive() {
+    this.showLive();
+    this.draw();
+  }
+
+  showLive() {
+    this.lookbackRequest += 1;
+    this.lookback = null;
+    this.lookbackBox.hidden = true;
+    this.lookbackBox.dataset.state = 'live';
+    this.container.dataset.mode = 'live';
+  }
+
+  showBanner(state, text) {
+    this.lookbackBox.dataset.state = state;
+    this.lookbackText.textContent = text;
+    this.lookbackBox.hidden = false;
   }
 
   trim() {
@@ -272,9 +371,11 @@ export class VehicleView {
     this.lastDraw = started;
     const P = this.pointColumns;
     const T = this.truthColumns;
-    const { x, ia, ib } = mergeByTime(this.points, this.truth);
-    const fromPoints = (name) => ia.map((i) => (i < 0 ? null : this.points[i][P[name]]));
-    const fromTruth = (name) => ib.map((j) => (j < 0 ? null : this.truth[j][T[name]]));
+    const points = this.lookback ? this.lookback.points : this.points;
+    const truth = this.lookback ? [] : this.truth;
+    const { x, ia, ib } = mergeByTime(points, truth);
+    const fromPoints = (name) => ia.map((i) => (i < 0 ? null : points[i][P[name]]));
+    const fromTruth = (name) => ib.map((j) => (j < 0 ? null : truth[j][T[name]]));
     const thresholds = this.status ? this.status.thresholds : null;
     for (const { spec, chart, figure } of this.plots) {
       figure.hidden = Boolean(spec.optional) && !(this.status && this.status[spec.optional]);
@@ -294,10 +395,11 @@ export class VehicleView {
       }
       chart.setData(data);
       figure.dataset.points = String(x.length);
-      figure.dataset.estimates = String(this.points.length);
-      figure.dataset.truth = String(this.truth.length);
+      figure.dataset.estimates = String(points.length);
+      figure.dataset.truth = String(truth.length);
+      figure.dataset.firstT = x.length ? String(x[0]) : '';
       figure.dataset.lastT = x.length ? String(x[x.length - 1]) : '';
-      const latest = this.points.at(-1);
+      const latest = points.at(-1);
       figure.dataset.latest = latest ? fixed(latest[P[spec.lines ? spec.lines[0][0] : spec.estimated]], spec.digits) : '';
     }
     performance.measure('vehicle-draw', { start: started, end: performance.now() });
