@@ -153,18 +153,40 @@ def test_dockerfile_is_multi_stage_slim_non_root_and_pinned():
     assert "pip install -r /tmp/requirements.lock" in DOCKERFILE and "pip install --no-deps ." in DOCKERFILE
 
 
-def test_lock_pins_every_runtime_dependency_within_its_range():
-    import tomllib
-
-    declared = [Requirement(r) for r in tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]]
+def _pins(lock: str) -> dict[str, str]:
     pins = {}
-    for line in (ROOT / "requirements.lock").read_text().splitlines():
+    for line in (ROOT / lock).read_text().splitlines():
         if line and not line.startswith("#"):
             name, version = line.split("==")
             pins[name.lower().replace("_", "-")] = version
+    return pins
+
+
+def _declared(extras: tuple[str, ...] = ()) -> list[Requirement]:
+    """pyproject's dependencies and those of ``extras``, the project's own extras (``[dev]`` names ``[can,ros2]``)
+    expanded."""
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    declared = [Requirement(r) for r in project["dependencies"]]
+    pending = list(extras)
+    while pending:
+        for requirement in map(Requirement, project["optional-dependencies"][pending.pop()]):
+            if requirement.name == project["name"]:
+                pending.extend(requirement.extras)
+            else:
+                declared.append(requirement)
+    return declared
+
+
+@pytest.mark.parametrize(("lock", "extras"), [("requirements.lock", ()), ("requirements-dev.lock", ("dev",))])
+def test_lock_pins_every_dependency_within_its_range(lock, extras):
+    pins = _pins(lock)
+    declared = _declared(extras)
+    assert len(declared) > len(_declared()) or not extras  # the dev extras were expanded
     for requirement in declared:
         version = pins.get(requirement.name.lower().replace("_", "-"))
-        assert version is not None, f"{requirement.name} is not pinned in requirements.lock"
+        assert version is not None, f"{requirement.name} is not pinned in {lock}"
         assert requirement.specifier.contains(version), f"{requirement.name}=={version} outside {requirement}"
 
 
