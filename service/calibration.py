@@ -176,6 +176,7 @@ def calibrate_profile(
     effectiveness: bool = False,
     description: str = "",
     options: CalibrationOptions | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> CalibrationReport:
     """Identify, design and set thresholds; raise synth.calibration.CalibrationRefused or a SynthesisError.
 
@@ -186,10 +187,13 @@ def calibrate_profile(
     gust_n : the lateral wind gust [N] (held GUST_S) the vehicle must ride through without an alarm; 0: none.
     effectiveness : enable the loss-of-effectiveness stage in the profile, and set the fault thresholds from the
     stage's total faults on the same drives and gusts (they vary more than the observer's own estimates).
+    progress : called with a line of text as each stage ends (a command shows them; the stages take seconds each).
     """
     if not (false_alarms_per_1000_h > 0 and math.isfinite(false_alarms_per_1000_h)):
         raise ValueError(f"false_alarms_per_1000_h must be positive, got {false_alarms_per_1000_h}")
+    say = progress or (lambda _line: None)
     result = calibrate(drives, base, options)
+    say(f"parameters identified from {result.duration_s:.0f} s of driving")
     params = result.params
     chosen = dict(design or {})
     noise = noise_model(result)
@@ -200,7 +204,7 @@ def calibrate_profile(
     nominal = nominal_torque_nm or params.effective_mass_kg * params.wheel_radius_m * NOMINAL_ACCEL_MPS2
     gusts = gust_drives(params, result.bounds, gust_n)
     gains, thresholds, estimates = _best_design(
-        result, chosen, drives, gusts, alarm_base, false_alarms_per_1000_h, nominal
+        result, chosen, drives, gusts, alarm_base, false_alarms_per_1000_h, nominal, say
     )
     design_options = gains.options
     # the effectiveness stage's measurement noise: the observer's healthy RMS (the stage stays off unless asked)
@@ -213,6 +217,7 @@ def calibrate_profile(
         estimates = healthy_fault_estimates(gains, drives, alarm_base.warmup_s, stage)
         gust = held_peaks(effectiveness_stepper(gains, stage), gusts, alarm_base.raise_after_s)
         thresholds = channel_thresholds(gains, estimates, gust, alarm_base, false_alarms_per_1000_h, nominal)
+        say("thresholds set from the effectiveness stage's total faults")
     warnings = [_hiding(channel, t, nominal) for channel, t in thresholds.items() if t.hides_required_fault]
     block_n = max(1, round(alarm_base.cusum_block_s / params.sample_period_s))
     alarm_settings = alarm_base.model_copy(
@@ -254,6 +259,7 @@ def _best_design(
     alarm_base: AlarmThresholds,
     false_alarms_per_1000_h: float,
     nominal: float,
+    say: Callable[[str], None],
 ) -> tuple[ObserverGains, dict[str, ChannelThresholds], FloatArray]:
     """The design among the decay-rate candidates (or the one rate ``chosen`` names) whose thresholds detect the
     smallest faults, each relative to the fault its channel must see; with its thresholds and healthy estimates."""
@@ -267,6 +273,10 @@ def _best_design(
         thresholds = channel_thresholds(gains, estimates, gust, alarm_base, false_alarms_per_1000_h, nominal)
         score = sum(t.smallest_fault_bias / t.required_bias for t in thresholds.values())
         candidates.append((score, gains, thresholds, estimates))
+        say(
+            f"observer designed and replayed at decay rate {rate:g} ({len(candidates)} of {len(rates)}): smallest "
+            f"faults detected at {score / len(thresholds):.2f} of the required on average"
+        )
     _, gains, thresholds, estimates = min(candidates, key=lambda candidate: candidate[0])
     return gains, thresholds, estimates
 
@@ -279,6 +289,7 @@ def calibrate_from_base(
     false_alarms_per_1000_h: float = 1.0,
     gust_n: float = GUST_N,
     effectiveness: bool = False,
+    progress: Callable[[str], None] | None = None,
 ) -> CalibrationReport:
     """:func:`calibrate_profile` with a base document: {"params": {...}, "design"?, "alarms"?, "description"?}."""
     return calibrate_profile(
@@ -291,6 +302,7 @@ def calibrate_from_base(
         gust_n=gust_n,
         effectiveness=effectiveness,
         description=str(base.get("description", "")),
+        progress=progress,
     )
 
 

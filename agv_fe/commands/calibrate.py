@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -87,6 +88,11 @@ def run(args: argparse.Namespace) -> int:
             rec = read_input(path, args.map, float(base["params"].get("sample_period_s", 0.01)))
             drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=Path(path).name))
         print(f"calibrating from {len(drives)} recording(s) ...", flush=True)
+        start = time.monotonic()
+
+        def progress(line: str) -> None:
+            print(f"  {time.monotonic() - start:5.1f} s  {line}", flush=True)
+
         try:
             report = calibrate_from_base(
                 drives,
@@ -95,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
                 false_alarms_per_1000_h=args.false_alarms,
                 gust_n=gust,
                 effectiveness=args.effectiveness,
+                progress=progress,
             )
         except CalibrationRefused as exc:
             raise CommandError(f"calibration refused: {exc.reason}", EXIT_NO_DESIGN) from exc

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 
 import pytest
 
 from agv_fe.cli import main
+from service.calibration import DECAY_RATE_CANDIDATES
 from tests.calibration_data import BASE, csv_text, healthy_drive
 
 
@@ -28,6 +30,11 @@ def test_calibrate_writes_a_profile_that_synth_and_replay_accept(files, capsys):
     printed = capsys.readouterr().out
     for line in ("effective_mass_kg", "95 % confidence interval", "sensor noise", "fit residuals", "torque WARN"):
         assert line in printed
+    # each stage says when it ends: the identification, then one design per decay-rate candidate
+    stages = [line for line in printed.splitlines() if re.match(r"^\s+\d+\.\d s  ", line)]
+    assert "parameters identified from" in stages[0]
+    assert [("observer designed" in line) for line in stages[1:]] == [True] * len(DECAY_RATE_CANDIDATES)
+    assert f"({len(DECAY_RATE_CANDIDATES)} of {len(DECAY_RATE_CANDIDATES)})" in stages[-1]
     doc = json.loads(profile.read_text())
     assert set(doc) >= {"params", "bounds", "design", "alarms"}
     assert doc["params"]["effective_mass_kg"] == pytest.approx(1290.0, rel=0.01)
