@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import gc
-import json
 import logging
 import os
 import re
@@ -46,7 +45,7 @@ from service.profiles import (
     load_profiles_file,
     valid_profile_name,
 )
-from service.protocol import all_buckets, bucket_of, shard_buckets
+from service.protocol import OwnershipChange, all_buckets, bucket_of, shard_buckets
 from service.settings import Settings
 from service.storage import Storage, StorageError, StoredProfile
 from service.storage_writer import StorageState, StorageUnavailable, StorageWriter, Write
@@ -212,7 +211,7 @@ class Service:
         for name in self._loops:
             self._spawn(name)
         if self.settings.dashboard.enabled:
-            self.dashboard.start(truth=self.transport)
+            self.dashboard.start(truth=self.transport, ownership=self.transport)
         if self.shared is not None:
             self.shared.start_listening()
         if self.settings.ingest.gc_freeze:
@@ -778,17 +777,17 @@ class Service:
             alarms,
             ",".join(self.buckets) or "no bucket",
         )
-        document = {
-            "replica": self.replica_id,
-            "gained": gained,
-            "lost": lost,
-            "buckets": self.buckets,
-            "vehicles": vehicles,
-            "t_ns": time.time_ns(),
-        }
+        change = OwnershipChange(
+            replica=self.replica_id,
+            gained=gained,
+            lost=lost,
+            buckets=self.buckets,
+            vehicles=vehicles,
+            t_ns=time.time_ns(),
+        )
         if self.transport is not None:
             try:
-                self.transport.publish_ownership(json.dumps(document).encode())
+                self.transport.publish_ownership(change.encode())
             except Exception:  # the change stands; only its announcement failed
                 log.exception("the ownership change could not be published on Zenoh")
 

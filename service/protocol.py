@@ -76,6 +76,8 @@ KNOWN_FLAGS = FLAG_SEQUENCE_RESTART
 
 VEHICLE_ID_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 BUCKET_PATTERN = re.compile(r"^b[0-9a-f]{2}$")
+#: A shard bucket's name in a JSON message.
+Bucket = Annotated[str, Field(pattern=BUCKET_PATTERN.pattern)]
 
 Kind = Literal["meas", "truth", "estimate", "alarm", "alive"]
 KINDS: tuple[Kind, ...] = ("meas", "truth", "estimate", "alarm", "alive")
@@ -655,6 +657,37 @@ class FleetEstimates(_Json):
     def estimates(self) -> list[Estimate]:
         """Every estimate of the message, in the order the service made them."""
         return [e for g in self.groups for e in g.estimates()]
+
+
+class OwnershipChange(_Json):
+    """Buckets a service replica took or handed over (bucket leases), on ``{prefix}/v1/service/{replica_id}/ownership``
+    (JSON): one message per change, from the replica that made it (docs/deployment.md)."""
+
+    model_config = ConfigDict(
+        frozen=True,
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {
+                    "v": 1,
+                    "replica": "host-a-4711",
+                    "gained": ["b08", "b09"],
+                    "lost": [],
+                    "buckets": ["b00", "b01", "b08", "b09"],
+                    "vehicles": 6,
+                    "t_ns": 1_700_000_012_000_000_000,
+                }
+            ]
+        },
+    )
+
+    v: Literal[1] = Field(1, description="protocol version")
+    replica: str = Field(description="the replica that took or handed over the buckets")
+    gained: list[Bucket] = Field(description="buckets it serves from now on")
+    lost: list[Bucket] = Field(description="buckets it no longer serves")
+    buckets: list[Bucket] = Field(description="every bucket it serves after the change")
+    vehicles: int = Field(ge=0, description="vehicles of the buckets taken over (as registered) or handed over")
+    t_ns: int = Field(description="when the change happened [ns since the epoch, service clock]")
 
 
 AlarmKind = Literal[

@@ -12,6 +12,9 @@ Ground truth (the ``truth`` key a simulator publishes) is subscribed only
 for the vehicles the dashboard follows (:meth:`Transport.follow_truth`),
 each into a small ``RingChannel`` that keeps the newest samples, so a slow
 dashboard never slows a simulator down. It is shown, never estimated from.
+Ownership announcements (bucket leases) of every replica, this one
+included, are kept the same way for the dashboard's fleet view
+(:meth:`Transport.drain_ownership`).
 
 Congestion control, chosen per stream: alarms ``BLOCK`` at
 ``INTERACTIVE_HIGH`` priority (they must not be lost); estimates ``DROP`` by
@@ -51,6 +54,7 @@ from service.protocol import (
     fleet_estimates_key,
     fleet_selector,
     ownership_key,
+    ownership_selector,
     parse_vehicle_key,
     service_liveliness_key,
     service_liveliness_selector,
@@ -63,6 +67,8 @@ if TYPE_CHECKING:
 
 #: Ground-truth samples kept per followed vehicle between two drains (newest kept).
 TRUTH_RING_CAPACITY = 1024
+#: Ownership announcements of the replicas kept between two drains (newest kept): a handful per change.
+OWNERSHIP_RING_CAPACITY = 256
 #: A new estimate publisher is taken as matched for this long, then its matching status is read once: a
 #: client session learns of existing subscribers only after a round trip to its router, and reports "no
 #: match" until then; afterwards its matching listener reports every change [s].
@@ -214,6 +220,7 @@ class Transport:
         self._meas: dict[str, Any] = {}
         self._alive: dict[str, Any] = {}
         self._ownership_pub: Any = None
+        self._ownership_sub: Any = None
         self._token: Any = None
         self._estimate_pubs: dict[str, Any] = {}
         # with vehicle_estimates='subscribed': each estimate publisher's matching listener, the changes they
@@ -296,6 +303,14 @@ class Transport:
             )
         self._ownership_pub.put(payload)
 
+    def drain_ownership(self) -> list[bytes]:
+        """Ownership announcements of every replica (this one's too) received since the last call, oldest first."""
+        out: list[bytes] = []
+        if self._ownership_sub is not None:
+            while (sample := self._ownership_sub.try_recv()) is not None:
+                out.append(sample.payload.to_bytes())
+        return out
+
     def open(self) -> None:
         s = self.settings
         self._session = open_session(
@@ -305,6 +320,9 @@ class Transport:
             session = self._session
             self._subscribe(self.buckets)
             self._token = session.liveliness().declare_token(service_liveliness_key(self.replica_id, self.prefix))
+            self._ownership_sub = session.declare_subscriber(
+                ownership_selector(self.prefix), zenoh.handlers.RingChannel(OWNERSHIP_RING_CAPACITY)
+            )
             self._fleet_pub = session.declare_publisher(
                 fleet_estimates_key(self.replica_id, self.prefix),
                 congestion_control=self._estimate_cc,
@@ -464,14 +482,14 @@ class Transport:
     def close(self) -> None:
         """Undeclare everything and close the session (an unclosed session can hang the process at exit)."""
         entities = [*self._meas.values(), *self._alive.values(), *self._truth.values()]
-        fleet = [p for p in (self._fleet_pub, self._ownership_pub) if p is not None]
+        fleet = [p for p in (self._fleet_pub, self._ownership_pub, self._ownership_sub) if p is not None]
         for entity in [*entities, *fleet, *self._listeners, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         if self._token is not None:
             with contextlib.suppress(zenoh.ZError):
                 self._token.undeclare()
-        self._meas, self._alive, self._token, self._ownership_pub = {}, {}, None, None
+        self._meas, self._alive, self._token, self._ownership_pub, self._ownership_sub = {}, {}, None, None, None
         self._estimate_pubs, self._alarm_pubs, self._truth = {}, {}, {}
         self._listeners, self._settling, self._unmatched, self._fleet_pub = [], {}, set(), None
         self._match_events.clear()

@@ -6,7 +6,8 @@ the view it shows:
 
 ``fleet``     every vehicle's row (level, last seen, fault estimates): all rows
               on connect, then only the rows that changed, ``fleet_hz`` times a
-              second;
+              second; and the bucket ownership changes of every replica (bucket
+              leases): the last ``OWNERSHIP_KEPT`` on connect, then each new one;
 ``vehicle``   one vehicle's status and its plot trace: the last ``history_s``
               of estimates decimated to ``plot_hz``, with the measurement each
               answers and, when a simulator publishes it, the ground truth;
@@ -21,6 +22,9 @@ alarm events of every vehicle and for estimate events of the vehicles it
 recently viewed; at most ``follow_max``), so the engine builds no event for
 the rest of the fleet. Fleet rows are read from the engine's arrays at
 ``fleet_hz``: no per-sample work for the fleet view, whatever the fleet size.
+Ownership changes are the replicas' announcements on Zenoh
+(:class:`~service.protocol.OwnershipChange`, this replica's included), so a
+page shows the whole fleet's whichever replica it is connected to.
 A browser that does not keep up (its queue of frames fills) is disconnected
 and reconnects to a fresh snapshot.
 """
@@ -38,7 +42,17 @@ from collections.abc import AsyncIterator, Collection, Iterable
 from typing import Any, Literal, Protocol
 
 from service.fleet import FleetEngine, Subscription, UnknownVehicle, Vehicle
-from service.protocol import COLUMN_UNITS, ESTIMATE_COLUMNS, STATE_COLUMNS, Alarm, Estimate, EstimateRow, GroundTruth
+from service.protocol import (
+    COLUMN_UNITS,
+    ESTIMATE_COLUMNS,
+    STATE_COLUMNS,
+    Alarm,
+    Estimate,
+    EstimateRow,
+    GroundTruth,
+    OwnershipChange,
+    ProtocolError,
+)
 from service.settings import DashboardSettings
 
 log = logging.getLogger("agv_fe.service.web")
@@ -58,6 +72,8 @@ TRUTH_COLUMNS = ("t", *STATE_COLUMNS)
 _DIGITS_BY_UNIT = {"m/s": 4, "rad/s": 5, "N m": 2, "rad": 5, "1": 4}
 #: Frames waiting for one browser; a browser that falls this far behind is disconnected.
 CLIENT_QUEUE_FRAMES = 256
+#: Ownership changes a fleet view gets on connect (the newest).
+OWNERSHIP_KEPT = 20
 #: A comment line is sent after this long without a frame, so proxies keep the stream open [s].
 KEEPALIVE_S = 15.0
 #: Alarm kinds that make a vehicle worth following first (faults before staleness or rejected inputs).
@@ -75,6 +91,12 @@ class TruthSource(Protocol):
     def follow_truth(self, vehicle_ids: Collection[str]) -> None: ...
 
     def drain_truth(self) -> list[tuple[str, bytes]]: ...
+
+
+class OwnershipSource(Protocol):
+    """Where the replicas' ownership announcements come from (the Zenoh transport): payloads, oldest first."""
+
+    def drain_ownership(self) -> list[bytes]: ...
 
 
 def sse(event: str, data: Any) -> bytes:
@@ -238,6 +260,9 @@ class DashboardHub:
         self._period_ns = max(1, round(1e9 / settings.plot_hz))
         self._maxlen = max(2, math.ceil(settings.history_s * settings.plot_hz))
         self._fleet_rows: dict[str, FleetRow] = {}
+        #: the newest ownership changes of every replica, oldest first (OwnershipChange as JSON)
+        self.ownership: deque[dict[str, Any]] = deque(maxlen=OWNERSHIP_KEPT)
+        self._ownership: OwnershipSource | None = None
         self._fleet_due = 0.0
         self._follow_dirty = True
         self._alarms: Subscription | None = None
@@ -252,15 +277,16 @@ class DashboardHub:
 
     # ------------------------------------------------------------------ life cycle
 
-    def attach(self, truth: TruthSource | None = None) -> None:
+    def attach(self, truth: TruthSource | None = None, ownership: OwnershipSource | None = None) -> None:
         """Subscribe to the fleet's alarm events, and to estimate events of the vehicles followed (none yet)."""
         self._truth = truth if self.settings.ground_truth else None
+        self._ownership = ownership
         self._alarms = self.engine.events.subscribe(maxsize=100_000, kinds=("alarm",))
         self._estimates = self.engine.events.subscribe(maxsize=100_000, kinds=("estimate",), vehicles=frozenset())
 
-    def start(self, truth: TruthSource | None = None) -> None:
+    def start(self, truth: TruthSource | None = None, ownership: OwnershipSource | None = None) -> None:
         """Attach, then push ``push_hz`` times a second (on the running loop)."""
-        self.attach(truth)
+        self.attach(truth, ownership)
         self._loop = asyncio.get_running_loop()
         self._task = self._loop.create_task(self._run(), name="dashboard")
 
@@ -311,6 +337,7 @@ class DashboardHub:
             if not any(c.view == "fleet" for c in self.clients):
                 self._fleet_rows = self._rows(self.engine.vehicles.values())
             client.send(sse("fleet", {"full": True, "now_s": time.time(), "rows": list(self._fleet_rows.values())}))
+            client.send(sse("ownership", {"full": True, "changes": list(self.ownership)}))
         if vehicle is not None:
             trace = self._trace(vehicle)
             self._backfill(trace, vehicle)
@@ -364,6 +391,7 @@ class DashboardHub:
         self._drain_estimates()
         self._drain_truth()
         self._push_alarms()
+        self._push_ownership()
         if self._follow_dirty:
             self._refresh_follow()
         self._push_traces()
@@ -418,6 +446,23 @@ class DashboardHub:
             else:
                 upsert.append({**record.to_dict(), "latched": True})
         self._send(sse("alarms", {"full": False, "upsert": upsert, "remove": remove}), self.clients)
+
+    def _push_ownership(self) -> None:
+        """The ownership changes announced since the last round, to the fleet views."""
+        if self._ownership is None:
+            return
+        changes = []
+        for payload in self._ownership.drain_ownership():
+            try:
+                changes.append(OwnershipChange.decode(payload).model_dump(mode="json"))
+            except ProtocolError as exc:  # not ours to judge: the dashboard only shows them
+                log.warning("dashboard: an ownership announcement not shown: %s", exc)
+        if not changes:
+            return
+        self.ownership.extend(changes)
+        fleet_clients = [c for c in self.clients if c.view == "fleet"]
+        if fleet_clients:
+            self._send(sse("ownership", {"full": False, "changes": changes}), fleet_clients)
 
     def _push_traces(self) -> None:
         for vehicle_id, trace in self.traces.items():

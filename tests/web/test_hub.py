@@ -12,9 +12,9 @@ import pytest
 from edge_client.library import paper_1
 from service.fleet import EngineConfig, FleetEngine, FleetEvent, UnknownVehicle
 from service.profiles import ProfileSpec
-from service.protocol import EstimateRow, Measurement, vehicle_key
+from service.protocol import EstimateRow, Measurement, OwnershipChange, all_buckets, vehicle_key
 from service.settings import DashboardSettings
-from service.web.hub import CLIENT_QUEUE_FRAMES, FLEET_COLUMNS, POINT_COLUMNS, Client, DashboardHub
+from service.web.hub import CLIENT_QUEUE_FRAMES, FLEET_COLUMNS, OWNERSHIP_KEPT, POINT_COLUMNS, Client, DashboardHub
 from tests.service.helpers import FAST_DESIGN, constant_measurement, plant_measurements
 from tests.web.helpers import cruise
 
@@ -62,10 +62,11 @@ def test_a_fleet_stream_starts_with_every_row_then_sends_only_changed_rows(fast_
     feed(engine, [constant_measurement(v, 0) for v in ("a", "b", "c")])
     client = hub.connect("fleet")
     first = frames(client)
-    assert [name for name, _ in first] == ["hello", "alarms", "fleet"]
-    hello, alarms, fleet = (data for _, data in first)
+    assert [name for name, _ in first] == ["hello", "alarms", "fleet", "ownership"]
+    hello, alarms, fleet, ownership = (data for _, data in first)
     assert hello["fleet_columns"] == list(FLEET_COLUMNS) and hello["point_columns"] == list(POINT_COLUMNS)
     assert alarms == {"full": True, "upsert": [], "remove": []}
+    assert ownership == {"full": True, "changes": []}  # no replica announced a change of buckets
     rows = rows_by_id(fleet["rows"])
     assert fleet["full"] and sorted(rows) == ["a", "b", "c"]
     assert rows["a"]["level"] == "OK" and rows["a"]["profile"] == "default" and rows["a"]["vx"] == pytest.approx(10.0)
@@ -78,6 +79,43 @@ def test_a_fleet_stream_starts_with_every_row_then_sends_only_changed_rows(fast_
     feed(engine, [constant_measurement("c", 2, vx=11.0)])
     hub.tick(now=101.1)  # before the next fleet tick is due (fleet_hz = 2)
     assert frames(client) == []
+
+
+class Announced:
+    """Ownership announcements as the transport hands them over (service.web.hub.OwnershipSource)."""
+
+    def __init__(self) -> None:
+        self.payloads: list[bytes] = []
+
+    def drain_ownership(self) -> list[bytes]:
+        drained, self.payloads = self.payloads, []
+        return drained
+
+
+def ownership_change(replica: str, gained: list[str], lost: list[str], k: int) -> OwnershipChange:
+    kept = sorted(set(all_buckets()[:8]) | set(gained) - set(lost))
+    return OwnershipChange(replica=replica, gained=gained, lost=lost, buckets=kept, vehicles=k, t_ns=k)
+
+
+def test_ownership_changes_go_to_the_fleet_streams_and_a_new_one_gets_the_newest(fast_gains):
+    source = Announced()
+    hub = DashboardHub(make_engine(fast_gains), DashboardSettings(), "ra")
+    hub.attach(ownership=source)
+    fleet, profiles = hub.connect("fleet"), hub.connect("profiles")
+    frames(fleet)
+    frames(profiles)
+    handed = ownership_change("ra", [], all_buckets()[8:], 1)
+    taken = ownership_change("rb", all_buckets()[8:], [], 2)
+    source.payloads += [handed.encode(), b'{"replica": "rc"}', taken.encode()]  # one not an OwnershipChange
+    hub.tick(now=100.0)
+    pushed = [data for name, data in frames(fleet) if name == "ownership"]
+    assert pushed == [{"full": False, "changes": [handed.model_dump(mode="json"), taken.model_dump(mode="json")]}]
+    assert [name for name, _ in frames(profiles)] == []  # a fleet-level event: the fleet view shows it
+    later = [ownership_change("ra", [f"b{k % 16:02x}"], [], 3 + k) for k in range(OWNERSHIP_KEPT)]
+    source.payloads += [c.encode() for c in later]
+    hub.tick(now=101.0)
+    first = dict(frames(hub.connect("fleet")))["ownership"]
+    assert first == {"full": True, "changes": [c.model_dump(mode="json") for c in later]}  # the newest kept
 
 
 def test_a_vehicle_stream_gets_decimated_points_with_the_measurement_and_only_its_vehicle_is_followed(fast_gains):

@@ -51,7 +51,10 @@ async def index() -> FileResponse:
     "/stream",
     response_class=StreamingResponse,
     responses={
-        200: {"content": {"text/event-stream": {}}, "description": "hello, alarms, fleet, status and trace events"},
+        200: {
+            "content": {"text/event-stream": {}},
+            "description": "hello, alarms, fleet, ownership, status and trace events",
+        },
         404: {"description": "no such vehicle"},
     },
     summary="the dashboard's live stream (server-sent events) for one view",

@@ -1,8 +1,10 @@
-// The fleet view: every vehicle in a virtualised table (only the visible rows exist in the DOM) and the
-// latched alarms. Rows arrive as deltas a few times a second; rendering is coalesced into one animation frame.
+// The fleet view: every vehicle in a virtualised table (only the visible rows exist in the DOM), the latched
+// alarms and the replicas' bucket ownership changes. Rows arrive as deltas a few times a second; rendering is
+// coalesced into one animation frame.
 
 import { AlarmList } from './alarms.js';
 import { LEVELS, LEVEL_RANK, age, el, fixed } from './format.js';
+import { OwnershipList } from './ownership.js';
 
 const OVERSCAN_ROWS = 6;
 
@@ -41,6 +43,10 @@ export class FleetView {
       empty: document.getElementById('alarms-empty'),
       onUnauthorized,
     });
+    this.ownership = new OwnershipList(
+      document.getElementById('ownership-box'),
+      document.getElementById('ownership-list'),
+    );
     alarms.subscribe(() => {
       this.orderDirty = this.orderDirty || this.sort.key === 'alarms';
       this.schedule();
@@ -127,7 +133,13 @@ export class FleetView {
     this.schedule();
   }
 
+  /** An "ownership" frame of a stream from ``replica``. */
+  onOwnership(frame, replica) {
+    this.ownership.apply(frame, replica);
+  }
+
   clear() {
+    this.ownership.clear();
     this.rows.clear();
     this.orderDirty = true;
     this.schedule();

@@ -65,6 +65,8 @@ function onEvent(name, data) {
     alarms.apply(data);
   } else if (name === 'fleet' && view === 'fleet' && hello) {
     views.fleet.apply(data, hello.fleet_columns);
+  } else if (name === 'ownership' && view === 'fleet') {
+    views.fleet.onOwnership(data, hello ? hello.replica : '');
   } else if (name === 'status' && view === 'vehicle') {
     views.vehicle.onStatus(data);
   } else if (name === 'trace' && view === 'vehicle') {
