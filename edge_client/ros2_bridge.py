@@ -24,7 +24,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, Self
 
 from edge_client.grid import LiveSource
 from edge_client.ros2 import RosMapping, RosSignal, field_value, typestore_for
@@ -153,25 +153,40 @@ def describe_keys(source: Ros2Source) -> list[str]:
     return lines
 
 
-#: The estimate's level as a diagnostic_msgs/msg/DiagnosticStatus level (OK 0, WARN 1, ERROR 2).
-DIAGNOSTIC_LEVEL = {"OK": 0, "WARN": 1, "FAULT": 2}
+#: diagnostic_msgs/msg/DiagnosticStatus's levels (its constants OK, WARN, ERROR, STALE).
+STATUS_OK, STATUS_WARN, STATUS_ERROR, STATUS_STALE = 0, 1, 2, 3
+#: The service's level as a DiagnosticStatus level: FAULT is ERROR, STALE is STALE.
+DIAGNOSTIC_LEVEL = {"OK": STATUS_OK, "WARN": STATUS_WARN, "FAULT": STATUS_ERROR, "STALE": STATUS_STALE}
 DIAGNOSTIC_TYPE = "diagnostic_msgs/msg/DiagnosticStatus"
 #: rmw_zenoh's compact QoS of a publisher (reliable, volatile, keep last 7): the form of its design document's example.
 PUBLISHER_QOS = "::,7:,:,:,,"
+#: The ROS 2 node the republished topics belong to, as the ROS 2 graph lists it.
+NODE_NAME = "agv_fe_bridge"
 
 
-class EstimateRepublisher:
-    """The service's estimates of one vehicle, republished as a ROS 2 topic for the vehicle's own nodes.
+class StatusRepublisher:
+    """One of the service's streams of one vehicle (``kind``), republished as a ROS 2 topic of
+    ``diagnostic_msgs/msg/DiagnosticStatus`` for the vehicle's own nodes.
 
-    Each estimate becomes a ``diagnostic_msgs/msg/DiagnosticStatus``: level OK / WARN / ERROR (FAULT) from the
-    estimate's level, name ``agv_fe/<vehicle>``, hardware_id the vehicle id, and the values (seq, vx, vy, r,
-    torque_fault, steer_fault, in_domain, gain_version) as key-value strings; it is put on the topic's rmw_zenoh key
-    with rmw_zenoh's attachment, and liveliness tokens for a node ``agv_fe_bridge`` and its publisher let the ROS 2
-    graph see the topic (``ros2 topic list``).
+    Each message of the stream becomes a status (:meth:`status`, by the subclass) put on the topic's rmw_zenoh key
+    with rmw_zenoh's attachment. A liveliness token of rmw_zenoh's format announces the publisher, entity
+    ``entity_id`` of the node ``agv_fe_bridge`` (``ros2 topic list``); the node's own token (``ros2 node list``) goes
+    with entity 1, so a bridge that republishes several streams numbers them 1, 2... Each publisher has a GID of
+    its own: the session's id with the entity id in its last byte. A message that does not decode is counted in
+    :attr:`bad`, never fatal.
     """
 
+    kind: Literal["estimate", "alarm"]
+
     def __init__(
-        self, session: zenoh.Session, store: Any, domain_id: int, topic: str, vehicle_id: str, prefix: str
+        self,
+        session: zenoh.Session,
+        store: Any,
+        domain_id: int,
+        topic: str,
+        vehicle_id: str,
+        prefix: str,
+        entity_id: int = 1,
     ) -> None:
         from edge_client.transport import Publication
         from service.protocol import vehicle_key
@@ -180,31 +195,75 @@ class EstimateRepublisher:
         self.vehicle_id = vehicle_id
         self.sent = 0
         self.bad = 0
-        self._gid = bytes.fromhex(str(session.zid()).rjust(32, "0")[-32:])
+        zid = str(session.zid())
+        self._gid = bytes.fromhex(zid.rjust(32, "0")[-32:])[:15] + bytes([entity_id])
         type_hash = self.store.hash_rihs01(DIAGNOSTIC_TYPE)
         self.key = topic_key(domain_id, topic, DIAGNOSTIC_TYPE, type_hash)
-        zid = str(session.zid())
-        node = f"@ros2_lv/{domain_id}/{zid}/0/0/NN/%/%/agv_fe_bridge"
+        node = f"@ros2_lv/{domain_id}/{zid}/0/0/NN/%/%/{NODE_NAME}"
         entity = (
-            f"@ros2_lv/{domain_id}/{zid}/0/1/MP/%/%/agv_fe_bridge/{topic.replace('/', '%')}/"
+            f"@ros2_lv/{domain_id}/{zid}/0/{entity_id}/MP/%/%/{NODE_NAME}/{topic.replace('/', '%')}/"
             f"{dds_type_name(DIAGNOSTIC_TYPE)}/{type_hash}/{PUBLISHER_QOS}"
         )
-        self._publication = Publication(session, self.key, token_keys=(node, entity))
+        self._publication = Publication(session, self.key, token_keys=(node, entity) if entity_id == 1 else (entity,))
         try:
-            self._subscription = Subscription(session, vehicle_key(vehicle_id, "estimate", prefix), self._on_estimate)
+            self._subscription = Subscription(session, vehicle_key(vehicle_id, self.kind, prefix), self._on_message)
         except BaseException:
             self._publication.close()
             raise
 
-    def _on_estimate(self, rx: Received) -> None:
-        from service.protocol import Estimate, ProtocolError
+    def status(self, payload: bytes) -> Any:
+        """The DiagnosticStatus of one message of the stream; :class:`~service.protocol.ProtocolError` if it does
+        not decode."""
+        raise NotImplementedError
+
+    def diagnostic_status(self, level: int, name: str, message: str, values: dict[str, str]) -> Any:
+        t = self.store.types
+        return t[DIAGNOSTIC_TYPE](
+            level=level,
+            name=name,
+            message=message,
+            hardware_id=self.vehicle_id,
+            values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values.items()],
+        )
+
+    def _on_message(self, rx: Received) -> None:
+        # zenoh's thread: decode, convert, put; never raise
+        from service.protocol import ProtocolError
 
         try:
-            estimate = Estimate.decode(rx.payload)
+            status = self.status(rx.payload)
         except ProtocolError:
             self.bad += 1
             return
-        t = self.store.types
+        payload = bytes(self.store.serialize_cdr(status, DIAGNOSTIC_TYPE))
+        self.sent += 1
+        self._publication.put(payload, rmw_attachment(self.sent, time.time_ns(), self._gid))
+
+    def close(self) -> None:
+        self._subscription.close()
+        self._publication.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+
+class EstimateRepublisher(StatusRepublisher):
+    """The service's estimates of one vehicle as a ROS 2 topic (``--republish``).
+
+    Each estimate becomes a status of level OK / WARN / ERROR (FAULT) from the estimate's level, name
+    ``agv_fe/<vehicle>``, and the values (seq, vx, vy, r, torque_fault, steer_fault, in_domain, gain_version) as
+    key-value strings.
+    """
+
+    kind = "estimate"
+
+    def status(self, payload: bytes) -> Any:
+        from service.protocol import Estimate
+
+        estimate = Estimate.decode(payload)
         values = {
             "seq": str(estimate.seq),
             "vx": repr(estimate.vx),
@@ -215,23 +274,59 @@ class EstimateRepublisher:
             "in_domain": str(estimate.in_domain).lower(),
             "gain_version": estimate.gain_version,
         }
-        status = t[DIAGNOSTIC_TYPE](
-            level=DIAGNOSTIC_LEVEL.get(estimate.level, 2),
-            name=f"agv_fe/{self.vehicle_id}",
-            message=f"torque fault {estimate.torque_fault:.1f} N m, steering fault {estimate.steer_fault:.4f} rad",
-            hardware_id=self.vehicle_id,
-            values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values.items()],
+        return self.diagnostic_status(
+            DIAGNOSTIC_LEVEL.get(estimate.level, STATUS_ERROR),
+            f"agv_fe/{self.vehicle_id}",
+            f"torque fault {estimate.torque_fault:.1f} N m, steering fault {estimate.steer_fault:.4f} rad",
+            values,
         )
-        payload = bytes(self.store.serialize_cdr(status, DIAGNOSTIC_TYPE))
-        self.sent += 1
-        self._publication.put(payload, rmw_attachment(self.sent, time.time_ns(), self._gid))
 
-    def close(self) -> None:
-        self._subscription.close()
-        self._publication.close()
 
-    def __enter__(self) -> EstimateRepublisher:
-        return self
+class AlarmRepublisher(StatusRepublisher):
+    """The service's alarm events of one vehicle as a ROS 2 topic (``--republish-alarms``).
 
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
+    Each event becomes a status named ``agv_fe/<vehicle>/<kind>`` (one diagnostic component per alarm kind, as a
+    diagnostic aggregator or rqt_robot_monitor shows them), message the alarm's state and text, and the values
+    id, kind, state, level (the service's own: WARN, FAULT, STALE), t_ns and, where the alarm has them, value and
+    threshold. Its level is the condition's: WARN, ERROR (FAULT) or STALE while the alarm is raised, OK once it is
+    cleared; an acknowledgement keeps the level of the condition last seen for that alarm id (OK after its
+    ``cleared``, the alarm's level otherwise).
+    """
+
+    kind = "alarm"
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        store: Any,
+        domain_id: int,
+        topic: str,
+        vehicle_id: str,
+        prefix: str,
+        entity_id: int = 1,
+    ) -> None:
+        #: ids of the alarms whose last condition event was ``cleared`` (zenoh's thread only)
+        self._cleared: set[str] = set()
+        super().__init__(session, store, domain_id, topic, vehicle_id, prefix, entity_id)
+
+    def status(self, payload: bytes) -> Any:
+        from service.protocol import Alarm
+
+        alarm = Alarm.decode(payload)
+        if alarm.state == "raised":
+            self._cleared.discard(alarm.id)
+        elif alarm.state == "cleared":
+            self._cleared.add(alarm.id)
+        gone = alarm.id in self._cleared
+        if alarm.state == "acknowledged" and gone:
+            self._cleared.discard(alarm.id)  # cleared and acknowledged: the alarm is closed
+        values = {"id": alarm.id, "kind": alarm.kind, "state": alarm.state, "level": alarm.level}
+        values |= {"value": repr(alarm.value)} if alarm.value is not None else {}
+        values |= {"threshold": repr(alarm.threshold)} if alarm.threshold is not None else {}
+        values["t_ns"] = str(alarm.t_ns)
+        return self.diagnostic_status(
+            STATUS_OK if gone else DIAGNOSTIC_LEVEL[alarm.level],
+            f"agv_fe/{self.vehicle_id}/{alarm.kind}",
+            f"{alarm.state}: {alarm.message}" if alarm.message else alarm.state,
+            values,
+        )

@@ -31,6 +31,8 @@ GID = bytes(range(16))
 #: at most this many 10 ms periods of publishing, whatever happens (the bridge runs 6 s once every topic came)
 MAX_PERIODS = 4_000
 STATUS = "diagnostic_msgs/msg/DiagnosticStatus"
+#: the fields of an alarm every republished alarm status carries as key-values, as they are
+ALARM_FIELDS = ("id", "kind", "state", "level")
 
 
 def test_the_rmw_zenoh_key_of_a_topic():
@@ -152,6 +154,88 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
     # and the ROS 2 graph sees the bridge's node and its publisher (liveliness tokens of rmw_zenoh's format)
     assert any(key.endswith("/0/0/NN/%/%/agv_fe_bridge") for key in tokens), tokens
     assert any(f"/0/1/MP/%/%/agv_fe_bridge/%agv_fe%status/{dds_type_name(STATUS)}/" in key for key in tokens), tokens
+
+
+#: The alarm events the service's side puts, and the DiagnosticStatus level each must become (module docstring of
+#: AlarmRepublisher): a steering alarm raised, escalated, acknowledged while raised, cleared, acknowledged after
+#: it cleared (closed); a STALE alarm; the acknowledgement of an alarm the bridge never saw raised.
+ALARM_EVENTS = [
+    (dict(id="al-1", kind="steer_fault", level="WARN", state="raised", value=-0.012, threshold=0.01,
+          message="|delta_f| >= 0.01 rad for 0.5 s"), 1),
+    (dict(id="al-1", kind="steer_fault", level="FAULT", state="raised", value=-0.031, threshold=0.02,
+          message="|delta_f| >= 0.02 rad for 0.5 s"), 2),
+    (dict(id="al-1", kind="steer_fault", level="FAULT", state="acknowledged", value=-0.031, threshold=0.02), 2),
+    (dict(id="al-1", kind="steer_fault", level="FAULT", state="cleared", value=-0.031, threshold=0.02), 0),
+    (dict(id="al-1", kind="steer_fault", level="FAULT", state="acknowledged", value=-0.031, threshold=0.02), 0),
+    (dict(id="al-2", kind="stale", level="STALE", state="raised", message="no measurement for 1.2 s"), 3),
+    (dict(id="al-3", kind="out_of_domain", level="WARN", state="acknowledged"), 1),
+]  # fmt: skip
+#: at most this many rounds of 10 ms waiting for the republished statuses: only against a hang
+MAX_ROUNDS = 6_000
+
+
+def test_alarm_events_become_diagnostic_statuses_on_their_rmw_zenoh_key(router):
+    """The service's alarm events (service.protocol's encoder, on the vehicle's alarm key) republished by the
+    bridge's AlarmRepublisher beside its EstimateRepublisher, decoded by a ROS 2 node's side from CDR on the topic's
+    rmw_zenoh key; the graph sees one node and its two publishers."""
+    from edge_client.ros2_bridge import AlarmRepublisher, EstimateRepublisher
+    from service.protocol import Alarm, vehicle_key
+
+    ts = store(RosMapping.model_validate(yaml.safe_load(MAPPING)))
+    alarms_key = topic_key(0, "/agv_fe/alarms", STATUS, ts.hash_rihs01(STATUS))
+    service, bridge, vehicle = (open_session(router.client()) for _ in range(3))
+    statuses = ChannelSubscription(vehicle, alarms_key)
+    graph = ChannelSubscription(vehicle, "@ros2_lv/0/**", liveliness=True)
+    events = [Alarm(vehicle=VEHICLE, t_ns=1_700_000_000_000_000_000 + i, **e).encode() for i, (e, _) in
+              enumerate(ALARM_EVENTS)]  # fmt: skip
+    alarm_publisher = service.declare_publisher(vehicle_key(VEHICLE, "alarm"))
+    last_name = f"agv_fe/{VEHICLE}/{ALARM_EVENTS[-1][0]['kind']}"
+    received = []
+    try:
+        with (
+            EstimateRepublisher(bridge, ts, 0, "/agv_fe/status", VEHICLE, "agv", entity_id=1),
+            AlarmRepublisher(bridge, ts, 0, "/agv_fe/alarms", VEHICLE, "agv", entity_id=2) as republisher,
+        ):
+            # the first event again until its status comes back (the path is up), then the others once each, in
+            # order behind the repeats still on their way
+            for _ in range(MAX_ROUNDS):
+                alarm_publisher.put(events[0])
+                time.sleep(0.01)
+                if received := statuses.drain():
+                    break
+            alarm_publisher.put(b"{not an alarm")
+            for event in events[1:]:
+                alarm_publisher.put(event)
+            for _ in range(MAX_ROUNDS):
+                if received and ts.deserialize_cdr(received[-1].payload, STATUS).name == last_name:
+                    break
+                time.sleep(0.01)
+                received += statuses.drain()
+            sent, bad = republisher.sent, republisher.bad
+            tokens = [rx.key for rx in graph.drain() if rx.put]  # declared before any status was put
+    finally:
+        alarm_publisher.undeclare()
+        statuses.close()
+        graph.close()
+        for session in (service, bridge, vehicle):
+            close_session(session)
+    repeats = len(received) - (len(events) - 1)  # statuses of the first event
+    assert repeats >= 1 and bad == 1 and sent == len(received), (repeats, bad, sent)
+    assert all(rx.key == alarms_key for rx in received)
+    decoded = [ts.deserialize_cdr(rx.payload, STATUS) for rx in received]
+    assert all(status == decoded[0] for status in decoded[:repeats])
+    for status, (event, level) in zip(decoded[repeats - 1 :], ALARM_EVENTS, strict=True):
+        values = {kv.key: kv.value for kv in status.values}
+        assert (status.level, status.name, status.hardware_id) == (level, f"agv_fe/{VEHICLE}/{event['kind']}", VEHICLE)
+        assert [values[k] for k in ALARM_FIELDS] == [event[k] for k in ALARM_FIELDS]
+        assert ("value" in values, "threshold" in values) == ("value" in event, "threshold" in event)
+        if "value" in event:
+            assert float(values["value"]) == event["value"] and float(values["threshold"]) == event["threshold"]
+        assert status.message == (f"{event['state']}: {event['message']}" if "message" in event else event["state"])
+    # one node, its two publishers numbered 1 and 2
+    assert sum(key.endswith("/0/0/NN/%/%/agv_fe_bridge") for key in tokens) == 1, tokens
+    assert any(f"/0/1/MP/%/%/agv_fe_bridge/%agv_fe%status/{dds_type_name(STATUS)}/" in key for key in tokens), tokens
+    assert any(f"/0/2/MP/%/%/agv_fe_bridge/%agv_fe%alarms/{dds_type_name(STATUS)}/" in key for key in tokens), tokens
 
 
 def test_a_mapping_the_bridge_cannot_use_is_refused_before_it_joins_the_network(tmp_path, capsys):
