@@ -37,6 +37,12 @@ def register(sub: Any) -> None:
         help="also republish the vehicle's estimates as this ROS 2 topic (diagnostic_msgs/msg/DiagnosticStatus, "
         "level OK / WARN / ERROR), for the vehicle's own nodes",
     )
+    parser.add_argument(
+        "--republish-alarms",
+        metavar="TOPIC",
+        help="also republish the vehicle's alarm events as this ROS 2 topic (diagnostic_msgs/msg/DiagnosticStatus "
+        "named agv_fe/<vehicle>/<kind>, level WARN / ERROR / STALE while raised, OK once cleared)",
+    )
     add_transport_arguments(parser)
     parser.set_defaults(handler=run)
 
@@ -46,10 +52,12 @@ def _check(args: argparse.Namespace) -> tuple[Any, Any]:
     from edge_client.recording import RecordingError
 
     check_bridge_arguments(args)
-    if args.republish is not None and not re.fullmatch(r"(/[A-Za-z_][A-Za-z0-9_]*)+", args.republish):
-        raise CommandError(
-            f"--republish: expected a fully qualified topic name such as /agv_fe/status, got {args.republish!r}"
-        )
+    for flag, topic, example in (("--republish", args.republish, "/agv_fe/status"),
+                                 ("--republish-alarms", args.republish_alarms, "/agv_fe/alarms")):  # fmt: skip
+        if topic is not None and not re.fullmatch(r"(/[A-Za-z_][A-Za-z0-9_]*)+", topic):
+            raise CommandError(f"{flag}: expected a fully qualified topic name such as {example}, got {topic!r}")
+    if args.republish is not None and args.republish == args.republish_alarms:
+        raise CommandError(f"--republish and --republish-alarms name the same topic {args.republish}")
     try:
         from edge_client.ros2 import load_ros_mapping, typestore_for
     except ImportError as exc:
@@ -63,7 +71,7 @@ def _check(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from edge_client.ros2_bridge import EstimateRepublisher, Ros2Source, describe_keys
+    from edge_client.ros2_bridge import AlarmRepublisher, EstimateRepublisher, Ros2Source, describe_keys
     from edge_client.transport import TransportError, open_session
 
     try:
@@ -73,23 +81,20 @@ def run(args: argparse.Namespace) -> int:
         return fail(exc if isinstance(exc, CommandError) else CommandError(str(exc)))
     print(textwrap.fill(f"bridging ROS 2 domain {mapping.domain_id} to vehicle {args.vehicle}; zenoh "
                         f"{transport.describe()}", 100))  # fmt: skip
-    republisher: list[Any] = []
+    republishers: list[Any] = []
 
     def open_source(stack: contextlib.ExitStack[Any]) -> Any:
         source = stack.enter_context(Ros2Source(session, mapping, args.vehicle, wait_s=args.wait))
         print("\n".join(["subscribed (signal, rmw_zenoh key):", *describe_keys(source)]), flush=True)
-        if args.republish:
-            republisher.append(
-                stack.enter_context(
-                    EstimateRepublisher(
-                        session, source.store, mapping.domain_id, args.republish, args.vehicle, args.prefix
-                    )
-                )
-            )
-            print(f"estimates republished on {republisher[0].key}", flush=True)
+        streams = ((EstimateRepublisher, args.republish), (AlarmRepublisher, args.republish_alarms))
+        wanted = [(republisher, topic) for republisher, topic in streams if topic]
+        for entity_id, (republisher, topic) in enumerate(wanted, start=1):  # the publishers of the bridge's node
+            opened = republisher(session, source.store, mapping.domain_id, topic, args.vehicle, args.prefix, entity_id)
+            republishers.append(stack.enter_context(opened))
+            print(f"{opened.kind}s republished on {opened.key}", flush=True)
         return source
 
     def extra_lines() -> list[str]:
-        return [f"republished {r.sent} estimates on {r.key}" for r in republisher]
+        return [f"republished {r.sent} {r.kind}s on {r.key}" for r in republishers]
 
     return run_bridge(args, session, open_source, extra_lines)
