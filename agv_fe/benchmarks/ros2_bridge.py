@@ -4,15 +4,8 @@ A vehicle (this process) puts the four mapped topics' CDR messages on their rmw_
 (this process too) at 100 Hz, each sample at a random phase within its 10 ms period, as a vehicle whose clock is
 not the bridge's would; the torque field carries the sample's number. The bridge runs as `agv-fe ros2-bridge` in
 its own process, a client of the router, and publishes measurements on the 10 ms grid; a subscriber in this process
-receives them. For each sample, from the put of its last message (the torque) to the receipt of the first
-measurement carrying it, on the machine's wall clock (both processes read the same one):
-
-* grid hold: from the put to the bridge's tick that sampled it (the measurement's nominal time stamp): the wait
-  for the next grid point, between 0 and 10 ms by design;
-* after the tick: from that tick to the receipt: the tick's lateness, the sampling, encoding and put, and the
-  hops bridge -> router -> subscriber;
-* total: the two together, what the bridge adds to a vehicle that would publish the protocol itself at the instant
-  of its last message.
+receives them. Each sample's latency, from the put of its last message (the torque) to the receipt of the first
+measurement carrying it, in its grid hold and what comes after the tick: agv_fe/benchmarks/bridge_latency.py.
 """
 
 from __future__ import annotations
@@ -24,13 +17,14 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from agv_fe.benchmarks import report_header
+from agv_fe.benchmarks.bridge_latency import BridgeLatency, router_session, summarise
 from agv_fe.benchmarks.harness import free_port
 
 RUN_S = 30.0
@@ -42,33 +36,6 @@ steer: {topic: /cmd, type: ackermann_msgs/msg/AckermannDriveStamped, field: driv
 """
 #: the order of the puts of one sample: the torque (which numbers the sample) last
 ORDER = ("/odom", "/imu", "/cmd", "/drive_torque")
-
-
-@dataclass(frozen=True)
-class BridgeLatency:
-    samples: int
-    carried: int
-    measurements: int
-    total_p50_ms: float
-    total_p99_ms: float
-    total_max_ms: float
-    hold_p50_ms: float
-    hold_p99_ms: float
-    after_tick_p50_ms: float
-    after_tick_p99_ms: float
-    decode_us: float
-    bridge_cpu_fraction: float
-    run_s: float
-
-
-def _router(port: int) -> Any:
-    import zenoh
-
-    config = zenoh.Config()
-    config.insert_json5("mode", json.dumps("router"))
-    config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(config)
 
 
 def _messages(store: Any) -> dict[str, Any]:
@@ -136,7 +103,7 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
     builders = _messages(store)
     decode_us = _decode_us(store, builders, mapping)
     port = free_port()
-    session = _router(port)
+    session = router_session(port)
     received: list[tuple[int, int, int]] = []  # (sample number, measurement time stamp, receipt) [ns, wall clock]
     lock = threading.Lock()
 
@@ -174,7 +141,7 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
             session.close()
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu_s = (usage.ru_utime - usage_before.ru_utime) + (usage.ru_stime - usage_before.ru_stime)
-    return _summarise(received, put_ns, decode_us, cpu_s, run_s)
+    return summarise(received, put_ns, decode_us, cpu_s, run_s)
 
 
 def _publish(
@@ -200,39 +167,6 @@ def _publish(
             now = time.time_ns()
             publishers[topic].put(raw, attachment=attachment(k, now, gid))
         put_ns[k] = now
-
-
-def _summarise(
-    received: list[tuple[int, int, int]], put_ns: dict[int, int], decode_us: float, cpu_s: float, run_s: float
-) -> BridgeLatency:
-    """Per sample put while the bridge ran (between its first and last measurement), its first measurement."""
-    if not received:
-        raise RuntimeError("no measurement came back from the bridge")
-    first_tick, last_tick = min(r[1] for r in received), max(r[1] for r in received)
-    window = {k: t for k, t in put_ns.items() if first_tick <= t <= last_tick}
-    first: dict[int, tuple[int, int]] = {}
-    for k, tick_ns, at_ns in received:
-        if k in window and k not in first:
-            first[k] = (tick_ns, at_ns)
-    put = np.array([window[k] for k in first], dtype=np.int64)
-    tick = np.array([t for t, _ in first.values()], dtype=np.int64)
-    at = np.array([a for _, a in first.values()], dtype=np.int64)
-    total, hold, after = (at - put) / 1e6, (tick - put) / 1e6, (at - tick) / 1e6
-    return BridgeLatency(
-        samples=len(window),
-        carried=len(first),
-        measurements=len(received),
-        total_p50_ms=float(np.percentile(total, 50)),
-        total_p99_ms=float(np.percentile(total, 99)),
-        total_max_ms=float(total.max()),
-        hold_p50_ms=float(np.percentile(hold, 50)),
-        hold_p99_ms=float(np.percentile(hold, 99)),
-        after_tick_p50_ms=float(np.percentile(after, 50)),
-        after_tick_p99_ms=float(np.percentile(after, 99)),
-        decode_us=decode_us,
-        bridge_cpu_fraction=cpu_s / run_s,
-        run_s=run_s,
-    )
 
 
 def run(out_dir: Path, run_s: float = RUN_S) -> Path:
