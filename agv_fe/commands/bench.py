@@ -17,6 +17,7 @@ BENCHMARKS = {
     "real_vehicle": "agv_fe.benchmarks.real_vehicle",
     "detection": "agv_fe.benchmarks.detection",
     "ros2_bridge": "agv_fe.benchmarks.ros2_bridge",
+    "can_bridge": "agv_fe.benchmarks.can_bridge",
     "failover": "agv_fe.benchmarks.failover",
     "storage_capacity": "agv_fe.benchmarks.storage_capacity",
     "service_config": "agv_fe.benchmarks.service_config",
