@@ -10,6 +10,11 @@ byte-stream-split encoding and zstd (docs/operations.md), the rest as they are. 
 retention are deleted by the writer. A write that fails (disk full, directory gone) is counted, logged and
 its rows dropped; ingest never waits for the disk.
 
+The writer turns the batches it gathers into an Arrow table every ``CONVERT_S`` and lets the batches go: a
+minute of a large fleet's batches kept as Python objects (60,000 batches of lists at 1,000 vehicles) made each
+of the collector's full passes over the heap take about 200 ms with the GIL held, a stall of the ingest loop
+(docs/benchmarks/service_config.md); Arrow's buffers are not objects the collector visits.
+
 :meth:`EstimateHistory.read` answers one vehicle's estimates in a time range from the files and from the rows
 not yet written, as one Arrow table, oldest first.
 """
@@ -52,6 +57,8 @@ _FLOAT32_SCHEMA = pa.schema([pa.field(f.name, pa.float32()) if f.name in _FLOAT_
 _FILE_NAME = re.compile(r"^(\d{19})-([A-Za-z0-9_.-]+)\.parquet$")
 #: Rows per row group: small enough that a vehicle's rows are a few groups of a large fleet's file.
 ROW_GROUP_ROWS = 65_536
+#: The writer converts the batches it holds into an Arrow table at least this often [s] (module docstring).
+CONVERT_S = 1.0
 
 
 @dataclass
@@ -69,11 +76,26 @@ class HistoryStats:
 
 @dataclass
 class _Chunk:
-    """The batches of one interval of service time, waiting to be written."""
+    """The estimates of one interval of service time, waiting to be written: the batches of the last
+    CONVERT_S, and the tables the earlier ones were converted into."""
 
     start_ns: int
     batches: list[EstimateBatch] = field(default_factory=list)
+    tables: list[pa.Table] = field(default_factory=list)
     rows: int = 0
+    converted_ns: int = 0
+
+    def convert(self, now_ns: int) -> None:
+        """The batches into one more table (the writer thread, under the history's lock)."""
+        if self.batches:
+            self.tables.append(batch_table(self.batches))
+            self.batches = []
+        self.converted_ns = now_ns
+
+    def table(self) -> pa.Table:
+        """Every estimate of the chunk as one table of :data:`SCHEMA`, dictionaries unified."""
+        parts = [*self.tables, batch_table(self.batches)] if self.batches else self.tables
+        return pa.concat_tables(parts).unify_dictionaries() if parts else SCHEMA.empty_table()
 
 
 def batch_table(batches: Sequence[EstimateBatch]) -> pa.Table:
@@ -135,6 +157,7 @@ class EstimateHistory:
         self.replica_id = replica_id
         self.retention_ns = round(retention_s * 1e9)
         self.chunk_ns = round(chunk_s * 1e9)
+        self.convert_ns = round(CONVERT_S * 1e9)
         self.stats = HistoryStats()
         self._queue: queue.SimpleQueue[tuple[int, list[EstimateBatch]] | None] = queue.SimpleQueue()
         self._lock = threading.Lock()  # guards _chunk, _files and stats across the writer and readers
@@ -188,9 +211,12 @@ class EstimateHistory:
             if batches:
                 with self._lock:
                     if chunk is None:
-                        chunk = self._chunk = _Chunk(now_ns - now_ns % self.chunk_ns)
+                        chunk = self._chunk = _Chunk(now_ns - now_ns % self.chunk_ns, converted_ns=now_ns)
                     chunk.batches.extend(batches)
                     chunk.rows += sum(len(b) for b in batches)
+            if chunk is not None and now_ns >= chunk.converted_ns + self.convert_ns:
+                with self._lock:
+                    chunk.convert(now_ns)
 
     def _flush(self) -> None:
         """Write the current chunk (the writer thread only)."""
@@ -202,7 +228,7 @@ class EstimateHistory:
         day = time.strftime("%Y-%m-%d", time.gmtime(chunk.start_ns / 1e9))
         path = self.directory / day / f"{chunk.start_ns:019d}-{self.replica_id}.parquet"
         try:
-            table = _by_vehicle_and_time(batch_table(chunk.batches)).cast(self.file_schema)
+            table = _by_vehicle_and_time(chunk.table()).cast(self.file_schema)
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".parquet.tmp")
             pq.write_table(
@@ -256,6 +282,7 @@ class EstimateHistory:
         with self._lock:
             files = sorted(p for p, (low, high) in self._files.items() if high >= start_ns and low < end_ns)
             pending = list(self._chunk.batches) if self._chunk is not None else []
+            converted = list(self._chunk.tables) if self._chunk is not None else []
         predicate = (pc.field("vehicle") == vehicle_id) & (pc.field("t_ns") >= start_ns) & (pc.field("t_ns") < end_ns)
         parts = []
         for path in files:
@@ -263,6 +290,7 @@ class EstimateHistory:
                 parts.append(pq.read_table(path, filters=predicate))
             except (OSError, pa.ArrowException) as exc:  # deleted by retention meanwhile, or unreadable
                 log.warning("estimate history: cannot read %s: %s", path, exc)
+        parts += [t.filter(predicate) for t in converted]
         own = [b for b in pending if vehicle_id in b.vehicle_ids]
         if own:
             parts.append(batch_table(own).filter(predicate))

@@ -13,6 +13,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+import service.history
 from service.history import SCHEMA, EstimateHistory, table_rows
 from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS, Estimate, EstimateBatch
 from tests.service.helpers import PERIOD_NS, T0_NS, make_settings, plant_measurements, probe, running, wait_for
@@ -74,6 +75,28 @@ def test_the_history_keeps_every_estimate_and_reads_a_vehicle_back_by_time(tmp_p
         assert again.read("c", T0_NS, T0_NS + 300 * PERIOD_NS).num_rows == 300
     finally:
         again.close()
+
+
+def test_the_writer_keeps_converted_tables_not_batches_and_reads_and_writes_them_whole(tmp_path, monkeypatch):
+    """The writer turns what it holds into Arrow tables as it goes (CONVERT_S, here every item), so no batch object
+    waits for the chunk's end; the rows read before the write and the file written are every estimate, once."""
+    monkeypatch.setattr(service.history, "CONVERT_S", 0.0)
+    history = EstimateHistory(tmp_path / "history", "r0", retention_s=3600.0, chunk_s=60.0)
+    history.start()
+    try:
+        for seq in range(50):
+            history.append([_batch(["a", "b"], seq), _batch(["staged"], seq, with_stage=True)])
+        wait_for(lambda: history.read("a", T0_NS, T0_NS + 50 * PERIOD_NS).num_rows == 50, what="pending rows read")
+        chunk = history._chunk
+        assert chunk is not None and chunk.rows == 150 and not chunk.batches and len(chunk.tables) >= 2
+        rows = list(table_rows(history.read("staged", T0_NS, T0_NS + 50 * PERIOD_NS)))
+        assert [r["seq"] for r in rows] == list(range(50)) and rows[3]["steer_alpha"] == pytest.approx(3 + 0.25 * 8)
+    finally:
+        history.close()  # writes the chunk
+    (path,) = (tmp_path / "history").glob("*/*.parquet")
+    table = pq.read_table(path)
+    assert table.num_rows == 150 and table.column("vehicle").to_pylist() == ["a"] * 50 + ["b"] * 50 + ["staged"] * 50
+    assert table.column("seq").to_pylist()[50:100] == list(range(50))  # sorted by vehicle, then time
 
 
 def test_float32_precision_halves_the_file_and_keeps_seven_digits(tmp_path):
