@@ -9,9 +9,10 @@ of its own, naming its keys exactly (bucket included), bound to the identity tha
   subscribers on the fleet's estimate and alarm keys (the edge client does), but the router forwards it only
   its own estimates and alarms;
 * the service (identity :data:`SERVICE_IDENTITY`, every replica) may subscribe to every measurement, truth
-  stream and liveliness token, and is the only one that may put estimates, alarms and the fleet stream;
+  stream and liveliness token and to the replicas' ownership announcements, and is the only one that may put
+  estimates, alarms, the fleet stream and ownership announcements;
 * a monitor (identity :data:`MONITOR_IDENTITY`: the terminal dashboard) may read estimates, alarms, the fleet
-  stream and liveliness, and publish nothing;
+  stream, ownership announcements and liveliness, and publish nothing;
 * everything else is denied (``default_permission: deny``), and a client whose certificate or password the
   router does not accept never gets a session.
 
@@ -35,6 +36,7 @@ from service.protocol import (
     check_vehicle_id,
     fleet_estimates_selector,
     fleet_selector,
+    ownership_selector,
     service_liveliness_selector,
     vehicle_key,
 )
@@ -117,19 +119,22 @@ def access_control(
     )
     estimates, alarms = fleet_selector("estimate", prefix), fleet_selector("alarm", prefix)
     fleet_stream = fleet_estimates_selector(prefix)
+    ownership = ownership_selector(prefix)  # replicas announce the buckets they take and give up (bucket leases)
     rules = [
         # the service: reads measurements, truth and liveliness; the only publisher of answers
-        _rule("service-subscribe", ["declare_subscriber"], "ingress", [measurements, truth]),
-        _rule("service-receive", ["put"], "egress", [measurements, truth]),
+        _rule("service-subscribe", ["declare_subscriber"], "ingress", [measurements, truth, ownership]),
+        _rule("service-receive", ["put"], "egress", [measurements, truth, ownership]),
         _rule("service-follow-liveliness", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [alive]),
         _rule("service-receive-liveliness", ["liveliness_token"], "egress", [alive]),
-        _rule("service-publish", ["put"], "ingress", [estimates, alarms, fleet_stream]),
+        _rule("service-publish", ["put"], "ingress", [estimates, alarms, fleet_stream, ownership]),
         _rule("service-liveliness", ["liveliness_token"], "ingress", [service_liveliness_selector(prefix)]),
         # its estimate publishers' matching listeners learn of the subscribers
-        _rule("service-see-subscribers", ["declare_subscriber"], "egress", [estimates, alarms, fleet_stream]),
-        # a monitor: reads answers and liveliness, publishes nothing
-        _rule("monitor-subscribe", ["declare_subscriber"], "ingress", [estimates, alarms, fleet_stream]),
-        _rule("monitor-receive", ["put"], "egress", [estimates, alarms, fleet_stream]),
+        _rule(
+            "service-see-subscribers", ["declare_subscriber"], "egress", [estimates, alarms, fleet_stream, ownership]
+        ),
+        # a monitor: reads answers, ownership changes and liveliness, publishes nothing
+        _rule("monitor-subscribe", ["declare_subscriber"], "ingress", [estimates, alarms, fleet_stream, ownership]),
+        _rule("monitor-receive", ["put"], "egress", [estimates, alarms, fleet_stream, ownership]),
         _rule("monitor-follow-liveliness", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [alive]),
         _rule("monitor-receive-liveliness", ["liveliness_token"], "egress", [alive]),
         # every vehicle: may declare subscribers on the fleet's answers (delivery is per vehicle, below), and

@@ -31,7 +31,7 @@ import pytest
 import zenoh
 
 from edge_client.transport import TransportError, TransportOptions, close_session, open_session
-from service.protocol import Estimate, vehicle_key
+from service.protocol import Estimate, ownership_key, ownership_selector, vehicle_key
 from service.zenoh_acl import read_vehicle_list, render_json5, router_config
 from tests.service.helpers import ServiceProcess, free_port, make_settings, plant_measurements, wait_for
 
@@ -295,6 +295,42 @@ def test_a_vehicle_cannot_publish_as_another_nor_put_estimates_nor_read_others(r
         }
         expected = dict.fromkeys(got, not router.secure)
         assert got == expected
+    finally:
+        for entity in reversed(entities):
+            entity.undeclare()
+        for s in reversed(sessions):
+            close_session(s)
+
+
+def test_replicas_hear_each_others_ownership_announcements_and_a_vehicle_cannot_forge_one(router: Router):
+    """Replica r2 (the service's identity) announces the buckets it took; replica r1 and the terminal dashboard
+    hear it. Vehicle truck-7 forges an announcement for r2, then sends its own measurement on the same session,
+    which r1 receives after the forgery if the router forwarded it: on the secure router the forgery never
+    arrives; on the open router it does, which shows the assertion can fail."""
+    sessions: list[zenoh.Session] = []
+    entities: list[Any] = []
+    key, own_meas = ownership_key("r2"), vehicle_key(VEHICLE, "meas")
+    try:
+        r1, monitor = Witness(), Witness()
+        for identity, witness in (("agv-service", r1), ("agv-dashboard", monitor)):
+            sessions.append(router.session(identity))
+            entities.append(sessions[-1].declare_subscriber(ownership_selector(), witness.on_sample))
+        entities.append(sessions[0].declare_subscriber(own_meas, r1.on_sample))
+        sessions.append(router.session("agv-service"))
+        announce = sessions[-1].declare_publisher(key)
+        sessions.append(router.session(VEHICLE))
+        forged, meas = sessions[-1].declare_publisher(key), sessions[-1].declare_publisher(own_meas)
+        entities += [announce, forged, meas]
+        wait_for(lambda: announce.matching_status.matching, what="the replicas' subscribers")
+        wait_for(lambda: meas.matching_status.matching, what="the vehicle to see r1's subscriber")
+        if not router.secure:
+            wait_for(lambda: forged.matching_status.matching, what="the forgery's target")
+        forged.put(b"forged")
+        meas.put(b"marker")
+        announce.put(b"announced")
+        wait_for(lambda: r1.has(own_meas, b"marker"), what="the vehicle's own measurement")
+        wait_for(lambda: r1.has(key, b"announced") and monitor.has(key, b"announced"), what="the announcement")
+        assert r1.has(key, b"forged") == (not router.secure)
     finally:
         for entity in reversed(entities):
             entity.undeclare()
