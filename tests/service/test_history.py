@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import service.history
-from service.history import SCHEMA, EstimateHistory, table_rows
+from service.history import SCHEMA, EstimateHistory, batch_table, table_rows
 from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS, Estimate, EstimateBatch
 from tests.service.helpers import PERIOD_NS, T0_NS, make_settings, plant_measurements, probe, running, wait_for
 
@@ -97,6 +97,25 @@ def test_the_writer_keeps_converted_tables_not_batches_and_reads_and_writes_them
     table = pq.read_table(path)
     assert table.num_rows == 150 and table.column("vehicle").to_pylist() == ["a"] * 50 + ["b"] * 50 + ["staged"] * 50
     assert table.column("seq").to_pylist()[50:100] == list(range(50))  # sorted by vehicle, then time
+
+
+def test_a_table_of_mixed_batches_keeps_each_rows_columns_gain_version_and_set():
+    """Batches of two gain versions, with and without the effectiveness columns, with and without a gain set: each
+    row keeps its own values, and what its batch lacks is null."""
+    plain, staged = _batch(["a", "b"], 1), _batch(["c"], 2, with_stage=True)
+    t_ns, values = np.array([T0_NS, T0_NS]), np.ones((2, len(STATE_COLUMNS)))
+    switched = EstimateBatch(
+        ["d", "e"], np.array([3, 4]), t_ns, values, np.array([True, False]), ["WARN", "OK"], "0123456789ab",
+        np.array([True, False]),
+    )  # fmt: skip
+    table = batch_table([plain, switched, staged, _batch([], 5)])
+    assert table.schema.equals(SCHEMA) and table.num_rows == 5
+    rows = {r["vehicle"]: r for r in table_rows(table)}
+    assert rows["a"]["gain_version"] == rows["c"]["gain_version"] == "3f9a1c0b7d2e"
+    assert rows["d"]["gain_version"] == "0123456789ab" and rows["d"]["gain_set"] == "fast"
+    assert rows["e"]["gain_set"] == "quiet" and rows["e"]["level"] == "OK" and not rows["e"]["in_domain"]
+    assert "gain_set" not in rows["a"] and "torque_alpha" not in rows["b"]
+    assert rows["b"]["vx"] == 1001.0 and rows["c"]["steer_alpha"] == pytest.approx(2 + 0.25 * 8)
 
 
 def test_float32_precision_halves_the_file_and_keeps_seven_digits(tmp_path):
