@@ -165,19 +165,27 @@ def run(out_dir: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``--baseline DIR LABEL``: compare this checkout's service with the one of DIR (history on in both)."""
+    """``--baseline DIR LABEL``: compare this checkout's service with the one of DIR, both with the same ``--env``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--baseline", nargs=2, metavar=("DIR", "LABEL"), required=True)
     parser.add_argument("--label", default="this checkout", help="the label of this checkout's service")
     parser.add_argument("--out", type=Path, required=True, help="the report to write")
     parser.add_argument("--rounds", type=int, default=ROUNDS)
+    parser.add_argument(
+        "--env", action="append", default=[], metavar="NAME=VALUE", help="a setting for both services (repeatable)"
+    )
     args = parser.parse_args(argv)
     source, label = Path(args.baseline[0]).resolve(), args.baseline[1]
     if not (source / "agv_fe").is_dir():
         parser.error(f"{source} is not a checkout of this project (no agv_fe/ in it)")
-    configs = (Configuration(label, source=source), Configuration(args.label))
+    bad = [e for e in args.env if "=" not in e or not e.startswith("AGV_FE_")]
+    if bad:
+        parser.error(f"--env takes AGV_FE_NAME=VALUE, got {', '.join(bad)}")
+    env = dict(e.split("=", 1) for e in args.env)
+    configs = (Configuration(label, env, source), Configuration(args.label, env))
     runs = measure(configs, args.rounds)
-    command = f"python -m agv_fe.benchmarks.service_config --baseline DIR '{label}' --out {args.out}"
+    settings = "".join(f" --env {e}" for e in args.env)
+    command = f"python -m agv_fe.benchmarks.service_config --baseline DIR '{label}'{settings} --out {args.out}"
     args.out.write_text(render(f"Service capacity: {label} against {args.label}", configs, runs, TARGET_VEHICLES,
                                command))  # fmt: skip
     print(f"written {args.out}")

@@ -39,3 +39,11 @@ def test_a_baseline_that_is_not_a_checkout_is_refused(tmp_path, capsys):
         bench.main(["--baseline", str(tmp_path), "old", "--out", str(tmp_path / "r.md")])
     assert exc.value.code == 2
     assert "is not a checkout of this project" in capsys.readouterr().err
+
+
+def test_a_setting_that_is_not_the_services_is_refused(tmp_path, capsys):
+    (tmp_path / "agv_fe").mkdir()
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--baseline", str(tmp_path), "old", "--out", str(tmp_path / "r.md"), "--env", "PATH=/x"])
+    assert exc.value.code == 2
+    assert "--env takes AGV_FE_NAME=VALUE, got PATH=/x" in capsys.readouterr().err
