@@ -48,14 +48,19 @@ def wait_for(condition: Callable[[], Any], timeout: float = WAIT_S, what: str = 
     raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
 
 
-def settings_env(settings: Settings) -> dict[str, str]:
-    """The environment that makes ``agv-fe serve`` build ``settings``: AGV_FE_* variables, nested with ``__``."""
+def settings_env(settings: Settings, changed_only: bool = False) -> dict[str, str]:
+    """The environment that makes ``agv-fe serve`` build ``settings``: AGV_FE_* variables, nested with ``__``.
+
+    ``changed_only``: only the settings that differ from their defaults, for the service of an earlier checkout,
+    which refuses settings it did not have yet."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("AGV_FE_")}
-    dumped = settings.model_dump(mode="json", exclude={"auth": {"token"}, "database": {"url"}})
+    dumped = settings.model_dump(
+        mode="json", exclude={"auth": {"token"}, "database": {"url"}}, exclude_defaults=changed_only
+    )
     if settings.auth.token is not None:
-        dumped["auth"]["token"] = settings.auth.token.get_secret_value()
+        dumped.setdefault("auth", {})["token"] = settings.auth.token.get_secret_value()
     if settings.database_url is not None:
-        dumped["database"]["url"] = settings.database_url
+        dumped.setdefault("database", {})["url"] = settings.database_url
 
     def text(value: Any) -> str:
         return json.dumps(value) if isinstance(value, bool | list | dict) else str(value)
@@ -89,7 +94,8 @@ class ServiceProcess:
         self.settings = settings
         self.log_path = log_path
         self.args = args
-        self.env = {**settings_env(settings), **(env or {})}
+        # another checkout's service gets only what differs from the defaults (it may not know every setting)
+        self.env = {**settings_env(settings, changed_only=cwd is not None), **(env or {})}
         self.cwd = cwd
         self.url = f"http://127.0.0.1:{settings.http.port}"
         self.http = httpx.Client(base_url=self.url, timeout=30.0)
