@@ -206,8 +206,11 @@ def main(argv: list[str] | None = None) -> int:
     runs = measure(configs, args.rounds)
     settings = "".join(f" --env {e}" for e in args.env)
     command = f"python -m agv_fe.benchmarks.service_config --baseline DIR '{label}'{settings} --out {args.out}"
-    args.out.write_text(render(f"Service capacity: {label} against {args.label}", configs, runs, TARGET_VEHICLES,
-                               command))  # fmt: skip
+    text = render(f"Service capacity: {label} against {args.label}", configs, runs, TARGET_VEHICLES, command)
+    text = text.replace("`make bench` runs every benchmark; ", "").replace(
+        "(either rewrites this file)", "(rewrites this file; DIR is a checkout of the baseline, e.g. a `git worktree`)"
+    )
+    args.out.write_text(text)
     print(f"written {args.out}")
     return 0
 
