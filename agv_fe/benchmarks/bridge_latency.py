@@ -16,7 +16,11 @@ receipt of the first measurement carrying it, on the machine's wall clock:
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -48,6 +52,30 @@ def router_session(port: int) -> Any:
     config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     config.insert_json5("scouting/multicast/enabled", "false")
     return zenoh.open(config)
+
+
+class MeasurementReceipts:
+    """The measurements a bridge publishes for one vehicle, as they arrive on ``session``: (sample number, the
+    torque's value, which the benchmarks number the samples with; measurement time stamp [ns]; receipt [ns], wall
+    clock), appended by Zenoh's thread."""
+
+    def __init__(self, session: Any, vehicle: str) -> None:
+        from service.protocol import vehicle_key
+
+        self.received: list[tuple[int, int, int]] = []
+        self._lock = threading.Lock()
+        self._subscriber = session.declare_subscriber(vehicle_key(vehicle, "meas"), self._arrived)
+
+    def _arrived(self, sample: Any) -> None:
+        from service.protocol import Measurement
+
+        now = time.time_ns()
+        m = Measurement.decode(sample.payload.to_bytes())
+        with self._lock:
+            self.received.append((round(m.torque_nm), m.timestamp_ns, now))
+
+    def undeclare(self) -> None:
+        self._subscriber.undeclare()
 
 
 def summarise(
@@ -85,3 +113,11 @@ def summarise(
         bridge_cpu_fraction=cpu_s / run_s,
         run_s=run_s,
     )
+
+
+def write(out_dir: Path, name: str, result: BridgeLatency, report: Callable[[BridgeLatency], str]) -> Path:
+    """``name``.json (the figures) and ``name``.md (``report`` of them) in ``out_dir``; the report's path."""
+    (out_dir / f"{name}.json").write_text(json.dumps(asdict(result), indent=1) + "\n")
+    path = out_dir / f"{name}.md"
+    path.write_text(report(result))
+    return path

@@ -18,27 +18,25 @@ from __future__ import annotations
 
 import contextlib
 import io
-import json
 import sys
 import tempfile
 import threading
 import time
 import uuid
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from agv_fe.benchmarks import report_header
-from agv_fe.benchmarks.bridge_latency import BridgeLatency, router_session, summarise
+from agv_fe.benchmarks.bridge_latency import BridgeLatency, MeasurementReceipts, router_session, summarise, write
 from agv_fe.benchmarks.harness import free_port
 
 RUN_S = 30.0
 #: How long the bridge waits for every signal at its start, and the vehicle sends beyond its run [s].
 WAIT_S = 30.0
 VEHICLE = "bench-can"
-#: The vehicle's CAN database: the tests' (tests/edge_client/test_can_log.py), km/h and deg/s as on many vehicles.
+#: The vehicle's CAN database (tests/edge_client/test_can_log.py uses it too), km/h and deg/s as on many vehicles.
 DBC = """VERSION ""
 
 NS_ :
@@ -116,8 +114,6 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
     import can
     import cantools
 
-    from service.protocol import Measurement, vehicle_key
-
     if round((run_s + WAIT_S) * 100) > LAST_SAMPLE_NUMBER:
         raise ValueError(f"run_s = {run_s:g} s: the torque signal numbers at most {LAST_SAMPLE_NUMBER} samples")
     database = cantools.database.load_string(DBC, "dbc")
@@ -125,16 +121,7 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
     decode_us = _decode_us(database, [*fixed, torque(7)])
     port = free_port()
     session = router_session(port)
-    received: list[tuple[int, int, int]] = []  # (sample number, measurement time stamp, receipt) [ns, wall clock]
-    lock = threading.Lock()
-
-    def on_measurement(sample: Any) -> None:
-        now = time.time_ns()
-        m = Measurement.decode(sample.payload.to_bytes())
-        with lock:
-            received.append((round(m.torque_nm), m.timestamp_ns, now))
-
-    subscriber = session.declare_subscriber(vehicle_key(VEHICLE, "meas"), on_measurement)
+    receipts = MeasurementReceipts(session, VEHICLE)
     channel = f"agv-fe-bench-{uuid.uuid4().hex[:8]}"  # a virtual bus of this run alone
     bus = can.Bus(interface="virtual", channel=channel)
     put_ns: dict[int, int] = {}
@@ -154,10 +141,10 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
         stop.set()
         vehicle.join(timeout=30)
         bus.shutdown()
-        subscriber.undeclare()
+        receipts.undeclare()
         session.close()
     cpu_s = time.process_time() - cpu_before - sum(vehicle_cpu_s)
-    return summarise(received, put_ns, decode_us, cpu_s, run_s)
+    return summarise(receipts.received, put_ns, decode_us, cpu_s, run_s)
 
 
 def _bridge(files: Path, channel: str, port: int, run_s: float) -> None:
@@ -206,11 +193,7 @@ def _send(
 
 
 def run(out_dir: Path, run_s: float = RUN_S) -> Path:
-    result = measure(run_s)
-    (out_dir / "can_bridge.json").write_text(json.dumps(asdict(result), indent=1) + "\n")
-    path = out_dir / "can_bridge.md"
-    path.write_text(report(result))
-    return path
+    return write(out_dir, "can_bridge", measure(run_s), report)
 
 
 def report(r: BridgeLatency) -> str:

@@ -10,21 +10,18 @@ measurement carrying it, in its grid hold and what comes after the tick: agv_fe/
 
 from __future__ import annotations
 
-import json
 import resource
 import subprocess
 import sys
 import tempfile
-import threading
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from agv_fe.benchmarks import report_header
-from agv_fe.benchmarks.bridge_latency import BridgeLatency, router_session, summarise
+from agv_fe.benchmarks.bridge_latency import BridgeLatency, MeasurementReceipts, router_session, summarise, write
 from agv_fe.benchmarks.harness import free_port
 
 RUN_S = 30.0
@@ -96,7 +93,6 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
 
     from edge_client.ros2 import RosMapping, typestore_for
     from edge_client.ros2_bridge import rmw_attachment, topic_key
-    from service.protocol import Measurement, vehicle_key
 
     mapping = RosMapping.model_validate(yaml.safe_load(MAPPING))
     store = typestore_for(mapping)
@@ -104,16 +100,7 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
     decode_us = _decode_us(store, builders, mapping)
     port = free_port()
     session = router_session(port)
-    received: list[tuple[int, int, int]] = []  # (sample number, measurement time stamp, receipt) [ns, wall clock]
-    lock = threading.Lock()
-
-    def on_measurement(sample: Any) -> None:
-        now = time.time_ns()
-        m = Measurement.decode(sample.payload.to_bytes())
-        with lock:
-            received.append((int(m.torque_nm), m.timestamp_ns, now))
-
-    subscriber = session.declare_subscriber(vehicle_key(VEHICLE, "meas"), on_measurement)
+    receipts = MeasurementReceipts(session, VEHICLE)
     publishers = {
         topic: session.declare_publisher(topic_key(0, topic, s.type, store.hash_rihs01(s.type)))
         for topic, s in ((s.topic, s) for s in mapping.signals().values())
@@ -135,13 +122,13 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
             if bridge.poll() is None:
                 bridge.kill()
                 bridge.wait(timeout=10)
-            subscriber.undeclare()
+            receipts.undeclare()
             for publisher in publishers.values():
                 publisher.undeclare()
             session.close()
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu_s = (usage.ru_utime - usage_before.ru_utime) + (usage.ru_stime - usage_before.ru_stime)
-    return summarise(received, put_ns, decode_us, cpu_s, run_s)
+    return summarise(receipts.received, put_ns, decode_us, cpu_s, run_s)
 
 
 def _publish(
@@ -170,11 +157,7 @@ def _publish(
 
 
 def run(out_dir: Path, run_s: float = RUN_S) -> Path:
-    result = measure(run_s)
-    (out_dir / "ros2_bridge.json").write_text(json.dumps(asdict(result), indent=1) + "\n")
-    path = out_dir / "ros2_bridge.md"
-    path.write_text(report(result))
-    return path
+    return write(out_dir, "ros2_bridge", measure(run_s), report)
 
 
 def report(r: BridgeLatency) -> str:

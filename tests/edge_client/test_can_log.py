@@ -13,6 +13,7 @@ import pytest
 can = pytest.importorskip("can")
 cantools = pytest.importorskip("cantools")
 
+from agv_fe.benchmarks.can_bridge import DBC, MAPPING  # noqa: E402
 from agv_fe.cli import main  # noqa: E402 - after the optional-dependency check
 from edge_client.can_log import load_mapping, read_can_log  # noqa: E402
 from edge_client.recording import RecordingError, write_recording  # noqa: E402
@@ -25,35 +26,7 @@ from tests.tolerances import (  # noqa: E402
     CAN_YAW_RATE_ATOL_RADPS,
 )
 
-DBC = """VERSION ""
-
-NS_ :
-
-BS_:
-
-BU_: ECU
-
-BO_ 256 WHEEL_SPEEDS: 8 ECU
- SG_ VehicleSpeed : 0|16@1+ (0.01,0) [0|655.35] "km/h" Vector__XXX
-
-BO_ 257 IMU_RATES: 8 ECU
- SG_ YawRate : 0|16@1- (0.01,0) [-327.68|327.67] "deg/s" Vector__XXX
-
-BO_ 258 DRIVE_DEMAND: 8 ECU
- SG_ WheelTorqueDemand : 0|16@1- (0.5,0) [-16384|16383.5] "Nm" Vector__XXX
-
-BO_ 259 STEER_DEMAND: 8 ECU
- SG_ RoadWheelAngleDemand : 0|16@1- (0.0001,0) [-3.2768|3.2767] "rad" Vector__XXX
-
-BO_ 2047 BODY_STATUS: 8 ECU
- SG_ DoorOpen : 0|1@1+ (1,0) [0|1] "" Vector__XXX
-"""
-
-MAPPING = """vx: {message: WHEEL_SPEEDS, signal: VehicleSpeed, scale: 0.2777777777777778}
-r: {message: IMU_RATES, signal: YawRate, scale: 0.017453292519943295}
-torque: {message: DRIVE_DEMAND, signal: WheelTorqueDemand}
-steer: {message: STEER_DEMAND, signal: RoadWheelAngleDemand}
-"""
+# the vehicle's CAN database and mapping: the CAN bridge benchmark's (km/h and deg/s as on many vehicles)
 T0 = 1_700_000_000.0
 
 
