@@ -121,3 +121,12 @@ def write(out_dir: Path, name: str, result: BridgeLatency, report: Callable[[Bri
     path = out_dir / f"{name}.md"
     path.write_text(report(result))
     return path
+
+
+def table_row(r: BridgeLatency) -> str:
+    """The figures of a run as a row of the bridge reports' table, with the paragraph break after it."""
+    return (
+        f"| {r.samples} | {r.carried} | {r.measurements} | {r.total_p50_ms:.2f} / {r.total_p99_ms:.2f} / "
+        f"{r.total_max_ms:.1f} | {r.hold_p50_ms:.2f} / {r.hold_p99_ms:.2f} | {r.after_tick_p50_ms:.2f} / "
+        f"{r.after_tick_p99_ms:.2f} | {r.decode_us:.1f} | {r.bridge_cpu_fraction:.1%} of a core |\n\n"
+    )

@@ -21,7 +21,14 @@ from typing import Any
 import numpy as np
 
 from agv_fe.benchmarks import report_header
-from agv_fe.benchmarks.bridge_latency import BridgeLatency, MeasurementReceipts, router_session, summarise, write
+from agv_fe.benchmarks.bridge_latency import (
+    BridgeLatency,
+    MeasurementReceipts,
+    router_session,
+    summarise,
+    table_row,
+    write,
+)
 from agv_fe.benchmarks.harness import free_port
 
 RUN_S = 30.0
@@ -171,11 +178,7 @@ def report(r: BridgeLatency) -> str:
         "| samples put | carried by a measurement | measurements | total p50 / p99 / max [ms] | "
         "grid hold p50 / p99 [ms] | after the tick p50 / p99 [ms] | decode per message [us] | "
         "bridge CPU (start-up included) |\n"
-        "|---|---|---|---|---|---|---|---|\n"
-        f"| {r.samples} | {r.carried} | {r.measurements} | {r.total_p50_ms:.2f} / {r.total_p99_ms:.2f} / "
-        f"{r.total_max_ms:.1f} | {r.hold_p50_ms:.2f} / {r.hold_p99_ms:.2f} | {r.after_tick_p50_ms:.2f} / "
-        f"{r.after_tick_p99_ms:.2f} | {r.decode_us:.1f} | {r.bridge_cpu_fraction:.1%} of a core |\n\n"
-        "## Reading\n\n"
+        "|---|---|---|---|---|---|---|---|\n" + table_row(r) + "## Reading\n\n"
         f"**Added latency: {r.total_p50_ms:.1f} ms at the median, {r.total_p99_ms:.1f} ms at the 99th "
         "percentile.** Most of it is the grid by design: a message waits for the next 10 ms grid point "
         f"(grid hold, {r.hold_p50_ms:.1f} ms at the median for messages at a random phase, never more than a "
