@@ -205,11 +205,15 @@ class StatusRepublisher:
             f"{dds_type_name(DIAGNOSTIC_TYPE)}/{type_hash}/{PUBLISHER_QOS}"
         )
         self._publication = Publication(session, self.key, token_keys=(node, entity) if entity_id == 1 else (entity,))
+        self._start_state()  # before the subscription: a message may arrive at once
         try:
             self._subscription = Subscription(session, vehicle_key(vehicle_id, self.kind, prefix), self._on_message)
         except BaseException:
             self._publication.close()
             raise
+
+    def _start_state(self) -> None:
+        """Set up what :meth:`status` keeps between messages (a subclass's; nothing here)."""
 
     def status(self, payload: bytes) -> Any:
         """The DiagnosticStatus of one message of the stream; :class:`~service.protocol.ProtocolError` if it does
@@ -294,20 +298,11 @@ class AlarmRepublisher(StatusRepublisher):
     """
 
     kind = "alarm"
+    #: ids of the alarms whose last condition event was ``cleared`` (zenoh's thread only)
+    _cleared: set[str]
 
-    def __init__(
-        self,
-        session: zenoh.Session,
-        store: Any,
-        domain_id: int,
-        topic: str,
-        vehicle_id: str,
-        prefix: str,
-        entity_id: int = 1,
-    ) -> None:
-        #: ids of the alarms whose last condition event was ``cleared`` (zenoh's thread only)
-        self._cleared: set[str] = set()
-        super().__init__(session, store, domain_id, topic, vehicle_id, prefix, entity_id)
+    def _start_state(self) -> None:
+        self._cleared = set()
 
     def status(self, payload: bytes) -> Any:
         from service.protocol import Alarm
