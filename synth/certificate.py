@@ -288,7 +288,7 @@ def verify(
     if radius >= 1.0 or radius > certified + 1e-7:
         raise VerificationFailed(
             f"spectral radius {radius:.6f} of the error dynamics at v_x = {where['speed_mps']:.2f} m/s, "
-            f"r = {where['yaw_rate_radps']:.3f} rad/s, rho = {where['rho']:.2f} exceeds the certified "
+            f"r = {where['yaw_rate_radps']:.3f} rad/s, rho = {where.get('rho', 0.0):.2f} exceeds the certified "
             f"decay rate {certified:.6f}",
             details,
         )

@@ -35,6 +35,14 @@ additive design:
    total fault f_hat + theta_hat (u - H[u]) (the observer's estimate with the
    lag of its demand-proportional part taken out: a bias still comes through
    at the observer's speed), and the bias b_hat = f_hat - theta_hat H[u].
+4. **Certificate**: the recursion of 1 is the stage's only dynamics of its
+   own. It is verified like every design (synth.certificate.verify) on the
+   stage's own N_i of every gain set it holds, with the design's P(h) and R at
+   rho = 0 (a point of the DMVT box, so within what the design certified):
+   every vertex LMI of eq. (33) and the spectral radius of N(h) over the
+   premise grid; any switching between the sets decays at the certified rate,
+   as they share P(h). The filter of 2 is not part of it: its theta_hat is
+   bounded by the clip to ``alpha_bounds``, not by a Lyapunov function.
 
 The torque demand is T_d; the steering demand is the road-wheel angle the
 actuator model gives for delta_d (its lag, as the observer carries it), so a
@@ -43,17 +51,20 @@ loss of steering effectiveness scales the angle the actuator delivers.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from synth.augmented import N_FAULTS, N_STATES
+from synth.certificate import Certificate, build_certificate, content_hash, merged, verify
 from synth.errors import BadParameters
 from synth.gains import ObserverGains
 from synth.model import FloatArray
 from synth.observer import FuzzyObserver, StepResult
 from synth.options import EffectivenessOptions
+from synth.solver import SolveInfo
 
 FAULTS = slice(N_STATES, N_STATES + N_FAULTS)
 
@@ -126,6 +137,53 @@ class EffectivenessEstimator:
         self.P = np.zeros((nv, 2, 2, 2))
         self.samples = np.zeros(nv, dtype=np.int64)
         self.reset(np.arange(nv), u0)
+        #: the stage's own recursion, verified (module docstring, 4); VerificationFailed here otherwise
+        self.certificate = self.verify()
+
+    def verify(self) -> Certificate:
+        """Verify the stage's recursion eps_{k+1} = N(h_k) eps_k on its own N_i (module docstring, 4).
+
+        Returns
+        -------
+        Certificate
+            Design ``"<design>+effectiveness"``: the decay rate certified for the recursion, the minimum
+            eigenvalue of every vertex LMI of eq. (33) at rho = 0 (both gain sets of a switched design), the
+            spectral radius of N(h) over the premise grid, and the content hash of the stage's N_i and
+            reported-fault maps with the design's hash.
+
+        Raises
+        ------
+        VerificationFailed
+            A check fails: the message names the first that does.
+        """
+        started = time.perf_counter()
+        design = self.gains.certificate
+        g = self.gains
+        reports = [verify(self.nts, (), g.P, g.R, design.requested_decay_rate, N, g.M, g.T) for N in self.N]
+        report = reports[0] if len(reports) == 1 else merged(*reports)
+        solved = SolveInfo(design.solver, design.solver_status, design.solver_iterations, 0.0, 0.0, 0.0)
+        stage_hash = content_hash(
+            {"N": np.stack(self.N), "report": np.stack(self.report)},
+            {"design": design.content_hash, "stage": "effectiveness"},
+        )
+        certificate = build_certificate(
+            g.options,
+            report,
+            solved,
+            lmi_form="vertex",
+            alpha=design.requested_decay_rate,
+            n_lmis_solved=0,
+            solves=0,
+            timings={"verify": time.perf_counter() - started},
+            gains_hash=stage_hash,
+            symmetry="none",
+            notes=[
+                "the effectiveness stage's recursion eps_{k+1} = N(h_k) eps_k, verified with the design's P(h) and "
+                "R at rho = 0 (solver: the design's, which found them)",
+                "not covered: the Kalman filter of [b, theta], whose alpha_hat is clipped to alpha_bounds",
+            ],
+        )
+        return replace(certificate, design=f"{design.design}+effectiveness")
 
     @property
     def n_rows(self) -> int:

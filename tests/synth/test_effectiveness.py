@@ -9,8 +9,9 @@ import pytest
 from edge_client.faults import LossOfEffectivenessFault
 from edge_client.scenario import REALISTIC_NOISE, Scenario, SpeedPoint
 from edge_client.simulation import PlantRecord, simulate_plant
+from synth.certificate import spectral_radius_grid
 from synth.effectiveness import EffectivenessEstimator, EffectivenessObserver
-from synth.errors import BadParameters
+from synth.errors import BadParameters, VerificationFailed
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver
 from synth.options import EffectivenessOptions
@@ -132,3 +133,54 @@ def test_rows_stepped_apart_and_restarted_match_a_batch_stepped_together(robust_
         if k == 300:
             rows.reset(np.array([1]), uk)
     assert not np.array_equal(batch.par[0], fresh.par[0])  # the restart did start row 1 afresh
+
+
+def test_the_stage_is_verified_like_every_design(robust_gains_default):
+    """The stage's recursion eps_{k+1} = N(h_k) eps_k, both gain sets of the switched default, carries a certificate
+    made by the certificate builder; recomputed here on the stage's own N_i: the Lyapunov decrease for h, h+ on a
+    dense premise grid with the sets switching at random, and the spectral radius on a finer grid."""
+    g = robust_gains_default
+    stage = EffectivenessEstimator(g, OPTIONS, 1)
+    c = stage.certificate
+    assert g.switched and len(stage.N) == 2
+    assert c.verified and c.design == "robust+effectiveness"
+    assert c.spectral_radius_max <= c.decay_rate < 1.0
+    assert c.decay_rate <= c.requested_decay_rate + 1e-9
+    r_rules = g.N.shape[0]
+    assert c.n_lmis_verified == 2 * r_rules * g.P.shape[0] and min(c.lmi_min_eigenvalues) > 0.0
+    assert c.content_hash != g.certificate.content_hash and c.content_hash == stage.verify().content_hash
+    # the decrease N(h)^T P(h+) N(h) < alpha^2 P(h) in the design coordinates, sets and successors at random
+    nts, T = g.model.nts, g.T
+    T_inv = np.linalg.inv(T)
+    V = np.linspace(nts.premise_low[0], nts.premise_high[0], 21)
+    r = np.linspace(nts.premise_low[1], nts.premise_high[1], 21)
+    h = nts.memberships(np.stack(np.meshgrid(V, r, indexing="ij"), axis=-1).reshape(-1, 2))
+    P_h = np.einsum("gi,ijk->gjk", h, g.P)
+    N_sets = [np.einsum("gi,ab,ibc,cd->gad", h, T, N, T_inv) for N in stage.N]
+    rng = np.random.default_rng(0)
+    worst = -np.inf
+    for _ in range(4):
+        pick = rng.random(len(h)) < 0.5
+        N_h = np.where(pick[:, None, None], N_sets[0], N_sets[1])
+        P_next = P_h[rng.permutation(len(h))]
+        lhs = np.einsum("gji,gjk,gkl->gil", N_h, P_next, N_h) - c.decay_rate**2 * P_h
+        worst = max(worst, float(np.linalg.eigvalsh(0.5 * (lhs + lhs.transpose(0, 2, 1))).max()))
+    assert worst < 0.0
+    for N in stage.N:
+        radius, _, points = spectral_radius_grid(nts, N, [], (), 61)
+        assert points == 61 * 61 and radius < c.decay_rate
+
+
+def test_a_stage_whose_recursion_is_not_the_certified_one_is_refused(robust_gains_default):
+    """The check is not vacuous: the stage with its quiet set's transitions 1 % larger, or with one rule's fast
+    transition moved away from the certified ones, fails its verification with the reason."""
+    stage = EffectivenessEstimator(robust_gains_default, OPTIONS, 1)
+    fast, quiet = stage.N
+    stage.N = [fast, 1.01 * quiet]
+    with pytest.raises(VerificationFailed, match=r"vertex LMI #\d+ of eq. \(33\) fails"):
+        stage.verify()
+    mixed = fast.copy()
+    mixed[0] = quiet[0] + (quiet[0] - fast[0]) * 50.0
+    stage.N = [mixed, quiet]
+    with pytest.raises(VerificationFailed, match=r"vertex LMI #\d+ of eq. \(33\) fails"):
+        stage.verify()
