@@ -26,7 +26,14 @@ persistence, hysteresis) and a calibrated profile:
    and FAULT (p50, p95, worst, never), the other channel's false alarms;
 5. **Operating curve**: both channels' thresholds scaled by
    :data:`THRESHOLD_FACTORS`, false alarms per 1,000 h against the p95 WARN
-   delay of a 10 % bias.
+   delay of a 10 % bias;
+6. **The effectiveness alarm rule**: the observer's estimates also go through
+   the loss-of-effectiveness stage (:mod:`synth.effectiveness`, the profile's
+   stage options) and its alpha_hat through the service's effectiveness levels
+   (:class:`service.fleet.alarms.EffectivenessLevels`: WARN below
+   ``effectiveness_warn``, FAULT below ``effectiveness_fault``, each held
+   ``effectiveness_after_s``): false alarms on the healthy fleet, delays on
+   every fault run.
 
 The benchmark measures; it adjusts nothing.
 """
@@ -66,12 +73,15 @@ from service.calibration import (
     ChannelThresholds,
     calibrate_profile,
 )
-from service.fleet.alarms import FAULT, OK, WARN, FaultLevels
+from service.fleet.alarms import FAULT, OK, WARN, EffectivenessLevels, FaultLevels
 from service.profiles import AlarmThresholds
 from synth.calibration import Drive as Recording
+from synth.effectiveness import EffectivenessEstimator
 from synth.errors import SynthesisError
 from synth.gains import ObserverGains
 from synth.model import FloatArray
+from synth.observer import FuzzyObserver
+from synth.options import EffectivenessOptions
 from synth.params import OperatingBounds, VehicleParams
 
 # --------------------------------------------------------------------------- what is run
@@ -162,6 +172,9 @@ FaultKind = Literal["bias", "loss_of_effectiveness", "sinusoidal"]
 FAULT_KINDS: tuple[FaultKind, ...] = ("bias", "loss_of_effectiveness", "sinusoidal")
 SYMBOLS = {"torque": "T_f", "steer": "delta_f"}
 ESTIMATOR_LABELS = {"observer": "calibrated observer", "EKF": "augmented EKF"}
+#: The observer's estimates through the effectiveness stage, alpha_hat through the effectiveness alarm rule.
+ALPHA = "effectiveness"
+ALPHA_LABEL = "calibrated observer, alpha rule"
 CountArray = NDArray[np.int64]
 LevelArray = NDArray[np.int8]
 
@@ -367,11 +380,15 @@ class RaiseCounter:
     Raised, as in the real_vehicle benchmark (:func:`agv_fe.benchmarks.real_vehicle.raises`): a channel's level
     went from OK to WARN or higher (``warn_raised``), or from below FAULT to FAULT (``fault_raised``); both
     (n, 2) per vehicle and channel [torque, steer]. ``level`` (n, 2) holds the levels after the last update.
+    ``effectiveness``: the levels are the effectiveness rule's (:class:`EffectivenessLevels`), fed alpha_hat
+    (n, 2) [-]; as in the service they have no warm-up (the stage holds alpha_hat at 1 for its start delay).
     """
 
-    def __init__(self, n_vehicles: int, alarms: AlarmThresholds) -> None:
+    def __init__(self, n_vehicles: int, alarms: AlarmThresholds, effectiveness: bool = False) -> None:
         self.alarms = alarms
-        self.levels = FaultLevels(n_vehicles, alarms)
+        self.levels: FaultLevels | EffectivenessLevels = (
+            EffectivenessLevels(n_vehicles, alarms) if effectiveness else FaultLevels(n_vehicles, alarms)
+        )
         self.rows = np.arange(n_vehicles, dtype=np.intp)
         self.level: LevelArray = np.zeros((n_vehicles, 2), dtype=np.int8)
         self.warn_raised: CountArray = np.zeros((n_vehicles, 2), dtype=np.int64)
@@ -385,17 +402,24 @@ class RaiseCounter:
     def restart(self, t_ns: int) -> None:
         """Every vehicle's estimator (re)starts at ``t_ns`` [ns]: the warm-up runs from there."""
         self._t_ns.fill(t_ns)
-        self.levels.restart(self.rows, self._t_ns)
+        if isinstance(self.levels, FaultLevels):
+            self.levels.restart(self.rows, self._t_ns)
+        else:
+            self.levels.reset(self.rows)
 
     def update(
         self, f_hat: FloatArray, t_ns: int, usable: NDArray[np.bool_] | None = None
     ) -> tuple[NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
-        """Feed one sample's fault estimates f_hat (n, 2) [N m, rad] at ``t_ns`` [ns] (``usable``: finite rows).
+        """Feed one sample's fault estimates f_hat (n, 2) [N m, rad] at ``t_ns`` [ns] (``usable``: finite rows);
+        alpha_hat (n, 2) [-] for the effectiveness rule (a non-finite alpha_hat raises nothing).
 
         Returns the vehicles whose level changed (m,) and, for them, where WARN and FAULT were raised (m, 2).
         """
         self._t_ns.fill(t_ns)
-        changed = self.levels.update(self.rows, f_hat, self._t_ns, usable)
+        if isinstance(self.levels, FaultLevels):
+            changed = self.levels.update(self.rows, f_hat, self._t_ns, usable)
+        else:
+            changed = self.levels.update(self.rows, f_hat, self._t_ns)
         if not changed.size:
             return changed, np.zeros((0, 2), dtype=bool), np.zeros((0, 2), dtype=bool)
         rows = np.unique(changed)
@@ -471,6 +495,8 @@ class FleetJob:
     n_ekf: int
     duration_s: float
     segment_s: float
+    stage: EffectivenessOptions
+    alpha_rules: tuple[Rule, ...]
     substeps: int = FLEET_SUBSTEPS
     seed: int = FLEET_SEED
 
@@ -479,10 +505,12 @@ class FleetJob:
 class Tally:
     """What one estimator did over the healthy driving of a job: per rule the raised levels per vehicle and
     channel; the alarm events of the default rule; peak, sum of squares and count of the estimates after the
-    warm-up per channel; samples in the premise domain; non-finite samples."""
+    warm-up per channel; samples in the premise domain; non-finite samples. ``effectiveness``: the estimates
+    are alpha_hat through the effectiveness rule, and peak and sum of squares are of the loss 1 - alpha_hat."""
 
     rules: tuple[Rule, ...]
     counters: list[RaiseCounter]
+    effectiveness: bool = False
     #: per rule, the raised levels (2,) [WARN, FAULT] x channel of vehicles that met a gust within GUST_WINDOW_S
     near_gust: list[CountArray] = field(default_factory=list)
     events: list[dict[str, Any]] = field(default_factory=list)
@@ -494,10 +522,11 @@ class Tally:
     non_finite: int = 0
 
     @classmethod
-    def make(cls, n_vehicles: int, rules: Sequence[Rule]) -> Tally:
+    def make(cls, n_vehicles: int, rules: Sequence[Rule], effectiveness: bool = False) -> Tally:
         return cls(
             tuple(rules),
-            [RaiseCounter(n_vehicles, r.alarms) for r in rules],
+            [RaiseCounter(n_vehicles, r.alarms, effectiveness) for r in rules],
+            effectiveness,
             [np.zeros((2, 2), dtype=np.int64) for _ in rules],
         )
 
@@ -523,7 +552,7 @@ class Tally:
         self.samples += f_hat.shape[0]
         self.in_domain += int(np.count_nonzero(in_domain))
         if warm:
-            magnitude = np.abs(f_hat[finite])
+            magnitude = np.abs(1.0 - f_hat[finite] if self.effectiveness else f_hat[finite])
             if magnitude.size:
                 np.maximum(self.peak_abs, magnitude.max(axis=0), out=self.peak_abs)
                 self.sum_squares += np.einsum("ij,ij->j", magnitude, magnitude)
@@ -657,9 +686,15 @@ def run_fleet_job(job: FleetJob) -> dict[str, Any]:
     planner = LateralPlanner.build(CAR, job.gains.bounds)
     rngs = [np.random.default_rng([job.seed, v]) for v in job.vehicles]
     speeds = [float(rng.uniform(*SPEED_RANGE_MPS)) for rng in rngs]
-    tallies = {"observer": Tally.make(n, job.observer_rules), "EKF": Tally.make(job.n_ekf, job.ekf_rules)}
+    tallies = {
+        "observer": Tally.make(n, job.observer_rules),
+        "EKF": Tally.make(job.n_ekf, job.ekf_rules),
+        ALPHA: Tally.make(n, job.alpha_rules, effectiveness=True),
+    }
     driving = DrivingStats()
     estimators: dict[str, BatchEstimator] = {}
+    observer: FuzzyObserver | None = None
+    stage: EffectivenessEstimator | None = None
     warmup_ns = round(job.observer_rules[0].alarms.warmup_s * 1e9)
     state: NDArray[np.float64] | None = None
     steer: FloatArray | None = None
@@ -676,8 +711,9 @@ def run_fleet_job(job: FleetJob) -> dict[str, Any]:
         for _ in range(int(plant.n_samples.max())):
             sample = plant.step()
             t_ns = k_total * period_ns
-            if not estimators:
-                estimators["observer"] = observer_factory(job.gains)(sample.y, None, sample.u)
+            if observer is None or stage is None:
+                observer = FuzzyObserver(job.gains, sample.y, None, sample.u)
+                stage = EffectivenessEstimator(job.gains, job.stage, n, sample.u)
                 estimators["EKF"] = ekf_factory(job.gains)(sample.y[: job.n_ekf], None, sample.u[: job.n_ekf])
                 for tally in tallies.values():
                     tally.restart(t_ns)
@@ -695,8 +731,10 @@ def run_fleet_job(job: FleetJob) -> dict[str, Any]:
                     "wind_n": float(sample.wind[row]),
                 }
 
-            out = estimators["observer"].step(sample.y, sample.u)
-            tallies["observer"].update(out.faults, out.in_domain, t_ns, warm, near_gust, context)
+            result = observer.step(sample.y, sample.u)
+            tallies["observer"].update(result.faults, result.in_domain, t_ns, warm, near_gust, context)
+            alpha = stage.step(result, sample.y, sample.u).alpha
+            tallies[ALPHA].update(alpha, result.in_domain, t_ns, warm, near_gust, context)
             if job.n_ekf:
                 out = estimators["EKF"].step(sample.y[: job.n_ekf], sample.u[: job.n_ekf])
                 tallies["EKF"].update(out.faults, out.in_domain, t_ns, warm, near_gust[: job.n_ekf], context)
@@ -710,6 +748,7 @@ def run_fleet_job(job: FleetJob) -> dict[str, Any]:
         "driving": vars(driving),
         "observer": tallies["observer"].summary(),
         "EKF": tallies["EKF"].summary(),
+        ALPHA: tallies[ALPHA].summary(),
         "wall_s": time.perf_counter() - started,
     }
 
@@ -855,6 +894,8 @@ class FaultJob:
     runs: tuple[tuple[int, int], ...]
     nominal_torque_nm: float
     duration_s: float
+    stage: EffectivenessOptions
+    alpha_rules: tuple[Rule, ...]
     substeps: int = FLEET_SUBSTEPS
 
 
@@ -873,29 +914,36 @@ def run_fault_job(job: FaultJob) -> dict[str, Any]:
     counters = {
         "observer": [RaiseCounter(n, r.alarms) for r in job.observer_rules],
         "EKF": [RaiseCounter(n, r.alarms) for r in job.ekf_rules],
+        ALPHA: [RaiseCounter(n, r.alarms, effectiveness=True) for r in job.alpha_rules],
     }
     trackers = {name: [DelayTracker(onset, channel) for _ in rules] for name, rules in counters.items()}
-    estimators: dict[str, BatchEstimator] = {}
+    observer: FuzzyObserver | None = None
+    stage: EffectivenessEstimator | None = None
+    ekf: BatchEstimator | None = None
     for k in range(int(plant.n_samples.max())):
         sample = plant.step()
-        if not estimators:
-            estimators = {
-                "observer": observer_factory(job.gains)(sample.y, None, sample.u),
-                "EKF": ekf_factory(job.gains)(sample.y, None, sample.u),
-            }
+        if observer is None or stage is None or ekf is None:
+            observer = FuzzyObserver(job.gains, sample.y, None, sample.u)
+            stage = EffectivenessEstimator(job.gains, job.stage, n, sample.u)
+            ekf = ekf_factory(job.gains)(sample.y, None, sample.u)
             for rule_counters in counters.values():
                 for counter in rule_counters:
                     counter.restart(0)
-        for name, estimator in estimators.items():
-            f_hat = estimator.step(sample.y, sample.u).faults
-            usable = usable_rows(f_hat)
+        result = observer.step(sample.y, sample.u)
+        outputs = {
+            "observer": result.faults,
+            "EKF": ekf.step(sample.y, sample.u).faults,
+            ALPHA: stage.step(result, sample.y, sample.u).alpha,
+        }
+        for name, values in outputs.items():
+            usable = usable_rows(values)
             for counter, tracker in zip(counters[name], trackers[name], strict=True):
-                counter.update(f_hat, k * period_ns, usable)
+                counter.update(values, k * period_ns, usable)
                 tracker.update(sample.t, counter.level)
     results: dict[str, Any] = {"runs": [list(r) for r in job.runs], "onset_s": onset.tolist()}
     other = 1 - channel
     rows = np.arange(n)
-    for name, rules in (("observer", job.observer_rules), ("EKF", job.ekf_rules)):
+    for name, rules in (("observer", job.observer_rules), ("EKF", job.ekf_rules), (ALPHA, job.alpha_rules)):
         results[name] = {
             rule.key: {
                 "warn_delay_s": _nan_to_none(tracker.warn_delay_s),
@@ -1113,6 +1161,16 @@ def cusum_rule(alarms: AlarmThresholds) -> Rule | None:
     return Rule("cusum", 1.0, settings)
 
 
+def alpha_rules(alarms: AlarmThresholds) -> tuple[Rule, ...]:
+    """The profile's effectiveness rule (``effectiveness_warn``, ``effectiveness_fault``, ``effectiveness_after_s``)."""
+    return (Rule("default", 1.0, alarms),)
+
+
+def stage_options(calibrated: Calibrated) -> EffectivenessOptions:
+    """The profile's loss-of-effectiveness stage options (calibration measured its sigmas), enabled."""
+    return calibrated.report.profile.effectiveness.model_copy(update={"enabled": True})
+
+
 def rules_for(alarms: AlarmThresholds) -> tuple[Rule, ...]:
     """The default rule, the operating curve's scaled thresholds, and the CUSUM rule when there is one."""
     rules = rule_set(alarms)
@@ -1168,20 +1226,28 @@ def healthy_fleet(
             n_ekf=round(ekf_share * len(share)),
             duration_s=duration_s,
             segment_s=segment_s,
+            stage=stage_options(calibrated),
+            alpha_rules=alpha_rules(report.profile.alarms),
         )
         for share in _split(list(range(vehicles)), workers)
     ]
     started = time.perf_counter()
     results = _map_in_processes(run_fleet_job, jobs, workers)
     wall = time.perf_counter() - started
-    return merge_fleet(results, observer_rules, ekf_rules, wall)
+    return merge_fleet(results, observer_rules, ekf_rules, wall, jobs[0].alpha_rules)
 
 
 def merge_fleet(
-    results: Sequence[dict[str, Any]], observer_rules: Sequence[Rule], ekf_rules: Sequence[Rule], wall_s: float
+    results: Sequence[dict[str, Any]],
+    observer_rules: Sequence[Rule],
+    ekf_rules: Sequence[Rule],
+    wall_s: float,
+    alpha_rule_set: Sequence[Rule] = (),
 ) -> dict[str, Any]:
     """The processes' figures as one fleet: per estimator and rule the raised levels per channel, rates per
-    1,000 h of driving after the warm-up with 95 % upper bounds, alarms near gusts, the estimates' peaks and RMS."""
+    1,000 h of driving after the warm-up with 95 % upper bounds, alarms near gusts, the estimates' peaks and RMS
+    (for the effectiveness rule, :data:`ALPHA`: of the loss 1 - alpha_hat; its alarms counted from the start,
+    the rate over the same hours)."""
     period = CAR.sample_period_s
     driving = DrivingStats()
     for r in results:
@@ -1195,7 +1261,10 @@ def merge_fleet(
         "process_wall_s": [r["wall_s"] for r in results],
         "driving": vars(driving) | {"seconds_above_5_mps2": driving.samples_above_5_mps2 * period},
     }
-    for name, rules, size in (("observer", observer_rules, "vehicles"), ("EKF", ekf_rules, "ekf_vehicles")):
+    estimators = [("observer", observer_rules, "vehicles"), ("EKF", ekf_rules, "ekf_vehicles")]
+    if alpha_rule_set:
+        estimators.append((ALPHA, alpha_rule_set, "vehicles"))
+    for name, rules, size in estimators:
         vehicles = sum(r[size] for r in results)
         hours = vehicles * observed_samples * period / 3600.0
         tallies = [r[name] for r in results if r[size]]
@@ -1222,8 +1291,8 @@ def merge_fleet(
                     "warn_raised_near_gust": sum(x["warn_raised_near_gust"][c] for x in counts),
                     "fault_raised_near_gust": sum(x["fault_raised_near_gust"][c] for x in counts),
                     "vehicles_with_warn": sum(x["vehicles_with_warn"][c] for x in counts),
-                    "warn_threshold": _threshold(rule.alarms, channel)[0],
-                    "fault_threshold": _threshold(rule.alarms, channel)[1],
+                    "warn_threshold": _threshold(rule.alarms, channel, name == ALPHA)[0],
+                    "fault_threshold": _threshold(rule.alarms, channel, name == ALPHA)[1],
                 }
             figures["rules"][rule.key] = {"factor": rule.factor, "channels": channels}
         events = sorted((e for t in tallies for e in t["events"]), key=lambda e: (e["t_s"], e["vehicle"]))
@@ -1232,7 +1301,10 @@ def merge_fleet(
     return merged
 
 
-def _threshold(alarms: AlarmThresholds, channel: str) -> tuple[float, float]:
+def _threshold(alarms: AlarmThresholds, channel: str, effectiveness: bool = False) -> tuple[float, float]:
+    """A channel's WARN and FAULT thresholds [N m] or [rad]; the effectiveness rule's alpha thresholds [-]."""
+    if effectiveness:
+        return alarms.effectiveness_warn, alarms.effectiveness_fault
     return rv.channel_thresholds(alarms)[channel]
 
 
@@ -1245,13 +1317,24 @@ def fault_runs(calibrated: Calibrated, vehicles_per_case: int, duration_s: float
     observer_rules = rules_for(report.profile.alarms)
     ekf_rules = rules_for(calibrated.ekf_alarms)
     runs = [(i, v) for i in range(len(FAULT_CASES)) for v in range(vehicles_per_case)]
+    alpha = alpha_rules(report.profile.alarms)
     jobs = [
-        FaultJob(report.gains, observer_rules, ekf_rules, share, report.nominal_torque_nm, duration_s)
+        FaultJob(
+            report.gains,
+            observer_rules,
+            ekf_rules,
+            share,
+            report.nominal_torque_nm,
+            duration_s,
+            stage_options(calibrated),
+            alpha,
+        )
         for share in _split(runs, workers)
     ]
     started = time.perf_counter()
     results = _map_in_processes(run_fault_job, jobs, workers)
-    return summarise_faults(results, observer_rules, ekf_rules, report.nominal_torque_nm, time.perf_counter() - started)
+    wall = time.perf_counter() - started
+    return summarise_faults(results, observer_rules, ekf_rules, report.nominal_torque_nm, wall, alpha)
 
 
 def summarise_faults(
@@ -1260,6 +1343,7 @@ def summarise_faults(
     ekf_rules: Sequence[Rule],
     nominal_torque_nm: float,
     wall_s: float,
+    alpha_rule_set: Sequence[Rule] = (),
 ) -> dict[str, Any]:
     """Per case, estimator and rule: delay statistics to WARN and FAULT, runs with the faulty channel at WARN
     before the onset, and the other channel's raised levels."""
@@ -1267,7 +1351,7 @@ def summarise_faults(
     for r in results:
         for j, (case, vehicle) in enumerate(r["runs"]):
             entry: dict[str, Any] = {"onset_s": r["onset_s"][j]}
-            for name in ESTIMATOR_LABELS:
+            for name in [*ESTIMATOR_LABELS, *([ALPHA] if alpha_rule_set else [])]:
                 entry[name] = {key: {field: values[j] for field, values in v.items()} for key, v in r[name].items()}
             per_run[(case, vehicle)] = entry
     cases = {}
@@ -1282,7 +1366,8 @@ def summarise_faults(
             "runs": len(runs),
             "onset_range_s": [min(r["onset_s"] for r in runs), max(r["onset_s"] for r in runs)] if runs else None,
         }
-        for name, rules in (("observer", observer_rules), ("EKF", ekf_rules)):
+        estimators = [("observer", observer_rules), ("EKF", ekf_rules)]
+        for name, rules in estimators + ([(ALPHA, alpha_rule_set)] if alpha_rule_set else []):
             entry[name] = {}
             for rule in rules:
                 rows = [r[name][rule.key] for r in runs]
@@ -1545,6 +1630,12 @@ def _plan_document(plan: DetectionPlan, calibrated: Calibrated, cusum_rule: bool
         "threshold_factors": list(THRESHOLD_FACTORS),
         "multibody": {"parameter_sets": list(plan.sets), "drives": plan.mb_drives, "drive_s": plan.mb_drive_s},
         "cusum_rule": cusum_rule,
+        "effectiveness": {
+            "stage": stage_options(calibrated).model_dump(mode="json"),
+            "warn_below": calibrated.report.profile.alarms.effectiveness_warn,
+            "fault_below": calibrated.report.profile.alarms.effectiveness_fault,
+            "after_s": calibrated.report.profile.alarms.effectiveness_after_s,
+        },
     }
 
 
@@ -1650,8 +1741,10 @@ def render(document: dict[str, Any]) -> str:
     lines += _healthy_section(document)
     lines += _multibody_section(document)
     lines += _delay_section(document)
+    lines += _alpha_section(document)
     lines += _curve_section(document)
     lines += _how_measured(document)
+    lines += ["", EARLIER_RUNS]
     return "\n".join(lines) + "\n"
 
 
@@ -1715,6 +1808,7 @@ def _headline_section(document: dict[str, Any]) -> list[str]:
                     f"{_delay(bias['fault']['p50_s'])} / {_delay(bias['fault']['p95_s'])} |"
                 )
     lines.append("")
+    lines += _alpha_headline(document)
     for result in document["multibody"]:
         if result["refused"] is not None:
             lines.append(f"Multi-body set {result['parameter_set']}: calibration refused ({result['refused']}).")
@@ -1733,6 +1827,82 @@ def _headline_section(document: dict[str, Any]) -> list[str]:
             f"Multi-body plant, set {result['parameter_set']}: {result['hours_after_warmup']:.2f} vehicle-hours: "
             f"{counts}."
         )
+    lines.append("")
+    return lines
+
+
+def _alpha_rule_text(document: dict[str, Any]) -> str:
+    rule = document["plan"]["effectiveness"]
+    return (
+        f"alpha_hat held below {rule['warn_below']:g} for {rule['after_s']:g} s raises WARN, below "
+        f"{rule['fault_below']:g} FAULT"
+    )
+
+
+def _alpha_headline(document: dict[str, Any]) -> list[str]:
+    """The effectiveness alarm rule's current figures: false alarms, and the losses it is for."""
+    healthy, cases = document["healthy"][ALPHA], document["faults"]["cases"]
+    sizes = [
+        size
+        for size in document["plan"]["faults"]["sizes"]
+        if f"torque_loss_of_effectiveness_{round(100 * size)}" in cases
+    ]
+    lines = [
+        f"Effectiveness alarm rule (the observer's estimates through the loss-of-effectiveness stage, "
+        f"{_alpha_rule_text(document)}; section 'Loss of effectiveness: the alpha rule' below):\n",
+        "| channel | vehicle-hours | false WARN per 1,000 h (95 % bound) | false FAULT per 1,000 h (95 % bound) | "
+        "largest healthy loss 1 - alpha_hat | "
+        + " | ".join(f"alpha {1 - size:g}: p50 / p95 to WARN [s], never" for size in sizes)
+        + " |",
+        "|---|---|---|---|---|" + "---|" * len(sizes),
+    ]
+    for c, channel in enumerate(CHANNELS):
+        rates = healthy["rules"]["default"]["channels"][channel]
+        delays = []
+        for size in sizes:
+            w = cases[f"{channel}_loss_of_effectiveness_{round(100 * size)}"][ALPHA]["default"]["warn"]
+            delays.append(f"{_delay(w['p50_s'])} / {_delay(w['p95_s'])}, {100 * w['never_share']:.0f} %")
+        lines.append(
+            f"| {SYMBOLS[channel]} | {_hours(rates['hours'])} | {rates['warn_per_1000_h']:.3g} "
+            f"({rates['warn_upper95_per_1000_h']:.3g}) | {rates['fault_per_1000_h']:.3g} "
+            f"({rates['fault_upper95_per_1000_h']:.3g}) | {_fmt(healthy['peak_abs_estimate'][c])} | "
+            + " | ".join(delays)
+            + " |"
+        )
+    lines.append("")
+    return lines
+
+
+def _alpha_section(document: dict[str, Any]) -> list[str]:
+    """Every fault run through the effectiveness rule, beside the threshold rule on the observer's estimates."""
+    cases = document["faults"]["cases"]
+    stage = document["plan"]["effectiveness"]["stage"]
+    lines = [
+        "## Loss of effectiveness: the alpha rule\n",
+        "The same fault runs (section above), the observer's estimates also through the loss-of-effectiveness stage "
+        f"(synth/effectiveness.py, the profile's options: sigma T_f {stage['torque_sigma_nm']:.3g} N m, delta_f "
+        f"{stage['steer_sigma_rad']:.3g} rad, start after {stage['start_after_s']:g} s) and its alpha_hat through "
+        f"the service's effectiveness levels ({_alpha_rule_text(document)}). A run counts as detected when the "
+        "faulty channel's alpha level reaches WARN (FAULT); on a bias or a sine a detection by this rule is a "
+        "fault taken for a loss. The stage tells a loss from a bias only by changes of the demand (docs/math.md "
+        "section 14): the steering loss runs in a steady turn, whose demand is constant after its entry.\n",
+        "| fault | rule | WARN p50 / p95 / worst [s] | never WARN | FAULT p50 / p95 / worst [s] | never FAULT "
+        "| WARN before onset | other channel WARN / FAULT (runs) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for case in cases.values():
+        for name, label in (("observer", ESTIMATOR_LABELS["observer"]), (ALPHA, ALPHA_LABEL)):
+            if name == "observer" and case["kind"] != "loss_of_effectiveness":
+                continue
+            e = case[name]["default"]
+            w, f = e["warn"], e["fault"]
+            lines.append(
+                f"| {case['label']} | {label} | {_delay(w['p50_s'])} / {_delay(w['p95_s'])} / "
+                f"{_delay(w['worst_detected_s'])} | {100 * w['never_share']:.0f} % | {_delay(f['p50_s'])} / "
+                f"{_delay(f['p95_s'])} / {_delay(f['worst_detected_s'])} | {100 * f['never_share']:.0f} % | "
+                f"{e['warn_before_onset']} | {e['other_warn_raised']} / {e['other_fault_raised']} "
+                f"({e['runs_with_other_alarm']}) |"
+            )
     lines.append("")
     return lines
 
@@ -2052,6 +2222,21 @@ def _how_measured(document: dict[str, Any]) -> list[str]:
         f"{f['loss_turn_speed_mps'][0]:g}-{f['loss_turn_speed_mps'][1]:g} m/s at the box's steering limit. "
         "The EKF's thresholds come from its own estimates on the calibration drive "
         "(real_vehicle.ekf_thresholds: the same false-alarm rate, persistence and required fault). Multi-body: "
-        "real_vehicle's calibration, estimate_runs and healthy_figures. " + cusum + " Every figure is in "
+        "real_vehicle's calibration, estimate_runs and healthy_figures. " + cusum + " The alpha rule: the "
+        "observer's estimates of every healthy and faulty vehicle also go through synth.effectiveness."
+        "EffectivenessEstimator (the profile's stage options, enabled) and its alpha_hat through service.fleet.alarms."
+        "EffectivenessLevels, as the service runs them (no warm-up: the stage holds alpha_hat at 1 for its start "
+        "delay; its false-alarm rate is over the same vehicle-hours as the observer's). Every figure is in "
         "detection.json beside this file.",
     ]
+
+
+#: Earlier runs, kept below the current figures (their figures as measured then; the rules and code have changed).
+EARLIER_RUNS = """## Earlier runs
+
+* 2026-11-25 01:44 UTC, commit 8444a0b, 20.1 min with 2 processes (no effectiveness stage in the benchmark then):
+  1,032 vehicle-hours of healthy driving; the calibrated observer 0 false WARN / 0 FAULT on both channels (95 %
+  bound 2.9 per 1,000 h), the EKF the same; the CUSUM rule 793 false torque WARN and 8.35e+04 false steering
+  WARN per 1,000 h (observer), 947 and 8.17e+04 (EKF). A 10 % bias to WARN, p50 / p95: observer torque 0.93 /
+  1.04 s, steering 0.61 / 0.61 s; EKF 1.08 / 1.15 s and 0.61 / 0.62 s; CUSUM (observer) 0.45 / 0.55 s and
+  0.16 / 0.21 s."""
