@@ -41,7 +41,8 @@ from service.protocol import ESTIMATE_COLUMNS, Estimate, EstimateBatch, Estimate
 
 log = logging.getLogger("agv_fe.service.history")
 
-#: The Arrow schema of a history file: the estimate record's fields (service.protocol.Estimate) but ``v``.
+#: The Arrow schema of a history file: the estimate record's fields (service.protocol.Estimate) but ``v`` and ``rev``
+#: (a file's columns say which revision's fields it holds).
 _FLOAT_COLUMNS = ESTIMATE_COLUMNS
 _TYPES: dict[str, pa.DataType] = {
     "vehicle": pa.dictionary(pa.int32(), pa.string()),
@@ -52,7 +53,7 @@ _TYPES: dict[str, pa.DataType] = {
     "level": pa.dictionary(pa.int8(), pa.string()),
     "gain_set": pa.dictionary(pa.int8(), pa.string()),
 } | {name: pa.float64() for name in _FLOAT_COLUMNS}
-SCHEMA = pa.schema([pa.field(name, _TYPES[name]) for name in Estimate.model_fields if name != "v"])
+SCHEMA = pa.schema([pa.field(name, _TYPES[name]) for name in Estimate.model_fields if name not in ("v", "rev")])
 _FLOAT32_SCHEMA = pa.schema([pa.field(f.name, pa.float32()) if f.name in _FLOAT_COLUMNS else f for f in SCHEMA])
 _FILE_NAME = re.compile(r"^(\d{19})-([A-Za-z0-9_.-]+)\.parquet$")
 #: Rows per row group: small enough that a vehicle's rows are a few groups of a large fleet's file.

@@ -47,6 +47,10 @@ import orjson
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, create_model, model_validator
 
 PROTOCOL_VERSION = 1
+#: The newest revision of version 1's estimate record this side writes and reads (docs/protocol.md, Versioning):
+#: 1 is revision 1.1, the loss-of-effectiveness fields. A document that carries a revision's fields says so in
+#: its ``rev`` field; one of revision 1.0 has none.
+ESTIMATE_REVISION = 1
 DEFAULT_PREFIX = "agv"
 #: Number of shard buckets; a vehicle's bucket is fixed by its id (:func:`bucket_of`).
 N_BUCKETS = 16
@@ -279,6 +283,10 @@ class Column(NamedTuple):
     unit: str
 
 
+#: The revision of version 1 that added each column group (0: the first).
+COLUMN_GROUP_REVISION = {"state": 0, "effectiveness": 1}
+
+
 class _Sample(BaseModel):
     seq: int = Field(description="sequence number of the measurement this answers")
     t_ns: int = Field(description="timestamp of that measurement [ns]")
@@ -365,14 +373,48 @@ class Estimate(EstimateRow, _Message):
 
     gain_version: str = Field(description="version of the gains that produced it")
     level: Level = Field("OK", description="the vehicle's current alarm level")
+    rev: Annotated[int, Field(ge=1)] | None = Field(
+        None,
+        description="the revision of protocol version v whose fields the document carries (1: revision 1.1, the "
+        "effectiveness fields); absent: revision 1.0",
+    )
     gain_set: GainSetName | None = Field(
         None,
         description="which gain set of a switched design made it, 'fast' or 'quiet' (absent for one set)",
     )
 
+    @classmethod
+    def decode(cls, payload: bytes | bytearray | memoryview) -> Self:
+        """Read a document; one of a newer revision than this side knows (``rev`` > ESTIMATE_REVISION) is read
+        for the fields this side knows, the others (additions of that revision) dropped. At a revision this side
+        knows, an unknown field is an error."""
+        return super().decode(_known_fields(bytes(payload), cls.model_fields))
+
 
 #: The fields of an estimate that are one per message of the fleet stream rather than one per estimate.
-_GROUP_SCALARS = ("v", "gain_version")
+_GROUP_SCALARS = ("v", "gain_version", "rev")
+
+
+def revision_of(columns: Iterable[str]) -> int:
+    """The revision of version 1 whose fields an estimate of these float ``columns`` carries (0: 1.0)."""
+    groups = {m.group for name in columns for m in EstimateRow.model_fields[name].metadata if isinstance(m, Column)}
+    return max((COLUMN_GROUP_REVISION[g] for g in groups), default=0)
+
+
+def _known_fields(payload: bytes, known: Iterable[str]) -> bytes:
+    """``payload`` as it is, or, for a JSON object of a newer revision than this side knows (``rev`` above
+    :data:`ESTIMATE_REVISION`), without the fields not in ``known``. Malformed JSON is left to the validator."""
+    if b'"rev"' not in payload:
+        return payload
+    try:
+        data = orjson.loads(payload)
+    except orjson.JSONDecodeError:
+        return payload
+    rev = data.get("rev") if isinstance(data, dict) else None
+    if not isinstance(rev, int) or isinstance(rev, bool) or rev <= ESTIMATE_REVISION:
+        return payload
+    names = set(known)
+    return orjson.dumps({k: v for k, v in data.items() if k in names})
 
 
 @dataclass
@@ -445,6 +487,7 @@ class EstimateBatch:
             gain_version=self.gain_version,
             level=self.levels[j],
             gain_set=None if self.fast is None else ("fast" if self.fast[j] else "quiet"),
+            rev=revision_of(self.columns) or None,
             v=1,
             **values,
         )
@@ -452,9 +495,11 @@ class EstimateBatch:
     def group(self) -> dict[str, Any]:
         """The batch as a :class:`FleetEstimateGroup` mapping, numpy columns left as they are for orjson."""
         values = np.ascontiguousarray(self.values.T)
+        revision = revision_of(self.columns)
         return (
             {
                 "gain_version": self.gain_version,
+                **({"rev": revision} if revision else {}),
                 "vehicle": self.vehicle_ids,
                 "seq": np.ascontiguousarray(self.seq, dtype=np.int64),
                 "t_ns": np.ascontiguousarray(self.t_ns, dtype=np.int64),
@@ -508,6 +553,9 @@ def _document_builder(columns: tuple[str, ...]) -> Callable[..., dict[str, Any]]
             items.append(f"{name!r}: {name}")
         elif name in columns:
             items.append(f"{name!r}: values[{columns.index(name)}]")
+        elif name == "rev":  # written only by a document that carries a later revision's fields
+            if revision_of(columns):
+                items.append(f"'rev': {revision_of(columns)}")
         elif name != "gain_set" and name not in ESTIMATE_COLUMNS:
             raise TypeError(f"the estimate field {name!r} has no source in EstimateBatch")
     if not all(name.isidentifier() for name in Estimate.model_fields):
@@ -559,6 +607,9 @@ class _FleetGroup(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     gain_version: str = Field(description="version of the gains that produced these estimates")
+    rev: Annotated[int, Field(ge=1)] | None = Field(
+        None, description="the revision whose columns the group carries, as an Estimate's rev; absent: 1.0"
+    )
 
     @model_validator(mode="after")
     def _same_lengths(self) -> Self:
@@ -572,13 +623,17 @@ class _FleetGroup(BaseModel):
         return {
             name: getattr(self, name)
             for name in type(self).model_fields
-            if name != "gain_version" and getattr(self, name) is not None
+            if name not in _GROUP_SCALARS and getattr(self, name) is not None
         }
 
     def estimates(self) -> list[Estimate]:
         columns = self._columns()
         return [
-            Estimate(gain_version=self.gain_version, **{name: column[i] for name, column in columns.items()})
+            Estimate(
+                gain_version=self.gain_version,
+                rev=self.rev,
+                **{name: column[i] for name, column in columns.items()},
+            )
             for i in range(len(columns["vehicle"]))
         ]
 
@@ -657,6 +712,22 @@ class FleetEstimates(_Json):
     def estimates(self) -> list[Estimate]:
         """Every estimate of the message, in the order the service made them."""
         return [e for g in self.groups for e in g.estimates()]
+
+    @classmethod
+    def decode(cls, payload: bytes | bytearray | memoryview) -> Self:
+        """Read a message; a group of a newer revision than this side knows (its ``rev`` above
+        ESTIMATE_REVISION) is read for the columns this side knows, as :meth:`Estimate.decode` reads a document."""
+        data = bytes(payload)
+        if b'"rev"' in data:
+            try:
+                message = orjson.loads(data)
+                groups = message["groups"]
+                known = FleetEstimateGroup.model_fields
+                message["groups"] = [orjson.loads(_known_fields(orjson.dumps(g), known)) for g in groups]
+                data = orjson.dumps(message)
+            except (orjson.JSONDecodeError, KeyError, TypeError):
+                pass  # left to the validator, which names what is wrong
+        return super().decode(data)
 
 
 class OwnershipChange(_Json):

@@ -3,6 +3,7 @@ import math
 import numpy as np
 import orjson
 import pytest
+from pydantic import BaseModel
 
 from service.protocol import (
     FLAG_SEQUENCE_RESTART,
@@ -236,7 +237,7 @@ def test_every_encoding_of_the_estimate_takes_its_fields_from_the_one_record():
 
     state_only = _batch([[1.0, 2.0, 3.0, 4.0, 5.0]] * 3)
     document = orjson.loads(state_only.documents()[0])  # a profile without the effectiveness stage
-    assert list(document) == [f for f in Estimate.model_fields if f not in {*EFFECTIVENESS_COLUMNS, "gain_set"}]
+    assert list(document) == [f for f in Estimate.model_fields if f not in {*EFFECTIVENESS_COLUMNS, "gain_set", "rev"}]
     batch = _batch([[1.0, 2.0, 3.0, 4.0, 5.0]] * 3)
     batch.values = np.tile(np.arange(1.0, len(ESTIMATE_COLUMNS) + 1.0), (3, 1))
     batch.columns = ESTIMATE_COLUMNS
@@ -253,3 +254,83 @@ def test_every_encoding_of_the_estimate_takes_its_fields_from_the_one_record():
     assert ESTIMATE_COLUMNS[: len(STATE_COLUMNS)] == STATE_COLUMNS
     assert set(GroundTruth.model_fields) - set(STATE_COLUMNS) == {"v", "vehicle", "seq", "t_ns"}
     assert POINT_COLUMNS[3:] == ESTIMATE_COLUMNS and TRUTH_COLUMNS[1:] == STATE_COLUMNS
+
+
+# --------------------------------------------------------------------------- revisions of the estimate record
+
+
+#: The fields of an estimate document of revision 1.0 (before the effectiveness fields and ``rev``).
+FIELDS_1_0 = ("v", "vehicle", "seq", "t_ns", "vx", "vy", "r", "torque_fault", "steer_fault", "in_domain",
+              "gain_version", "level", "gain_set")  # fmt: skip
+
+
+def _reader_1_0() -> type[BaseModel]:
+    """A strict reader built on revision 1.0 of the record: its fields, unknown fields forbidden."""
+    from pydantic import ConfigDict, create_model
+
+    fields = {
+        name: (Estimate.model_fields[name].annotation, Estimate.model_fields[name].default) for name in FIELDS_1_0
+    }
+    fields["vehicle"] = (str, ...)
+    return create_model("Estimate10", __config__=ConfigDict(extra="forbid"), **fields)  # type: ignore[call-overload]
+
+
+def _effectiveness_batch() -> EstimateBatch:
+    from service.protocol import ESTIMATE_COLUMNS
+
+    batch = _batch([[1.0, 2.0, 3.0, 4.0, 5.0]] * 2)
+    batch.values = np.tile(np.arange(1.0, len(ESTIMATE_COLUMNS) + 1.0), (2, 1))
+    batch.columns = ESTIMATE_COLUMNS
+    return batch
+
+
+def test_a_document_names_the_revision_of_the_fields_it_carries_and_a_1_0_reader_reads_the_others():
+    """Documents without the effectiveness fields are revision 1.0, byte for byte without ``rev``: a strict 1.0
+    reader reads them. Documents with them say "rev": 1 (document and fleet-stream group alike); a strict 1.0
+    reader refuses them, and can tell why from ``rev`` before it validates."""
+    reader = _reader_1_0()
+    plain = _batch([[1.0, 2.0, 3.0, 4.0, 5.0]] * 2)
+    for payload in plain.documents():
+        assert b'"rev"' not in payload
+        assert reader.model_validate_json(payload).model_dump() == {
+            k: v for k, v in Estimate.decode(payload).model_dump().items() if k in FIELDS_1_0
+        }
+    with_alpha = _effectiveness_batch()
+    for payload in with_alpha.documents():
+        document = orjson.loads(payload)
+        assert document["rev"] == 1 and Estimate.decode(payload).rev == 1
+        with pytest.raises(ValueError, match="Extra inputs are not permitted"):
+            reader.model_validate_json(payload)
+    other = _batch([[1.0] * 5], seq0=7)
+    other.gain_version = "0123456789ab"
+    message = encode_fleet_estimates("r0", [with_alpha, other])
+    assert [g.get("rev") for g in orjson.loads(message)["groups"]] == [1, None]
+    decoded = FleetEstimates.decode(message).estimates()
+    assert [e.rev for e in decoded] == [1, 1, None]
+    assert (
+        decoded[:2]
+        == [Estimate.decode(d) for d in with_alpha.documents()]
+        == [with_alpha.estimate(0), with_alpha.estimate(1)]
+    )
+
+
+def test_a_reader_drops_the_fields_of_a_newer_revision_and_refuses_unknown_fields_of_a_known_one():
+    """Estimate.decode and FleetEstimates.decode read a document (group) of a revision newer than they know for
+    the fields they know; at a revision they know, an unknown field is still an error (a typo is not an
+    addition)."""
+    from service.protocol import ESTIMATE_REVISION
+
+    payload = _effectiveness_batch().documents()[0]
+    newer = payload.replace(b'"rev":1', f'"rev":{ESTIMATE_REVISION + 1},"torque_jerk":1.5'.encode())
+    estimate = Estimate.decode(newer)
+    assert estimate.rev == ESTIMATE_REVISION + 1
+    assert estimate.model_dump(exclude={"rev"}) == Estimate.decode(payload).model_dump(exclude={"rev"})
+    with pytest.raises(ProtocolError, match="torque_jerk"):
+        Estimate.decode(payload.replace(b'"rev":1', b'"rev":1,"torque_jerk":1.5'))
+    with pytest.raises(ProtocolError, match="torque_jerk"):
+        Estimate.decode(payload.replace(b'"rev":1', b'"torque_jerk":1.5'))
+    message = encode_fleet_estimates("r0", [_effectiveness_batch()])
+    newer = message.replace(b'"rev":1', f'"rev":{ESTIMATE_REVISION + 1},"torque_jerk":[1.0,2.0]'.encode())
+    assert [e.torque_alpha for e in FleetEstimates.decode(newer).estimates()] == [8.0, 8.0]
+    with pytest.raises(ProtocolError, match="torque_jerk"):
+        FleetEstimates.decode(message.replace(b'"rev":1', b'"rev":1,"torque_jerk":[1.0,2.0]'))
