@@ -222,6 +222,8 @@ def verify(
     N_physical: FloatArray,
     M_physical: FloatArray,
     T: FloatArray,
+    *,
+    spectral_radius: tuple[float, dict[str, float], int] | None = None,
 ) -> VerificationReport:
     """Run checks 1-3 on gains in physical coordinates.
 
@@ -242,6 +244,10 @@ def verify(
         The runtime N_i (r, n, n) and M (n, n).
     T : (n, n) ndarray
         The change to design coordinates.
+    spectral_radius : (float, dict, int), optional
+        Check 3's grid result (radius, where, points) for these N_physical and M_physical on this model, when
+        it was already computed (a switched design's fast set, verified on its own before); it is then not
+        recomputed, and is still compared with the decay rate certified here.
 
     Returns
     -------
@@ -260,7 +266,9 @@ def verify(
     lmi_min, P_min, slack_min, certified = verify_lyapunov(
         N_design, error_term_matrices(design_terms, M_design), design_terms, P, R, alpha
     )
-    radius, where, points = spectral_radius_grid(nts, N_physical, error_term_matrices(terms, M_physical), terms)
+    if spectral_radius is None:
+        spectral_radius = spectral_radius_grid(nts, N_physical, error_term_matrices(terms, M_physical), terms)
+    radius, where, points = spectral_radius
     report = VerificationReport(
         lmi_min_eigenvalues=lmi_min,
         P_min_eigenvalues=P_min,
@@ -270,8 +278,15 @@ def verify(
         spectral_radius_at=where,
         grid_points=points,
     )
-    scale = max(1.0, float(np.abs(P).max()), float(np.abs(R).max()))
+    _raise_on_failure(report, max(1.0, float(np.abs(P).max()), float(np.abs(R).max())), alpha)
+    return report
+
+
+def _raise_on_failure(report: VerificationReport, scale: float, alpha: float) -> None:
+    """Raise :class:`VerificationFailed` naming the first of checks 1-3 that ``report`` fails; ``scale``: the
+    size of P and R the strictness threshold is relative to."""
     details: dict[str, object] = {"report": asdict(report)}
+    P_min, lmi_min, certified = report.P_min_eigenvalues, report.lmi_min_eigenvalues, report.certified_decay_rate
     if min(P_min) <= STRICT_TOL * scale:
         raise VerificationFailed(
             f"a Lyapunov matrix P_i is not positive definite (min eigenvalue {min(P_min):.3e})", details
@@ -285,6 +300,7 @@ def verify(
         )
     if not certified < 1.0:
         raise VerificationFailed(f"the certified decay rate {certified:.6f} is not below 1", details)
+    radius, where = report.spectral_radius_max, report.spectral_radius_at
     if radius >= 1.0 or radius > certified + 1e-7:
         raise VerificationFailed(
             f"spectral radius {radius:.6f} of the error dynamics at v_x = {where['speed_mps']:.2f} m/s, "
@@ -292,7 +308,6 @@ def verify(
             f"decay rate {certified:.6f}",
             details,
         )
-    return report
 
 
 def merged(first: VerificationReport, second: VerificationReport) -> VerificationReport:

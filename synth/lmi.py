@@ -297,7 +297,7 @@ class Theorem2LMIs:
                 Q0 = Psi @ dc.A_centre(i) - self.X[i] @ dc.C
                 L0 = cp.bmat([[self.alpha_sq * P_i, Q0.T], [Q0, sym_R - P_j]])
                 a, b = dc.petersen_columns(Psi)
-                block, lams = petersen_block(L0, a, b, f"lambda_{i + 1}{j + 1}")
+                block, lams = petersen_block(L0, a, [b_k @ b_k.T for b_k in b], f"lambda_{i + 1}{j + 1}")
                 self.multipliers.extend(lams)
                 constraints.append(block >> margin * np.eye(2 * n + len(a)))
         self.n_lmis = len(constraints) - len(distinct_P) - 1
@@ -329,7 +329,7 @@ class Theorem2LMIs:
 
 
 def petersen_block(
-    L0: cp.Expression, a: list[cp.Expression], b: list[FloatArray], name: str
+    L0: cp.Expression, a: list[cp.Expression], bbT: list[FloatArray | cp.Expression], name: str
 ) -> tuple[cp.Expression, list[cp.Variable]]:
     """[[L0 - sum_k lambda_k b_k b_k^T, a_1 .. a_K], [a_k^T, diag(lambda)]] (symmetrised) and the lambda_k.
 
@@ -345,8 +345,8 @@ def petersen_block(
         The LMI at the centre of the box of rho.
     a : list of cvxpy.Expression
         The a_k columns.
-    b : list of ndarray
-        The b_k columns.
+    bbT : list of ndarray or cvxpy.Expression
+        The outer products b_k b_k^T (constants, or parameters of a problem compiled once per structure).
     name : str
         The multipliers' name.
 
@@ -359,8 +359,8 @@ def petersen_block(
     """
     lams = [cp.Variable(name=f"{name}_{k + 1}" if len(a) > 1 else name) for k in range(len(a))]
     top_left = L0
-    for lam, b_k in zip(lams, b, strict=True):
-        top_left = top_left - lam * (b_k @ b_k.T)
+    for lam, bbT_k in zip(lams, bbT, strict=True):
+        top_left = top_left - lam * bbT_k
     diag = cp.diag(cp.hstack(lams)) if len(lams) > 1 else cp.reshape(lams[0], (1, 1), order="C")
     block = cp.bmat([[top_left, cp.hstack(a)], [cp.hstack(a).T, diag]])
     return _sym(block), lams

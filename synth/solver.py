@@ -115,7 +115,13 @@ def solve(
         # every point is verified in numpy afterwards, so the warning would only leak into the user's terminal
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Solution may be inaccurate", category=UserWarning)
-            problem.solve(solver=solver, **options)
+            # what problem.solve does, with the explicit zeros of the constraint matrix dropped: a problem with
+            # parameters (compiled once, synth.robust) keeps a zero wherever a parameter's value may be nonzero,
+            # about half its entries for the H2 LMIs, and the solver's KKT factor would carry them all
+            data, chain, inverse_data = problem.get_problem_data(solver, solver_opts=options)
+            data[cp.settings.A].eliminate_zeros()
+            solution = chain.solve_via_data(problem, data, True, False, options)
+            problem.unpack_results(solution, chain, inverse_data)
     except cp.error.SolverError as exc:
         raise SolverFailed(f"{solver} stopped without a solution ({str(exc).split('.')[0]})") from exc
     wall_s = time.perf_counter() - started
