@@ -1,9 +1,11 @@
-"""Wiring: settings -> storage, fleet engine, job queue, Zenoh transport, ingest loop (the app: service/main.py).
+"""The running replica: settings -> storage, fleet engine, profile policy, Zenoh transport, ingest loop.
 
 :class:`Service` owns every part and runs on one asyncio loop: the ingest
 loop drains the Zenoh channels, steps the fleet and publishes; REST handlers
 read and change the fleet between two ticks, so a gain activation is atomic
-for every vehicle of a profile without locks. Heavy work stays off the loop:
+for every vehicle of a profile without locks. Which profiles run, their
+designs and jobs are the :class:`~service.profile_policy.ProfilePolicy`'s; the
+FastAPI application and its lifespan are service/main.py's. Heavy work stays off the loop:
 LMI designs in worker processes, gain re-verification in a thread, database
 writes on the storage writer's thread (queued in order, retried while the
 database fails, so a locked or full database never stops ingest).
@@ -30,39 +32,24 @@ from contextlib import suppress
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
-from pydantic import ValidationError
-
 from service import logs
 from service.databases import open_storage
-from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine, FleetError
+from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine
 from service.history import EstimateHistory
-from service.jobs import FINAL_STATES, Job, JobKind, SynthesisJobs
+from service.jobs import SynthesisJobs
 from service.metrics import ServiceMetrics, service_registry
-from service.profiles import (
-    DEFAULT_PROFILE_NAME,
-    PROFILE_NAME_RULE,
-    ProfileSpec,
-    load_profiles_file,
-    valid_profile_name,
-)
+from service.profile_policy import ProfilePolicy
 from service.protocol import OwnershipChange, all_buckets, bucket_of, shard_buckets
 from service.settings import Settings
-from service.storage import Storage, StorageError, StoredProfile
+from service.storage import Storage
 from service.storage_writer import StorageState, StorageUnavailable, StorageWriter, Write
 from service.transport import Transport
 from service.web.hub import DashboardHub
-from synth.gains import ObserverGains
-from synth.observer import RuntimeGains
 
 if TYPE_CHECKING:  # psycopg is imported only by a replica that uses PostgreSQL
     from service.bucket_leases import BucketLeases, LeaseState
-    from service.shared_config import SharedConfig
 
 log = logging.getLogger("agv_fe.service")
-
-
-class TooManyProfiles(Exception):
-    """A new profile beyond the setting max_profiles (the API answers 409 with this message)."""
 
 
 #: A background task that ran this long without failing has its restart count reset [s].
@@ -73,19 +60,6 @@ TASK_RESTART_MAX_DELAY_S = 10.0
 
 class ServiceError(Exception):
     """The service cannot start; the text says what to fix."""
-
-
-class ProfileLoadError(ServiceError):
-    """A stored profile the service cannot run; the text says why. The other profiles run."""
-
-
-def _valid_spec(stored: dict[str, Any]) -> ProfileSpec | None:
-    """A job's stored spec, or None if it is no longer a valid profile (stored before a validation was added)."""
-    try:
-        return ProfileSpec.model_validate(stored)
-    except ValidationError as exc:
-        log.error("an interrupted design's spec is not a valid profile, not resumed: %s", exc)
-        return None
 
 
 def load_or_create_token(settings: Settings) -> str:
@@ -119,9 +93,6 @@ class Service:
             else shard_buckets(settings.shard.index, settings.shard.replicas)
         )
         self.leases: BucketLeases | None = None
-        #: with a shared database: profile changes heard from the other replicas, and design claims
-        self.shared: SharedConfig | None = None
-        self._config_lock = asyncio.Lock()
         ingest = settings.ingest
         self.events = EventBus()
         self.engine = FleetEngine(
@@ -142,11 +113,8 @@ class Service:
         self.writer: StorageWriter | None = None
         self.history: EstimateHistory | None = None
         self.transport: Transport | None = None
-        self.jobs = SynthesisJobs(
-            settings.synthesis_workers, self._activate_job, self._persist_job, kept=settings.jobs_kept
-        )
-        #: stored profiles that could not be loaded at start-up, and why; they do not run
-        self.failed_profiles: dict[str, str] = {}
+        #: the profiles, their designs and jobs
+        self.policy = ProfilePolicy(settings, self.engine, self, self.metrics)
         self.token = ""
         self.started_mono = time.monotonic()
         self._tasks: dict[str, asyncio.Task[None]] = {}
@@ -177,15 +145,8 @@ class Service:
         self.token = load_or_create_token(self.settings)
         self.storage = self._open_storage()
         self.writer = StorageWriter(self._open_storage(), self.settings.storage)
-        loop = asyncio.get_running_loop()
         if self.settings.database_url is not None:
-            from service.shared_config import SharedConfig
-
-            self.shared = SharedConfig(
-                self.settings.database_url,
-                on_change=lambda name: asyncio.run_coroutine_threadsafe(self._config_changed(name), loop),
-            )
-            await asyncio.to_thread(self.shared.open)
+            await self.policy.open_shared(self.settings.database_url)
         await self._load_state()
         h = self.settings.history
         if h.enabled:
@@ -199,6 +160,7 @@ class Service:
         if self.settings.bucket_leases and self.settings.database_url is not None:
             from service.bucket_leases import BucketLeases
 
+            loop = asyncio.get_running_loop()
             self.leases = BucketLeases(
                 self.settings.database_url,
                 self.settings.shard.lease_interval_s,
@@ -212,8 +174,7 @@ class Service:
             self._spawn(name)
         if self.settings.dashboard.enabled:
             self.dashboard.start(truth=self.transport, ownership=self.transport)
-        if self.shared is not None:
-            self.shared.start_listening()
+        self.policy.start_listening()
         if self.settings.ingest.gc_freeze:
             gc.collect()
             gc.freeze()
@@ -234,9 +195,7 @@ class Service:
         self._running = False
         if self.leases is not None:  # no more buckets taken or given; the locks stay until the writes are stored
             await asyncio.to_thread(self.leases.halt)
-        if self.shared is not None:  # its claims go: another replica designs what this one leaves unfinished
-            await asyncio.to_thread(self.shared.close)
-            self.shared = None
+        await self.policy.close_shared()  # its claims go: another replica designs what this one leaves unfinished
         tasks = list(self._tasks.values())
         for task in tasks:
             task.cancel()
@@ -245,7 +204,7 @@ class Service:
                 await task
         self._tasks = {}
         await self.dashboard.stop()
-        await self.jobs.close()
+        await self.policy.jobs.close()
         if self.transport is not None:
             await asyncio.to_thread(self.transport.close)
             self.transport = None
@@ -266,21 +225,8 @@ class Service:
 
     async def _load_state(self) -> None:
         """Profiles, gains, vehicles and latched alarms from the database; seed profiles on first start."""
+        await self.policy.load()
         storage = self.db
-        stored = storage.profiles()
-        if not stored:
-            initial = (
-                load_profiles_file(self.settings.profiles_file)
-                if self.settings.profiles_file is not None
-                else {DEFAULT_PROFILE_NAME: ProfileSpec()}
-            )
-            now = time.time_ns()
-            for name, spec in initial.items():
-                storage.put_profile(name, spec.stored(), now)
-            stored = storage.profiles()
-        resume = self._interrupted_designs(storage)
-        for profile in stored:
-            await self._load_profile(profile, resume.get(profile.name))
         served = set(self.buckets)  # a shared database holds the whole fleet: only this replica's share runs here
         for vehicle_id, profile_name, registered in storage.vehicles():
             if bucket_of(vehicle_id) not in served:
@@ -291,73 +237,6 @@ class Service:
                 self.engine.hold(vehicle_id, profile_name, registered)
         latched = [AlarmRecord.from_dict(r) for r in storage.latched_alarms() if bucket_of(r["vehicle"]) in served]
         self.engine.alarms.load(latched)
-
-    def _interrupted_designs(self, storage: Storage) -> dict[str, Job]:
-        """Designs accepted (202) but not finished when the service stopped, marked interrupted: each profile's
-        latest, to resume (those another replica of a shared database is running are left to it)."""
-        resume: dict[str, Job] = {}
-        for interrupted in (j for j in storage.jobs(limit=1000) if j["status"] in ("queued", "running")):
-            job = Job.from_dict(interrupted)
-            if not self._claim(job.profile):
-                continue  # another replica of the shared database is running this design
-            job.status, job.error, job.reason = "interrupted", "restart", "the service restarted during the design"
-            storage.put_job(job.to_dict())
-            if job.profile not in resume or job.created_t_ns > resume[job.profile].created_t_ns:
-                resume[job.profile] = job
-        return resume
-
-    async def _load_profile(self, profile: StoredProfile, earlier: Job | None) -> None:
-        """One stored profile into the fleet with its active gains; its interrupted design resumed (``earlier``),
-        or its first design started when it has no gains; a profile that cannot load is reported, not fatal."""
-        try:
-            spec = self._add_stored_profile(profile)
-        except ProfileLoadError as exc:
-            # one profile the service cannot run must not keep the others from running
-            self.failed_profiles[profile.name] = str(exc)
-            log.error("stored profile %r cannot be loaded and does not run: %s", profile.name, exc)
-            return
-        if profile.active_version:
-            await self._activate_stored_gains(profile.name, profile.active_version)
-        resumed = None if earlier is None else _valid_spec(earlier.spec)
-        if earlier is not None and resumed is not None:
-            log.warning("profile %s: resuming the design of job %s, interrupted by a restart", profile.name, earlier.id)
-            self.jobs.submit(profile.name, resumed, earlier.kind, resumes=earlier.id)
-        elif self.engine.banks[profile.name].gains is None:
-            if self._claim(profile.name):
-                self.jobs.submit(profile.name, spec, "initial")
-            else:
-                log.info("profile %s: another replica designs its gains; this one activates them", profile.name)
-        self._release_claim(profile.name)  # unless a design of the profile is pending here
-
-    def _add_stored_profile(self, profile: StoredProfile) -> ProfileSpec:
-        """Validate a stored profile as a request body would be and add it to the fleet, or say why not."""
-        if not valid_profile_name(profile.name):
-            raise ProfileLoadError(f"invalid profile name {profile.name!r}: use {PROFILE_NAME_RULE}")
-        if profile.problem is not None:
-            raise ProfileLoadError(profile.problem)
-        try:
-            spec = ProfileSpec.model_validate(profile.spec)
-        except ValidationError as exc:
-            problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
-            raise ProfileLoadError(f"the stored spec is not a valid profile: {problems}") from exc
-        try:
-            self.engine.add_profile(profile.name, spec)
-        except (FleetError, ArithmeticError, ValueError) as exc:
-            raise ProfileLoadError(f"the profile cannot run: {type(exc).__name__}: {exc}") from exc
-        return spec
-
-    async def _activate_stored_gains(self, name: str, version: str) -> None:
-        """The profile's stored active gains, re-verified; unusable ones are logged and the profile resynthesised."""
-        try:
-            gains_doc = self.db.gains(name, version)
-            if gains_doc is None:
-                raise StorageError(f"gain version {version} of profile {name} is not in the database")
-            gains = await asyncio.to_thread(ObserverGains.from_dict, gains_doc)
-            runtime = RuntimeGains.from_gains(gains)
-        except Exception as exc:
-            log.error("stored gains %s of %s are unusable (%s): resynthesising", version, name, exc)
-            return
-        self.engine.activate(name, gains, runtime)
 
     @property
     def db(self) -> Storage:
@@ -439,26 +318,6 @@ class Service:
                 f"{what} is applied but not stored yet ({state.reason or 'the database is slow'}): it is queued "
                 "and stored once the database accepts writes"
             ) from exc
-
-    def missing_gains(self) -> dict[str, dict[str, str | None]]:
-        """Every profile without active gains, and why: its job is designing, or failed (with the reason)."""
-        out: dict[str, dict[str, str | None]] = {}
-        for name, bank in self.engine.banks.items():
-            if bank.ready:
-                continue
-            job = self.jobs.pending_for(name)
-            if job is not None and job.status not in FINAL_STATES:
-                out[name] = {"state": "designing", "job": job.id, "error": None, "reason": "designing"}
-                continue
-            job = self.jobs.latest_for(name)
-            if job is None:
-                reason = f"no design requested: PUT /profiles/{name} or POST /profiles/{name}/synthesis"
-                out[name] = {"state": "no_job", "job": None, "error": None, "reason": reason}
-            else:
-                out[name] = {"state": job.status, "job": job.id, "error": job.error, "reason": job.reason}
-        return out
-
-    # ------------------------------------------------------------------ supervised loops
 
     def _spawn(self, name: str) -> None:
         if not self._running:
@@ -577,156 +436,15 @@ class Service:
         self.metrics.alarms_out += len(changes)
         return done
 
-    # ------------------------------------------------------------------ profiles and jobs
+    @property
+    def jobs(self) -> SynthesisJobs:
+        """The synthesis jobs (the policy's)."""
+        return self.policy.jobs
 
-    def put_profile(self, name: str, spec: ProfileSpec) -> Job | None:
-        """Create or change a profile. A change of the design inputs starts a job; otherwise it applies at once.
-
-        A new profile is added to the fleet before it is stored: one that cannot run is never stored (a stored
-        profile is loaded at every start). A profile that failed to load at start-up is replaced. The writes are
-        queued: the API awaits :meth:`stored` before it answers."""
-        bank = self.engine.banks.get(name)
-        if bank is None:
-            running = len(self.engine.banks) + len(self.failed_profiles.keys() - {name})
-            if running >= self.settings.max_profiles:
-                raise TooManyProfiles(
-                    f"the service runs {running} profiles, its limit (setting max_profiles = "
-                    f"{self.settings.max_profiles}): change an existing profile, or raise the limit"
-                )
-            self.engine.add_profile(name, spec)
-            self._store_profile(name, spec)
-            if self.failed_profiles.pop(name, None) is not None:
-                log.info("profile %s, which failed to load at start-up, replaced", name)
-                self.engine.release_held(name)
-            return self.jobs.submit(name, spec, "create")
-        if bank.gains is not None and _same_design(bank.gains, spec):
-            # the latest request wins: a design still pending for the profile would overwrite this spec
-            for job in self.jobs.withdraw(name, "a later request kept the active design and changed only thresholds"):
-                log.info("profile %s: job %s withdrawn by a later request", name, job.id)
-            self._store_profile(name, spec)
-            self.engine.update_profile_spec(name, spec)
-            return None
-        return self.jobs.submit(name, spec, "update")
-
-    # ------------------------------------------------------------------ one configuration for every replica
-
-    def _claim(self, profile: str) -> bool:
-        """Claim the design of ``profile`` for this replica (always granted without a shared database)."""
-        return self.shared is None or self.shared.claim(profile)
-
-    def _release_claim(self, profile: str) -> None:
-        if self.shared is not None and self.jobs.pending_for(profile) is None:
-            self.shared.release(profile)
-
-    async def _config_changed(self, name: str | None) -> None:
-        """Another replica changed profile ``name`` (None: any may have changed): follow the shared database.
-        One change at a time: a resync that comes while gains are being verified waits for them."""
-        async with self._config_lock:
-            for stored in self.db.profiles():
-                if name is None or stored.name == name:
-                    await self._follow_stored_profile(stored)
-            if name is None:
-                self._design_unclaimed()
-
-    async def _follow_stored_profile(self, stored: StoredProfile) -> None:
-        """Run the profile as stored: the same active gain version (verified here again), then the same spec."""
-        bank = self.engine.banks.get(stored.name)
-        if bank is None:
-            if stored.name in self.failed_profiles:
-                return
-            try:
-                self._add_stored_profile(stored)
-            except ProfileLoadError as exc:
-                self.failed_profiles[stored.name] = str(exc)
-                log.error("profile %r from the shared database cannot be loaded and does not run: %s", stored.name, exc)
-                return
-            self.engine.release_held(stored.name)
-            log.info("profile %s: created through another replica", stored.name)
-        elif self.jobs.pending_for(stored.name) is not None:
-            return  # a design of the profile runs here: it activates its own gains (the latest request wins)
-        bank = self.engine.banks[stored.name]
-        if stored.active_version and stored.active_version != bank.version:
-            await self._activate_stored_gains(stored.name, stored.active_version)
-            if bank.version != stored.active_version:
-                return  # unusable (logged): the spec stays with the gains that run
-            log.info("profile %s: gains %s activated through another replica", stored.name, bank.version)
-        spec = _valid_spec(stored.spec)
-        if spec is not None and spec != bank.spec:
-            self.engine.update_profile_spec(stored.name, spec)
-            log.info("profile %s: spec changed through another replica", stored.name)
-
-    def _design_unclaimed(self) -> None:
-        """Profiles still without gains whose design nobody runs (its replica died): design them here."""
-        for name, bank in self.engine.banks.items():
-            if bank.gains is None and self.jobs.pending_for(name) is None and self._claim(name):
-                log.warning("profile %s: no replica designs its gains; designing them here", name)
-                self.jobs.submit(name, bank.spec, "initial")
-
-    def _store_profile(self, name: str, spec: ProfileSpec) -> None:
-        self.store(f"profile {name}", partial(Storage.put_profile, name=name, spec=spec.stored(), t_ns=time.time_ns()))
-
-    def resynthesise(self, name: str, kind: JobKind = "resynthesis") -> Job:
-        bank = self.engine._bank(name)
-        return self.jobs.submit(name, bank.spec, kind)
-
-    async def _activate_job(self, job: Job, spec: ProfileSpec, gains: ObserverGains) -> None:
-        runtime = await asyncio.to_thread(RuntimeGains.from_gains, gains)
-        # persist first: what is active is always in the database (waits, off the loop, while the database fails)
-        write = partial(
-            Storage.activate_gains, name=job.profile, spec=spec.stored(), gains=gains.to_dict(), t_ns=time.time_ns()
-        )
-        await asyncio.wrap_future(self.store(f"gains {gains.version} of profile {job.profile}", write))
-        self.engine.update_profile_spec(job.profile, spec)
-        self.engine.activate(job.profile, gains, runtime)
-        log.info("profile %s: gains %s active (job %s)", job.profile, gains.version, job.id)
-
-    def _persist_job(self, job: Job) -> None:
-        """Store a job at each change of state; time and report how it ended."""
-        if job.status in FINAL_STATES and self.shared is not None:
-            with suppress(RuntimeError):  # after the loop: the claims session ends with the service anyway
-                asyncio.get_running_loop().call_soon(self._release_claim, job.profile)
-        if self.writer is not None:
-            self.writer.submit(f"job {job.id} ({job.status})", partial(Storage.put_job, record=job.to_dict()))
-            if job.status in FINAL_STATES:  # the newest jobs_kept stay in the database
-                self.writer.submit("pruning old jobs", partial(Storage.prune_jobs, keep=self.settings.jobs_kept))
-        if job.status in ("succeeded", "failed") and job.duration_s is not None:
-            self.metrics.synthesis_seconds.observe(job.duration_s)
-        if job.status in FINAL_STATES:
-            logs.event(
-                "job",
-                logging.WARNING if job.status == "failed" else logging.INFO,
-                status=job.status,
-                id=job.id,
-                profile=job.profile,
-                kind=job.kind,
-                duration_s=None if job.duration_s is None else round(job.duration_s, 3),
-                gain_version=job.gain_version,
-                error=job.error,
-                reason=job.reason,
-                superseded_by=job.superseded_by,
-            )
-        if job.status != "failed":
-            return
-        bank = self.engine.banks.get(job.profile)
-        if bank is not None and bank.version is not None:
-            log.warning(
-                "profile %s: design job %s failed (%s): %s; gains %s stay active",
-                job.profile,
-                job.id,
-                job.error,
-                job.reason,
-                bank.version,
-            )
-        else:
-            log.error(
-                "profile %s has no active gains: design job %s failed (%s): %s; /ready answers 503 until a design "
-                "of the profile succeeds (PUT /profiles/%s)",
-                job.profile,
-                job.id,
-                job.error,
-                job.reason,
-                job.profile,
-            )
+    @property
+    def failed_profiles(self) -> dict[str, str]:
+        """Stored profiles that could not be loaded, and why (the policy's); they do not run."""
+        return self.policy.failed_profiles
 
     def status(self) -> dict[str, Any]:
         return {
@@ -800,12 +518,3 @@ def replica_name(settings: Settings) -> str:
         return shard.name
     host = re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname())[:40] or "host"
     return f"{host}-{os.getpid()}"
-
-
-def _same_design(gains: ObserverGains, spec: ProfileSpec) -> bool:
-    inputs = spec.design_inputs()
-    return (
-        gains.params.model_dump(mode="json") == inputs["params"]
-        and gains.bounds.model_dump(mode="json") == inputs["bounds"]
-        and gains.options.model_dump(mode="json") == inputs["options"]
-    )

@@ -112,11 +112,15 @@ class MetricsSource(Protocol):
     settings: Settings
     engine: FleetEngine
     metrics: ServiceMetrics
-    jobs: SynthesisJobs
-    failed_profiles: dict[str, str]
     task_failures: dict[str, int]
     history: EstimateHistory | None
     buckets: list[str]
+
+    @property
+    def jobs(self) -> SynthesisJobs: ...
+
+    @property
+    def failed_profiles(self) -> dict[str, str]: ...
 
     @property
     def ready(self) -> bool: ...

@@ -9,7 +9,7 @@ from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.app import Service
-from service.fleet import ProfileBank
+from service.fleet import ProfileBank, UnknownProfile
 
 #: The OpenAPI answer of a mutating route while the database does not accept writes.
 STORAGE_UNAVAILABLE: dict[int | str, dict[str, Any]] = {
@@ -32,13 +32,10 @@ ServiceDep = Annotated[Service, Depends(get_service)]
 
 def profile_bank(service: Service, name: str) -> ProfileBank:
     """The profile's bank, or 404 naming the known profiles."""
-    bank = service.engine.banks.get(name)
-    if bank is None:
-        raise HTTPException(
-            status.HTTP_404_NOT_FOUND,
-            detail=f"no profile named {name!r}; known: {', '.join(sorted(service.engine.banks))}",
-        )
-    return bank
+    try:
+        return service.engine.bank(name)
+    except UnknownProfile as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail=str(exc)) from exc
 
 
 def token_problem(expected: str, scheme: str | None, token: str | None) -> tuple[str, str] | None:

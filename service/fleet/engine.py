@@ -188,7 +188,7 @@ class FleetEngine:
 
     def remove_profile(self, name: str) -> None:
         """Take back a profile that has no vehicle (one just added whose storage failed)."""
-        bank = self._bank(name)
+        bank = self.bank(name)
         if bank.used.any():
             raise FleetError(f"profile {name!r} has vehicles")
         del self.banks[name]
@@ -204,18 +204,19 @@ class FleetEngine:
         return [self.register(vehicle_id, profile, self.held[vehicle_id][1]) for vehicle_id in ids]
 
     def update_profile_spec(self, name: str, spec: ProfileSpec) -> None:
-        self._bank(name).set_spec(spec)
+        self.bank(name).set_spec(spec)
         self._refresh_limits()
 
     def activate(self, name: str, gains: ObserverGains, runtime: RuntimeGains | None = None) -> None:
         """Make ``gains`` the active gains of every vehicle of profile ``name``, atomically between ticks."""
-        self._bank(name).activate(gains, runtime)
+        self.bank(name).activate(gains, runtime)
 
     @property
     def ready(self) -> bool:
         return bool(self.banks) and all(b.ready for b in self.banks.values())
 
-    def _bank(self, name: str) -> ProfileBank:
+    def bank(self, name: str) -> ProfileBank:
+        """Profile ``name``'s bank, or UnknownProfile naming the known profiles."""
         try:
             return self.banks[name]
         except KeyError:
@@ -228,7 +229,7 @@ class FleetEngine:
 
         ``announced``: registered through the API ahead of its first measurement, so it is not made STALE for
         sending nothing until it has sent something (a vehicle restored from storage, unannounced, is)."""
-        bank = self._bank(profile)
+        bank = self.bank(profile)
         self.held.pop(vehicle_id, None)
         existing = self.vehicles.get(vehicle_id)
         if existing is not None:

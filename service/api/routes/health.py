@@ -79,7 +79,7 @@ async def replicas(service: ServiceDep, response: Response) -> Replicas:
     },
 )
 async def ready(service: ServiceDep, response: Response) -> Readiness:
-    missing = {name: MissingGains.model_validate(why) for name, why in service.missing_gains().items()}
+    missing = {name: MissingGains.model_validate(why) for name, why in service.policy.missing_gains().items()}
     causes = service.not_ready_causes()
     answer = Readiness(
         ready=not causes,

@@ -17,9 +17,10 @@ from service.api.models import (
     ProfileChange,
     ProfileInfo,
 )
-from service.app import Service, TooManyProfiles
+from service.app import Service
 from service.calibration import run_calibration
 from service.fleet import ProfileBank
+from service.profile_policy import TooManyProfiles
 from service.profiles import PROFILE_NAME_PATTERN, ProfileSpec, check_profile_name
 
 router = APIRouter(prefix="/profiles", tags=["profiles"])
@@ -87,7 +88,7 @@ async def put_profile(
 ) -> ProfileChange:
     service.require_storage()
     try:
-        job = service.put_profile(name, spec)
+        job = service.policy.put_profile(name, spec)
     except TooManyProfiles as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from exc
     await service.stored(f"profile {name!r}")
@@ -110,7 +111,7 @@ async def resynthesise(
 ) -> ProfileChange:
     profile_bank(service, name)
     service.require_storage()
-    job = service.resynthesise(name)
+    job = service.policy.resynthesise(name)
     await service.stored(f"the design job of profile {name!r}")
     response.headers["Location"] = f"/jobs/{job.id}"
     return ProfileChange(profile=name, job=job.id, applied=False)
