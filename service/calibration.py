@@ -219,17 +219,7 @@ def calibrate_profile(
         thresholds = channel_thresholds(gains, estimates, gust, alarm_base, false_alarms_per_1000_h, nominal)
         say("thresholds set from the effectiveness stage's total faults")
     warnings = [_hiding(channel, t, nominal) for channel, t in thresholds.items() if t.hides_required_fault]
-    block_n = max(1, round(alarm_base.cusum_block_s / params.sample_period_s))
-    alarm_settings = alarm_base.model_copy(
-        update={
-            "torque_block_sigma_nm": block_sigma(estimates[:, 0], block_n),
-            "steer_block_sigma_rad": block_sigma(estimates[:, 1], block_n),
-            "torque_warn_nm": thresholds["torque"].warn,
-            "torque_fault_nm": thresholds["torque"].fault,
-            "steer_warn_rad": thresholds["steer"].warn,
-            "steer_fault_rad": thresholds["steer"].fault,
-        }
-    )
+    alarm_settings = _alarm_settings(alarm_base, thresholds, estimates, params.sample_period_s)
     profile = ProfileSpec(
         description=description
         or f"calibrated from {len(drives)} recording(s), {result.duration_s:.0f} s of healthy driving",
@@ -248,6 +238,27 @@ def calibrate_profile(
         false_alarms_per_1000_h=false_alarms_per_1000_h,
         warnings=warnings,
         gust_n=gust_n,
+    )
+
+
+def _alarm_settings(
+    alarm_base: AlarmThresholds,
+    thresholds: dict[str, ChannelThresholds],
+    estimates: FloatArray,
+    sample_period_s: float,
+) -> AlarmThresholds:
+    """``alarm_base`` with the four fault thresholds set here and the CUSUM's block sigmas of the healthy fault
+    estimates ``estimates`` (k, 2) [N m, rad], sampled every ``sample_period_s`` [s]."""
+    block_n = max(1, round(alarm_base.cusum_block_s / sample_period_s))
+    return alarm_base.model_copy(
+        update={
+            "torque_block_sigma_nm": block_sigma(estimates[:, 0], block_n),
+            "steer_block_sigma_rad": block_sigma(estimates[:, 1], block_n),
+            "torque_warn_nm": thresholds["torque"].warn,
+            "torque_fault_nm": thresholds["torque"].fault,
+            "steer_warn_rad": thresholds["steer"].warn,
+            "steer_fault_rad": thresholds["steer"].fault,
+        }
     )
 
 
