@@ -140,3 +140,19 @@ def test_the_math_imports_nothing_else_and_the_vehicle_side_only_what_is_listed_
         if module.startswith("edge_client"):
             from_service = {i for i in imports if i == "service" or i.startswith("service.")}
             assert from_service <= EDGE_CLIENT_FROM_SERVICE.get(module, set()), (module, from_service)
+
+
+def _importers(graph: dict[str, set[str]], target: str) -> set[str]:
+    """The modules outside ``target`` (a module or a package) that import it."""
+    return {m for m, imports in graph.items() if target in imports and m != target and not m.startswith(target + ".")}
+
+
+def test_the_service_is_wired_one_way():
+    """full-stack-fastapi-template's wiring: service.main alone builds the app from the API and the running
+    service, and only the entry points import it; the routes read service.app (through api.deps), and nothing
+    below the API (the fleet, the profile policy, storage, transport) imports the API or service.app back."""
+    graph = import_graph()
+    assert _importers(graph, "service.main") == {"agv_fe.commands.serve"}
+    assert _importers(graph, "service.api") == {"service.main"}
+    assert _importers(graph, "service.app") <= {"service.main"} | {m for m in graph if m.startswith("service.api.")}
+    assert "service.app" in graph["service.api.deps"]
