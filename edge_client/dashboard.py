@@ -41,6 +41,7 @@ SHORT_KIND = {
     "steer_fault": "steer",
     "out_of_domain": "domain",
     "stale": "stale",
+    "unserved": "unserved",
     "rejected_inputs": "inputs",
     "sequence_rejected": "sequence",
 }

@@ -38,6 +38,7 @@ from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, Flee
 from service.history import EstimateHistory
 from service.jobs import SynthesisJobs
 from service.metrics import ServiceMetrics, service_registry
+from service.ownership import OwnershipWatch
 from service.profile_policy import ProfilePolicy
 from service.protocol import OwnershipChange, all_buckets, bucket_of, shard_buckets
 from service.settings import Settings
@@ -47,7 +48,7 @@ from service.transport import Transport
 from service.web.hub import DashboardHub
 
 if TYPE_CHECKING:  # psycopg is imported only by a replica that uses PostgreSQL
-    from service.bucket_leases import BucketLeases, LeaseState
+    from service.bucket_leases import BucketLeases, LeaseState, StaticBucketLocks
 
 log = logging.getLogger("agv_fe.service")
 
@@ -93,6 +94,8 @@ class Service:
             else shard_buckets(settings.shard.index, settings.shard.replicas)
         )
         self.leases: BucketLeases | None = None
+        #: a static shard on a shared database: its buckets' locks, for the other replicas to see them owned
+        self.static_locks: StaticBucketLocks | None = None
         ingest = settings.ingest
         self.events = EventBus()
         self.engine = FleetEngine(
@@ -109,6 +112,8 @@ class Service:
         )
         self.metrics = ServiceMetrics()
         self.dashboard = DashboardHub(self.engine, settings.dashboard, self.replica_id)
+        #: with a shared database: the buckets without an owner, their vehicles and (as warden) their alarms
+        self.ownership = OwnershipWatch(self.engine, settings.shard.unserved_after_s)
         self.storage: Storage | None = None
         self.writer: StorageWriter | None = None
         self.history: EstimateHistory | None = None
@@ -168,6 +173,7 @@ class Service:
                 on_lose=lambda buckets: asyncio.run_coroutine_threadsafe(self._lose_buckets(buckets), loop),
             )
             await asyncio.to_thread(self.leases.start)
+        await self._watch_ownership()
         self._running = True
         self.ingest_heartbeat = time.monotonic()
         for name in self._loops:
@@ -222,6 +228,10 @@ class Service:
         if self.leases is not None:  # the session ends: every bucket lock is released for the other replicas
             self.leases.close()
             self.leases = None
+        if self.static_locks is not None:
+            self.static_locks.close()
+            self.static_locks = None
+        self.ownership.close()
 
     async def _load_state(self) -> None:
         """Profiles, gains, vehicles and latched alarms from the database; seed profiles on first start."""
@@ -403,6 +413,7 @@ class Service:
             for vehicle_id, alive in transport.drain_liveliness():
                 changes.extend(self.engine.liveliness(vehicle_id, alive))
             changes.extend(self.engine.housekeeping())
+            changes.extend(await self.ownership.check())
             if changes:
                 self.commit_alarms(changes)
 
@@ -454,6 +465,21 @@ class Service:
         }
 
     # ------------------------------------------------------------------ bucket leases
+
+    async def _watch_ownership(self) -> None:
+        """With a shared database: a static shard holds its buckets' locks, and every replica watches the lock
+        table for buckets without an owner (service/ownership.py)."""
+        url = self.settings.database_url
+        if url is None:
+            return
+        if self.leases is None:
+            from service.bucket_leases import StaticBucketLocks
+
+            self.static_locks = StaticBucketLocks(url, self.buckets, self.settings.shard.lease_interval_s)
+            await asyncio.to_thread(self.static_locks.start)
+        locks = self.leases or self.static_locks
+        if locks is not None:
+            self.ownership.attach(locks.snapshot, await asyncio.to_thread(self._open_storage))
 
     def lease_state(self) -> LeaseState | None:
         """The leases' view (owned buckets, live replicas, hand-overs), None with a static shard."""

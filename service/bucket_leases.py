@@ -17,6 +17,12 @@ buckets (16 // n, one more for the first 16 % n by pid), then
 When the lease connection fails (the database is unreachable) the replica keeps serving what it holds, since
 no other replica can take a lock meanwhile, and tries again each interval; once connected it locks its buckets
 again and gives up at once any it cannot lock (another replica took it first).
+
+The lock table is also the fleet's view of ownership: a bucket whose lock nobody holds has no owner, and its
+vehicles nobody estimates. Each round reads which buckets are unowned (:attr:`LeaseState.unowned`), and tries
+the *warden* lock, held by one replica of the database at a time: that replica raises the alarms of the
+unowned buckets' vehicles (service/ownership.py). A static shard (``--shard I/N``) on a shared database holds
+its buckets as shared locks (:class:`StaticBucketLocks`), so that its death shows in the same table.
 """
 
 from __future__ import annotations
@@ -40,6 +46,8 @@ log = logging.getLogger("agv_fe.service.leases")
 #: first key of the advisory locks of buckets and of members (the second is the bucket's index or the pid)
 BUCKET_LOCKS = 0x41475601
 MEMBER_LOCKS = 0x41475602
+#: the warden's lock (second key 0): the replica holding it raises the alarms of buckets without an owner
+WARDEN_LOCK = 0x41475603
 #: how long a replica waits for the service to stop serving a bucket (and flush its writes) before releasing it
 HANDOVER_TIMEOUT_S = 30.0
 
@@ -51,6 +59,18 @@ SELECT objid::bigint, pid FROM pg_locks
 WHERE locktype = 'advisory' AND classid = %s AND objsubid = 2 AND granted
   AND database = (SELECT oid FROM pg_database WHERE datname = current_database())
 """
+
+
+def unowned_buckets(conn: psycopg.Connection[Any], index: dict[str, int]) -> list[str]:
+    """The buckets of ``index`` (name -> lock key) whose lock no session holds, exclusive or shared."""
+    held = {int(objid) for objid, _ in conn.execute(_LOCKS_HELD, (BUCKET_LOCKS,)).fetchall()}
+    return [bucket for bucket, key in index.items() if key not in held]
+
+
+def try_warden(conn: psycopg.Connection[Any]) -> bool:
+    """Take the warden's lock if no other session holds it (call once per session: the lock is re-entrant)."""
+    row = conn.execute("SELECT pg_try_advisory_lock(%s, 0)", (WARDEN_LOCK,)).fetchone()
+    return bool(row and row[0])
 
 
 def fair_share(rank: int, members: int, n_buckets: int) -> int:
@@ -72,6 +92,10 @@ class LeaseState:
     rounds: int = 0
     #: why the lease connection failed, while it does
     problem: str | None = None
+    #: buckets no replica holds, as the latest round saw the lock table; None: not known (no round, no connection)
+    unowned: list[str] | None = None
+    #: this replica holds the warden's lock: it raises the alarms of the unowned buckets' vehicles
+    warden: bool = False
 
 
 class BucketLeases:
@@ -134,7 +158,7 @@ class BucketLeases:
         )
         conn.execute("SELECT pg_advisory_lock(%s, pg_backend_pid())", (MEMBER_LOCKS,))
         self._conn = conn
-        self._set(connected=True, problem=None)
+        self._set(connected=True, problem=None, warden=False)  # a new session holds no warden's lock yet
 
     def _reconnect(self) -> None:
         """A new session: lock the buckets served until now again; give up at once those another replica took."""
@@ -159,7 +183,7 @@ class BucketLeases:
                 problem,
                 len(self._owned),
             )
-        self._set(connected=False, problem=problem)
+        self._set(connected=False, problem=problem, unowned=None, warden=False)
         if self._conn is not None:
             self._conn.close()
             self._conn = None
@@ -194,6 +218,12 @@ class BucketLeases:
                 log.info("leases: gained buckets %s (%d of %d live replicas)", gained, rank + 1, len(members))
                 self._serve(gained)
         self._serve([b for b in retry if b in self._owned])
+        self._observe(conn)
+
+    def _observe(self, conn: psycopg.Connection[Any]) -> None:
+        """The fleet's ownership after this round: the buckets nobody holds, and whether this replica is warden."""
+        warden = self.state.warden or try_warden(conn)
+        self._set(unowned=unowned_buckets(conn, self._index), warden=warden)
 
     def _serve(self, buckets: list[str]) -> None:
         """Have the service serve buckets whose locks this replica holds; those it could not (the database failed
@@ -244,4 +274,105 @@ class BucketLeases:
     def snapshot(self) -> LeaseState:
         with self._lock:
             s = self.state
-            return LeaseState(list(s.owned), s.members, s.connected, s.gained, s.lost, s.rounds, s.problem)
+            unowned = None if s.unowned is None else list(s.unowned)
+            return LeaseState(
+                list(s.owned), s.members, s.connected, s.gained, s.lost, s.rounds, s.problem, unowned, s.warden
+            )
+
+
+class StaticBucketLocks:
+    """A static shard's buckets (``--shard I/N``) on a shared database: shared advisory locks, and the fleet's view.
+
+    The replica serves its buckets whatever happens here; the locks only say so in the lock table, so that every
+    replica of the database sees a static replica's buckets lose their owner when its session ends (it died) and
+    gain one when it is back. Shared locks: two static replicas configured with overlapping shards both hold
+    theirs, while a replica with leases cannot take such a bucket. Every ``interval_s`` the thread locks what it
+    does not hold yet (after a new session, or a bucket a replica with leases held), reads the unowned buckets and
+    tries the warden's lock, as :class:`BucketLeases` does each round.
+    """
+
+    def __init__(self, url: str, buckets: list[str], interval_s: float) -> None:
+        self.url = url
+        self.location = redacted(url)
+        self.interval_s = interval_s
+        self.buckets = list(buckets)
+        self._index = {b: int(b[1:], 16) for b in all_buckets()}
+        self._conn: psycopg.Connection[Any] | None = None
+        self._held: set[str] = set()
+        #: buckets of this shard a replica with leases held exclusively (logged once)
+        self._contested: set[str] = set()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self.state = LeaseState()
+        self._thread = threading.Thread(target=self._run, name="bucket-locks", daemon=True)
+
+    def start(self) -> None:
+        try:
+            self._connect()
+            self._round()
+        except psycopg.Error as exc:
+            raise StorageError(f"{self.location}: cannot open the bucket-lock connection: {exc}") from exc
+        self._thread.start()
+
+    def close(self) -> None:
+        """Stop the thread and end the session: the locks go with it."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(self.interval_s + CONNECT_TIMEOUT_S + 10)
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def _connect(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+        self._conn = None
+        self._held = set()
+        self._conn = psycopg.connect(
+            self.url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S, application_name="agv-fe-bucket-locks"
+        )
+        self._set(warden=False)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            try:
+                if self._conn is None or self._conn.closed or self._conn.broken:
+                    self._connect()
+                self._round()
+            except psycopg.Error as exc:
+                if self.state.problem is None:
+                    log.error("bucket locks: the connection to %s failed: %s", self.location, exc)
+                problem = f"{type(exc).__name__}: {str(exc).strip()}"
+                self._set(connected=False, problem=problem, unowned=None, warden=False)
+                if self._conn is not None:
+                    self._conn.close()
+                    self._conn = None
+
+    def _round(self) -> None:
+        if self._conn is None:
+            raise psycopg.OperationalError("the bucket-lock connection is closed")
+        conn = self._conn
+        for bucket in [b for b in self.buckets if b not in self._held]:
+            row = conn.execute("SELECT pg_try_advisory_lock_shared(%s, %s)", (BUCKET_LOCKS, self._index[bucket]))
+            if (got := row.fetchone()) and got[0]:
+                self._held.add(bucket)
+            elif bucket not in self._contested:
+                self._contested.add(bucket)
+                log.warning(
+                    "bucket locks: a replica with leases holds %s, which this static replica serves too", bucket
+                )
+        warden = self.state.warden or try_warden(conn)
+        unowned = unowned_buckets(conn, self._index)
+        self._set(connected=True, problem=None, rounds=self.state.rounds + 1, unowned=unowned, warden=warden)
+
+    def _set(self, **changes: Any) -> None:
+        with self._lock:
+            for name, value in changes.items():
+                setattr(self.state, name, value)
+            self.state.owned = sorted(self._held, key=self._index.__getitem__)
+
+    def snapshot(self) -> LeaseState:
+        with self._lock:
+            s = self.state
+            unowned = None if s.unowned is None else list(s.unowned)
+            return LeaseState(list(s.owned), 0, s.connected, 0, 0, s.rounds, s.problem, unowned, s.warden)

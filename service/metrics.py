@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     from service.fleet import FleetEngine
     from service.history import EstimateHistory
     from service.jobs import SynthesisJobs
+    from service.ownership import OwnershipWatch
     from service.settings import Settings
     from service.storage_writer import StorageState
 
@@ -115,6 +116,7 @@ class MetricsSource(Protocol):
     task_failures: dict[str, int]
     history: EstimateHistory | None
     buckets: list[str]
+    ownership: OwnershipWatch
 
     @property
     def jobs(self) -> SynthesisJobs: ...
@@ -184,6 +186,7 @@ class ServiceCollector(Collector):
         for bucket in all_buckets():
             served.add_metric([bucket], int(bucket in mine))
         yield served
+        yield from self._unowned()
         state = self.source.lease_state()
         if state is None:
             return
@@ -205,6 +208,33 @@ class ServiceCollector(Collector):
                 "1 while the lease connection to the database works (0: the buckets held are kept, none change)",
             ),
             int(state.connected),
+        )
+
+    def _unowned(self) -> Iterator[Metric]:
+        """With a shared database: the fleet's buckets without an owner, as the lock table has them, and their
+        registered vehicles (service/ownership.py); absent while not known."""
+        watch = self.source.ownership
+        if watch.unowned is None:
+            return
+        yield _one(
+            GaugeMetricFamily(
+                "agv_fe_buckets_unowned",
+                "key-expression buckets no replica of the shared database holds now: their vehicles get no estimates",
+            ),
+            len(watch.unowned),
+        )
+        yield _one(
+            GaugeMetricFamily(
+                "agv_fe_vehicles_unserved", "registered vehicles of the buckets no replica holds now (GET /vehicles)"
+            ),
+            len(watch.statuses()),
+        )
+        yield _one(
+            GaugeMetricFamily(
+                "agv_fe_ownership_warden",
+                "1 on the one replica of the shared database that raises the alarms of vehicles without an owner",
+            ),
+            int(watch.warden),
         )
 
     def _build_and_state(self) -> Iterator[Metric]:

@@ -768,6 +768,7 @@ AlarmKind = Literal[
     "steer_effectiveness",
     "out_of_domain",
     "stale",
+    "unserved",
     "rejected_inputs",
     "sequence_rejected",
 ]

@@ -204,7 +204,14 @@ class ShardSettings(_Section):
     lease_interval_s: Annotated[float, Field(gt=0, le=60)] = Field(
         0.5,
         description="with bucket leases: how often a replica looks at the live replicas and takes or gives buckets; "
-        "a dead replica's buckets are taken within about one interval of its database session ending [s]",
+        "a dead replica's buckets are taken within about one interval of its database session ending. With a "
+        "shared database in either mode: how often it reads which buckets have no owner [s]",
+    )
+    unserved_after_s: Annotated[float, Field(gt=0, le=3600)] = Field(
+        2.0,
+        description="with a shared database: a bucket no replica has held for this long raises an 'unserved' alarm "
+        "(level STALE) for each of its vehicles, cleared when the bucket has an owner again; shorter gaps (a "
+        "hand-over or a takeover by leases) show only in GET /vehicles and /metrics [s]",
     )
 
     @model_validator(mode="after")

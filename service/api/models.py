@@ -76,6 +76,11 @@ class Replicas(BaseModel):
     lease_replicas: int | None = Field(
         None, description="with bucket leases: the live replicas the shared database counts (null otherwise)"
     )
+    unowned_buckets: list[str] | None = Field(
+        None,
+        description="with a shared database: the buckets no replica holds now, whose vehicles nobody estimates "
+        "(null: not known, without a shared database or while the database is unreachable)",
+    )
 
 
 class MissingGains(BaseModel):
@@ -144,6 +149,7 @@ class VehicleStatus(BaseModel):
                     "profile": "default",
                     "level": "OK",
                     "stale": False,
+                    "served": True,
                     "alive": True,
                     "last_seq": 12003,
                     "last_seen_ns": 1_700_000_120_030_000_000,
@@ -161,6 +167,11 @@ class VehicleStatus(BaseModel):
     profile: str
     level: Level
     stale: bool
+    served: bool = Field(
+        True,
+        description="false for a vehicle of a bucket no replica serves now (a shared database's replica died): "
+        "nobody estimates it, its level is STALE and it has no counters",
+    )
     alive: bool | None = Field(description="liveliness token present (null: the vehicle declares none)")
     last_seq: int | None
     last_seen_ns: int | None = Field(description="service clock when the last measurement arrived [ns]")

@@ -12,6 +12,7 @@ latched until it is both cleared and acknowledged, each change an
 
 from __future__ import annotations
 
+import time
 import uuid
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -369,9 +370,15 @@ class AlarmBook:
         self._by_key: dict[tuple[str, str], AlarmRecord] = {}
         self._by_id: dict[str, AlarmRecord] = {}
 
-    def load(self, records: list[AlarmRecord]) -> None:
-        """Restore latched alarms after a restart."""
+    def load(self, records: list[AlarmRecord], served: bool = True) -> None:
+        """Restore latched alarms: after a restart, of vehicles taken over, or (``served`` False) the ``unserved``
+        alarms of vehicles this replica does not serve (service/ownership.py). A replica that serves the vehicles
+        loads an ``unserved`` alarm still raised as cleared now: it serves them, and the warden stores the clear."""
         for record in records:
+            if served and record.kind == "unserved" and record.state == "raised":
+                now_ns = time.time_ns()
+                record.state, record.cleared_t_ns, record.updated_t_ns = "cleared", now_ns, now_ns
+                record.message = "served again"
             if not record.closed:
                 self._by_key[(record.vehicle, record.kind)] = record
                 self._by_id[record.id] = record

@@ -15,6 +15,7 @@ from service.fleet import EngineConfig, FleetEngine, FleetEvent
 from service.history import EstimateHistory
 from service.jobs import SynthesisJobs
 from service.metrics import END_TO_END_BUCKETS_S, Histogram, ServiceCollector, ServiceMetrics, exposition
+from service.ownership import OwnershipWatch
 from service.protocol import Alarm, Measurement, all_buckets, shard_buckets
 from service.settings import Settings
 from service.storage_writer import StorageState
@@ -108,6 +109,10 @@ class _Source:
     buckets: list[str] = field(default_factory=list)
     history: EstimateHistory | None = None
     ready: bool = True
+    ownership: OwnershipWatch = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.ownership = OwnershipWatch(self.engine, unserved_after_s=2.0)  # no shared database: knows nothing
 
     def storage_state(self) -> StorageState:
         return StorageState(False, None, 0, 0, 0, None)

@@ -58,11 +58,12 @@ async def replicas(service: ServiceDep, response: Response) -> Replicas:
     transport = service.transport
     leases = service.lease_state()
     members = None if leases is None else leases.members
+    unowned = service.ownership.unowned
     if transport is None:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
-        return Replicas(replica=service.replica_id, replicas=[], lease_replicas=members)
+        return Replicas(replica=service.replica_id, replicas=[], lease_replicas=members, unowned_buckets=unowned)
     names = await asyncio.to_thread(transport.replicas)
-    return Replicas(replica=service.replica_id, replicas=names, lease_replicas=members)
+    return Replicas(replica=service.replica_id, replicas=names, lease_replicas=members, unowned_buckets=unowned)
 
 
 @router.get(

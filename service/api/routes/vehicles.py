@@ -49,7 +49,8 @@ LIST_LIMIT_MAX = 100_000
 @router.get(
     "",
     response_model=list[VehicleStatus],
-    summary="every vehicle of this replica with status and counters, by id; paged with limit and after",
+    summary="every vehicle of this replica with status and counters, and every vehicle no replica serves (served "
+    "false), by id; paged with limit and after",
     responses={
         200: {
             "description": "the vehicles in id order. With `limit`, a full page has a `Link` header with "
@@ -106,8 +107,23 @@ async def list_vehicles(
                     rows.append(row)
                     if len(rows) == wanted:
                         break
+    for row in rows:
+        row["served"] = True
+    # the vehicles of buckets no replica holds (a shared database's replica died): listed, level STALE, not served
+    unserved = [
+        row
+        for row in service.ownership.statuses()
+        if (profile is None or row["profile"] == profile)
+        and (after is None or row["id"] > after)
+        and (level is None or row["level"] == level)
+    ]
+    more = read < len(candidates)
+    if unserved:
+        merged = sorted(rows + unserved, key=lambda row: row["id"])
+        cap = len(merged) if limit is None else limit
+        rows, more = merged[:cap], more or len(merged) > cap
     headers = {}
-    if limit is not None and len(rows) == limit and read < len(candidates):
+    if limit is not None and len(rows) == limit and more:
         query = {k: v for k, v in request.query_params.items() if k != "after"}
         headers["Link"] = f'<{request.url.path}?{urlencode({**query, "after": rows[-1]["id"]})}>; rel="next"'
     # the documents as they are, by one orjson call: this handler runs on the event loop that runs ingest, and

@@ -27,6 +27,7 @@ export const ALARM_KINDS = {
   steer_effectiveness: 'Steering effectiveness lost',
   out_of_domain: 'Outside the design domain',
   stale: 'No data (stale)',
+  unserved: 'No replica serves it (unserved)',
   rejected_inputs: 'Rejected measurements',
   sequence_rejected: 'Samples refused as late',
 };
