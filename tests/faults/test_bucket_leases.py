@@ -1,8 +1,8 @@
 """Bucket leases on a real PostgreSQL server: three `agv-fe serve` replicas (separate processes, Zenoh clients of
 one router on loopback) share the 16 buckets of a 60-vehicle fleet, balanced; one replica is killed with SIGKILL
-mid-stream; the survivors take its buckets and estimate every one of its vehicles again, its latched alarm is
-visible through them, nothing it acknowledged is lost, no bucket is ever served by two replicas, and when it
-comes back the buckets rebalance."""
+mid-stream; the survivors take its buckets and estimate every one of its vehicles again within 3 s, its latched
+alarm is visible through them, nothing it acknowledged is lost, no bucket is ever served by two replicas, and when
+it comes back the buckets rebalance."""
 
 from __future__ import annotations
 
@@ -33,6 +33,18 @@ pytestmark = pytest.mark.network
 
 VEHICLES = [f"veh-{k:02d}" for k in range(60)]
 PROFILES = {"default": {"design": FAST_DESIGN, "alarms": {"stale_after_s": 1.0}}}
+#: how often each replica looks at the lock table and takes free buckets [s]
+LEASE_INTERVAL_S = 0.2
+#: The issue's bound on a takeover, from the kill to a survivor's first estimate of each of the dead replica's
+#: vehicles (measured on the estimate stream). What the configuration guarantees is far below it: a SIGKILLed
+#: process's connections are closed by its kernel, so PostgreSQL ends its session and frees its bucket locks at
+#: once (no timeout is involved; a machine that vanishes is another matter, deployment.md "Limits"); each survivor
+#: starts a lease round within LEASE_INTERVAL_S, sees two members and takes the free buckets up to its share;
+#: serving them is a read of their vehicles and one subscription per bucket; the next sample (10 ms) is then
+#: estimated at the next tick. One round plus that work is under 0.5 s on an idle machine (docs/benchmarks/
+#: failover.md: max 0.51 s with a 0.5 s interval); the rest of the 3 s is headroom for a loaded 2-core machine,
+#: where a round or the service's event loop may wait for the CPU. A missed round would still leave 2.6 s.
+TAKEOVER_BOUND_S = 3.0
 
 
 def replica(tmp_path: Path, name: str, router: RouterProcess, url: str) -> ServiceProcess:
@@ -41,7 +53,7 @@ def replica(tmp_path: Path, name: str, router: RouterProcess, url: str) -> Servi
         PROFILES,
         zenoh={"mode": "client", "endpoint": router.endpoint},
         database={"url": url},
-        shard={"replica_id": name, "lease_interval_s": 0.2},
+        shard={"replica_id": name, "lease_interval_s": LEASE_INTERVAL_S},
     )
     return ServiceProcess(settings, tmp_path / f"{name}.log")
 
@@ -145,9 +157,10 @@ def check_the_takeover(
         what=f"a survivor to estimate every vehicle of {victim} again",
     )
     delays = sorted(taken[v] - killed_at for v in its_vehicles if v != quiet)
-    print(
-        f"\ntakeover of {len(delays)} vehicles after SIGKILL: p50 {statistics.median(delays):.2f} s, "
-        f"max {delays[-1]:.2f} s"
+    # issue 24's must-show: each vehicle estimated again by a survivor within TAKEOVER_BOUND_S of the kill
+    assert delays[-1] <= TAKEOVER_BOUND_S, (
+        f"takeover of {len(delays)} vehicles after SIGKILL: p50 {statistics.median(delays):.2f} s, "
+        f"max {delays[-1]:.2f} s, beyond {TAKEOVER_BOUND_S} s"
     )
     wait_for(  # the dead replica's liveliness token went with its session
         lambda: survivors["r0"].get("/replicas").json()["replicas"] == ["r0", "r2"],
