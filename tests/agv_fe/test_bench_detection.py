@@ -30,8 +30,10 @@ SECTIONS = (
     "## Healthy fleet on the project's plant",
     "## Healthy driving on the multi-body plant",
     "## Detection delay against fault size",
+    "## Loss of effectiveness: the alpha rule",
     "## Operating curve",
     "## How it was measured",
+    "## Earlier runs",
 )
 PERIOD_S = 0.01
 
@@ -100,6 +102,27 @@ def test_healthy_counts_are_counts_consistent_with_the_vehicle_hours(outcome):
                 assert c["warn_raised_near_gust"] <= c["warn_raised"]
                 assert c["vehicles_with_warn"] <= min(c["warn_raised"], figures["vehicles"])
         assert 0.0 <= figures["in_domain_share"] <= 1.0
+
+
+def test_the_alpha_rule_counts_over_the_observer_s_hours_with_the_profile_s_thresholds(outcome):
+    """The effectiveness rule on the healthy fleet: counts over the observer's vehicle-hours, its thresholds the
+    profile's alpha thresholds, its peak a loss 1 - alpha_hat; the headline table lists both channels."""
+    _, text, document = outcome
+    alpha, observer = document["healthy"][bench.ALPHA], document["healthy"]["observer"]
+    rule = document["plan"]["effectiveness"]
+    assert alpha["hours"] == pytest.approx(observer["hours"]) and set(alpha["rules"]) == {"default"}
+    for channel in CHANNELS:
+        c = alpha["rules"]["default"]["channels"][channel]
+        assert _is_count(c["warn_raised"]) and _is_count(c["fault_raised"])
+        assert c["warn_per_1000_h"] == pytest.approx(1000.0 * c["warn_raised"] / alpha["hours"])
+        assert (c["warn_threshold"], c["fault_threshold"]) == (rule["warn_below"], rule["fault_below"])
+    assert all(0.0 <= peak < 1.0 for peak in alpha["peak_abs_estimate"])
+    headline = text.split("## Current figures")[1].split("## Calibrated profile")[0]
+    assert "Effectiveness alarm rule" in headline and "| delta_f |" in headline
+    for case in document["faults"]["cases"].values():
+        stats = case[bench.ALPHA]["default"]
+        assert stats["warn"]["runs"] == stats["fault"]["runs"] == case["runs"]
+        assert 0.0 <= stats["warn"]["never_share"] <= stats["fault"]["never_share"] <= 1.0
 
 
 def test_multibody_counts_are_consistent_with_the_drives(outcome):
@@ -278,6 +301,29 @@ def test_delays_are_measured_from_the_onset():
     # vehicle 3's WARN cleared before its onset (1 s below 8 N m): never detected after it
     assert math.isnan(warn[3])
     assert counter.level[2, 1] == FAULT and counter.level[0, 0] == WARN
+
+
+def test_the_alpha_rule_counts_raised_levels_of_a_known_sequence():
+    """The effectiveness rule (alpha held below 0.9 for 1 s: WARN, below 0.75: FAULT) through the same counter and
+    delay tracker: a loss to 0.85 held 1.5 s, one to 0.7 held 2 s, one to 0.85 held 0.8 s, and a gain to 1.2."""
+    alarms = ALARMS.model_copy(
+        update={"effectiveness_warn": 0.9, "effectiveness_fault": 0.75, "effectiveness_after_s": 1.0}
+    )
+    alpha = np.ones((1500, 4, 2))
+    alpha[_samples(5.0, 6.5), 0, 0] = 0.85
+    alpha[_samples(5.0, 7.0), 1, 1] = 0.7
+    alpha[_samples(5.0, 5.8), 2, 0] = 0.85
+    alpha[_samples(5.0, 9.0), 3, :] = 1.2
+    counter = bench.RaiseCounter(4, alarms, effectiveness=True)
+    counter.restart(0)
+    tracker = bench.DelayTracker(np.full(4, 5.0), np.array([0, 1, 0, 0], dtype=np.intp))
+    for k in range(alpha.shape[0]):
+        counter.update(alpha[k], k * round(PERIOD_S * 1e9))
+        tracker.update(round(k * PERIOD_S, 9), counter.level)
+    assert counter.warn_raised.tolist() == [[1, 0], [0, 1], [0, 0], [0, 0]]
+    assert counter.fault_raised.tolist() == [[0, 0], [0, 1], [0, 0], [0, 0]]
+    assert tracker.warn_delay_s[:2] == pytest.approx([1.0, 1.0], abs=PERIOD_S + SAMPLE_GRID_ATOL_S)
+    assert math.isnan(tracker.warn_delay_s[2]) and math.isnan(tracker.fault_delay_s[0])
 
 
 def test_delay_statistics_rank_the_undetected_runs_last():
