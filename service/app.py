@@ -161,6 +161,7 @@ class Service:
             await asyncio.to_thread(self.history.start)
         self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id, self.settings.bucket_leases)
         await asyncio.to_thread(self.transport.open)
+        self.metrics.vehicle_estimates = self.transport.vehicle_estimates  # its counters, read at each scrape
         self.transport_up = True
         if self.settings.bucket_leases and self.settings.database_url is not None:
             from service.bucket_leases import BucketLeases
@@ -383,7 +384,6 @@ class Service:
             started = time.perf_counter()
             next_tick = started + interval
             batch = transport.drain(ingest.max_batch)
-            metrics.estimates_unmatched = transport.refresh_matching()  # subscribers that came or went
             if not batch:
                 continue
             result = engine.process(batch)
@@ -393,10 +393,8 @@ class Service:
             if result.alarms:
                 self.commit_alarms(result.alarms)
             if result.estimate_batches:
-                sent, in_fleet = transport.publish_estimates(result.estimate_batches)
+                metrics.fleet_estimates_out += transport.publish_estimates(result.estimate_batches)
                 metrics.observe_end_to_end([b.t_ns for b in result.estimate_batches], time.time_ns())
-                metrics.estimates_out += sent
-                metrics.fleet_estimates_out += in_fleet
                 if self.history is not None:
                     self.history.append(result.estimate_batches)
             metrics.tick_seconds.observe(time.perf_counter() - started)

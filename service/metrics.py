@@ -80,6 +80,15 @@ class Histogram:
         return HistogramMetricFamily(name, documentation, buckets=buckets, sum_value=self.sum)
 
 
+class VehicleEstimateCounters(Protocol):
+    """What /metrics reads of the publisher of each vehicle's own estimates (service.transport.VehicleEstimates)."""
+
+    sent: int
+    dropped: int
+    errors: int
+    unmatched: int
+
+
 class ServiceMetrics:
     """The histograms and counters kept outside the fleet engine."""
 
@@ -88,9 +97,10 @@ class ServiceMetrics:
         self.tick_batch = Histogram(BATCH_BUCKETS)
         self.synthesis_seconds = Histogram(SYNTHESIS_BUCKETS_S)
         self.end_to_end_seconds = Histogram(END_TO_END_BUCKETS_S)
-        self.estimates_out = 0
         self.fleet_estimates_out = 0
-        self.estimates_unmatched = 0
+        #: the publisher of each vehicle's own estimates (service.transport.VehicleEstimates), from the transport's
+        #: start: its counters are read at each scrape
+        self.vehicle_estimates: VehicleEstimateCounters | None = None
         self.alarms_out = 0
         self.last_batch = 0
         self.full_batches = 0
@@ -292,11 +302,26 @@ class ServiceCollector(Collector):
             stats["restarts"],
         )
         yield _one(CounterMetricFamily("agv_fe_estimates", "estimates computed"), stats["estimates"])
+        vehicle = m.vehicle_estimates
         yield _one(
             CounterMetricFamily(
-                "agv_fe_estimates_published", "estimates published on Zenoh, each on its vehicle's key"
+                "agv_fe_estimates_published",
+                "estimates published on Zenoh on their vehicle's keys (one per encoding someone subscribes to)",
             ),
-            m.estimates_out,
+            0 if vehicle is None else vehicle.sent,
+        )
+        yield _one(
+            CounterMetricFamily(
+                "agv_fe_vehicle_estimates_dropped",
+                "estimates not put on their vehicle's keys: the publisher thread fell too many ticks behind",
+            ),
+            0 if vehicle is None else vehicle.dropped,
+        )
+        yield _one(
+            CounterMetricFamily(
+                "agv_fe_vehicle_estimate_errors", "publications of a tick's estimates on vehicle keys that failed"
+            ),
+            0 if vehicle is None else vehicle.errors,
         )
         yield _one(
             CounterMetricFamily(
@@ -310,7 +335,7 @@ class ServiceCollector(Collector):
                 "agv_fe_estimate_keys_unmatched",
                 "vehicles whose estimate key no subscriber matched at the last check (their estimates are not sent)",
             ),
-            m.estimates_unmatched,
+            0 if vehicle is None else vehicle.unmatched,
         )
         yield _one(
             GaugeMetricFamily(

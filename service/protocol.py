@@ -83,8 +83,8 @@ BUCKET_PATTERN = re.compile(r"^b[0-9a-f]{2}$")
 #: A shard bucket's name in a JSON message.
 Bucket = Annotated[str, Field(pattern=BUCKET_PATTERN.pattern)]
 
-Kind = Literal["meas", "truth", "estimate", "alarm", "alive"]
-KINDS: tuple[Kind, ...] = ("meas", "truth", "estimate", "alarm", "alive")
+Kind = Literal["meas", "truth", "estimate", "estimate.bin", "alarm", "alive"]
+KINDS: tuple[Kind, ...] = get_args(Kind)
 
 
 class ProtocolError(ValueError):
@@ -813,3 +813,142 @@ class Alarm(_Message):
 
 class GroundTruth(_State, _Sample, _Message):
     """What a simulator knows and a real vehicle does not: for validation and dashboards (JSON)."""
+
+
+# ---------------------------------------------------------------------------------------------- binary estimates
+#
+# A vehicle that closes its loop on its own estimates reads them from its own key. Beside the JSON document on
+# ``.../<vehicle>/estimate`` the service writes the same record in a fixed binary layout on
+# ``.../<vehicle>/estimate.bin`` (docs/protocol.md, "Estimate (binary, per vehicle)"; include/agv_fe/estimate.h):
+# a 40-byte header and the record's float columns in ESTIMATE_COLUMNS order, little-endian. The vehicle is the key's; a
+# column the record does not carry (a later revision's, or an optional group the profile does not run) is NaN.
+# A service that publishes for 1,000 vehicles at 100 Hz writes a batch of them with one numpy call instead of
+# one JSON document each.
+
+#: Key kind of the binary per-vehicle estimate (:func:`vehicle_key` accepts it like the kinds of :data:`KINDS`).
+BINARY_ESTIMATE_KIND: Kind = "estimate.bin"
+ESTIMATE_BINARY_MAGIC = b"AGVE"
+#: The header: magic, protocol version, revision of the record's fields (0: 1.0), flags, level code, the
+#: measurement's seq and t_ns, the gain version (ASCII, NUL-padded), the number of float columns that follow, 0.
+ESTIMATE_BINARY_HEADER_DTYPE = np.dtype(
+    [
+        ("magic", "S4"),
+        ("version", "u1"),
+        ("revision", "u1"),
+        ("flags", "u1"),
+        ("level", "u1"),
+        ("seq", "<u8"),
+        ("t_ns", "<i8"),
+        ("gain_version", "S12"),
+        ("n_columns", "<u2"),
+        ("reserved", "<u2"),
+    ]
+)
+ESTIMATE_BINARY_HEADER_SIZE = ESTIMATE_BINARY_HEADER_DTYPE.itemsize  # 40
+#: Flags of the binary estimate: the premise was in the design box; the gains have two sets (then the next bit
+#: says which made it: set for 'fast', clear for 'quiet').
+BINARY_FLAG_IN_DOMAIN = 0x01
+BINARY_FLAG_GAIN_SET = 0x02
+BINARY_FLAG_FAST = 0x04
+_BINARY_KNOWN_FLAGS = BINARY_FLAG_IN_DOMAIN | BINARY_FLAG_GAIN_SET | BINARY_FLAG_FAST
+#: Level codes of the binary estimate, in the order of :data:`Level`.
+LEVEL_CODES: dict[Level, int] = {"OK": 0, "WARN": 1, "FAULT": 2, "STALE": 3}
+_LEVELS_BY_CODE: dict[int, Level] = {code: level for level, code in LEVEL_CODES.items()}
+_GAIN_VERSION_BYTES = ESTIMATE_BINARY_HEADER_DTYPE["gain_version"].itemsize
+
+
+@functools.cache
+def estimate_binary_dtype(n_columns: int) -> np.dtype:
+    """The numpy layout of a binary estimate with ``n_columns`` float columns: the header, then ``values``."""
+    return np.dtype([*ESTIMATE_BINARY_HEADER_DTYPE.descr, ("values", "<f8", (n_columns,))])
+
+
+def encode_binary_estimates(batch: EstimateBatch, rows: Sequence[int] | None = None) -> list[bytes]:
+    """The binary estimate of each row of ``batch`` (every row by default), in the order asked.
+
+    The rows are written into one structured array and cut into records: one numpy pass for the whole batch.
+    """
+    positions = [ESTIMATE_COLUMNS.index(name) for name in batch.columns]
+    n_columns = max(positions, default=-1) + 1
+    pick: Sequence[int] = range(len(batch)) if rows is None else rows
+    if not len(pick):
+        return []
+    if len(batch.gain_version) > _GAIN_VERSION_BYTES or not batch.gain_version.isascii():
+        raise ValueError(f"gain version {batch.gain_version!r}: at most {_GAIN_VERSION_BYTES} ASCII characters")
+    at = slice(None) if rows is None else np.asarray(rows, dtype=np.intp)
+    records = np.zeros(len(pick), estimate_binary_dtype(n_columns))
+    records["magic"] = ESTIMATE_BINARY_MAGIC
+    records["version"] = PROTOCOL_VERSION
+    records["revision"] = revision_of(batch.columns)
+    flags = batch.in_domain[at].astype(np.uint8)
+    if batch.fast is not None:
+        flags |= BINARY_FLAG_GAIN_SET | np.where(batch.fast[at], BINARY_FLAG_FAST, 0).astype(np.uint8)
+    records["flags"] = flags
+    levels = batch.levels
+    records["level"] = [LEVEL_CODES[levels[i]] for i in pick]
+    records["seq"] = batch.seq[at]
+    records["t_ns"] = batch.t_ns[at]
+    records["gain_version"] = batch.gain_version.encode("ascii")
+    records["n_columns"] = n_columns
+    if positions == list(range(n_columns)):
+        records["values"] = batch.values[at]
+    else:  # a column group the batch does not carry sits between two it does: NaN there
+        values = np.full((len(pick), n_columns), np.nan)
+        values[:, positions] = batch.values[at]
+        records["values"] = values
+    data = records.tobytes()
+    size = records.dtype.itemsize
+    return [data[i : i + size] for i in range(0, len(data), size)]
+
+
+def decode_binary_estimate(payload: bytes | bytearray | memoryview, vehicle_id: str) -> Estimate:
+    """Read a binary estimate received on ``vehicle_id``'s key; raise :class:`ProtocolError` naming what is wrong.
+
+    A record of a later revision than this side knows is read for the columns it knows; at a revision this side
+    knows, more columns than the record has is an error."""
+    data = bytes(payload)
+    if len(data) < ESTIMATE_BINARY_HEADER_SIZE:
+        raise ProtocolError(f"binary estimate: {len(data)} bytes, the header alone is {ESTIMATE_BINARY_HEADER_SIZE}")
+    head = np.frombuffer(data, ESTIMATE_BINARY_HEADER_DTYPE, count=1)[0]
+    if bytes(head["magic"]) != ESTIMATE_BINARY_MAGIC:
+        raise ProtocolError(f"binary estimate: magic {bytes(head['magic'])!r}, expected {ESTIMATE_BINARY_MAGIC!r}")
+    version, reserved = int(head["version"]), int(head["reserved"])
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(f"binary estimate: protocol version {version}, this side reads {PROTOCOL_VERSION}")
+    flags, level, revision = int(head["flags"]), int(head["level"]), int(head["revision"])
+    if flags & ~_BINARY_KNOWN_FLAGS or reserved:
+        raise ProtocolError(f"binary estimate: reserved bits set (flags {flags:#04x}, reserved {reserved})")
+    if level not in _LEVELS_BY_CODE:
+        raise ProtocolError(f"binary estimate: unknown level code {level}")
+    n_columns = int(head["n_columns"])
+    expected = ESTIMATE_BINARY_HEADER_SIZE + 8 * n_columns
+    if len(data) != expected:
+        raise ProtocolError(f"binary estimate: {len(data)} bytes, {n_columns} columns make {expected}")
+    if n_columns > len(ESTIMATE_COLUMNS) and revision <= ESTIMATE_REVISION:
+        raise ProtocolError(
+            f"binary estimate: {n_columns} columns at revision {revision}, which has {len(ESTIMATE_COLUMNS)}"
+        )
+    values = np.frombuffer(data, "<f8", count=n_columns, offset=ESTIMATE_BINARY_HEADER_SIZE).tolist()
+    fields: dict[str, Any] = {
+        name: value for name, value in zip(ESTIMATE_COLUMNS, values, strict=False) if not math.isnan(value)
+    }
+    if revision and revision <= ESTIMATE_REVISION:
+        fields["rev"] = revision
+    if flags & BINARY_FLAG_GAIN_SET:
+        fields["gain_set"] = "fast" if flags & BINARY_FLAG_FAST else "quiet"
+    try:
+        gain_version = bytes(head["gain_version"]).rstrip(b"\0").decode("ascii")
+        return Estimate.model_validate(
+            {
+                "v": PROTOCOL_VERSION,
+                "vehicle": vehicle_id,
+                "seq": int(head["seq"]),
+                "t_ns": int(head["t_ns"]),
+                "in_domain": bool(flags & BINARY_FLAG_IN_DOMAIN),
+                "gain_version": gain_version,
+                "level": _LEVELS_BY_CODE[level],
+                **fields,
+            }
+        )
+    except ValueError as exc:  # UnicodeDecodeError and pydantic's ValidationError are ValueErrors
+        raise ProtocolError(f"invalid binary estimate: {exc}") from exc

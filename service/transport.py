@@ -38,8 +38,10 @@ from __future__ import annotations
 import collections
 import contextlib
 import json
+import logging
+import threading
 import time
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -47,9 +49,12 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from service.protocol import (
+    BINARY_ESTIMATE_KIND,
     N_BUCKETS,
+    Kind,
     all_buckets,
     bucket_selector,
+    encode_binary_estimates,
     encode_fleet_estimates,
     fleet_estimates_key,
     fleet_selector,
@@ -73,6 +78,13 @@ OWNERSHIP_RING_CAPACITY = 256
 #: client session learns of existing subscribers only after a round trip to its router, and reports "no
 #: match" until then; afterwards its matching listener reports every change [s].
 MATCH_SETTLE_S = 1.0
+#: Ticks of per-vehicle estimates the publisher thread may fall behind by; beyond, the oldest tick's are dropped
+#: (counted): the ingest loop never waits for a vehicle's subscriber.
+VEHICLE_QUEUE_TICKS = 100
+#: How often the publisher thread looks at the subscribers that came or went while no estimate is due [s].
+VEHICLE_IDLE_REFRESH_S = 0.5
+
+log = logging.getLogger(__name__)
 
 
 class TransportError(Exception):
@@ -204,6 +216,165 @@ def open_session(
         raise TransportError(f"zenoh {mode}: cannot {verb} {endpoint}{secured}: {exc}") from exc
 
 
+def _json_documents(batch: EstimateBatch, rows: Sequence[int] | None) -> list[bytes]:
+    return batch.documents(rows)
+
+
+#: The encodings of a vehicle's own estimates: key kind -> (encoder of a batch's rows, Zenoh encoding). A
+#: subscriber picks one by the key it subscribes to (docs/protocol.md).
+VEHICLE_ENCODINGS: dict[Kind, tuple[Callable[[EstimateBatch, Sequence[int] | None], list[bytes]], zenoh.Encoding]] = {
+    "estimate": (_json_documents, zenoh.Encoding.APPLICATION_JSON),
+    BINARY_ESTIMATE_KIND: (encode_binary_estimates, zenoh.Encoding.APPLICATION_OCTET_STREAM),
+}
+
+
+class VehicleEstimates:
+    """Each vehicle's estimates on its own keys, JSON and binary, put by a thread of their own.
+
+    The ingest loop hands over a tick's batches (:meth:`submit`) and goes on: encoding and one ``put`` per
+    vehicle and encoding (100,000 a second at 1,000 vehicles) run on this thread, and Zenoh's ``put`` releases
+    the GIL while it sends. With ``subscribed_only`` (setting ``zenoh.vehicle_estimates='subscribed'``), a
+    vehicle's estimate is encoded and sent only in the encodings someone subscribes to: each publisher has a
+    matching listener, whose reports this thread applies before every publication. If the thread falls
+    ``VEHICLE_QUEUE_TICKS`` ticks behind (a subscriber slower than the fleet with congestion control BLOCK),
+    the oldest tick's estimates are dropped and counted in :attr:`dropped`.
+
+    Counters (written by one thread each, read by any): :attr:`sent` messages put, :attr:`dropped` estimates
+    dropped, :attr:`errors` publications that failed, :attr:`unmatched` vehicles nobody listens to in any encoding.
+    """
+
+    def __init__(self, session: zenoh.Session, prefix: str, congestion: Any, subscribed_only: bool) -> None:
+        self.session = session
+        self.prefix = prefix
+        self.congestion = congestion
+        self.subscribed_only = subscribed_only
+        self.pubs: dict[tuple[str, Kind], Any] = {}
+        self.listeners: list[Any] = []
+        # matching reports appended from Zenoh's threads; publishers still settling; keys nobody matches
+        self.match_events: collections.deque[tuple[tuple[str, Kind], bool]] = collections.deque()
+        self.settling: dict[tuple[str, Kind], float] = {}
+        self.unmatched_keys: dict[Kind, set[str]] = {kind: set() for kind in VEHICLE_ENCODINGS}
+        self.sent = 0
+        self.dropped = 0
+        self.errors = 0
+        self.unmatched = 0
+        self._queue: collections.deque[Sequence[EstimateBatch]] = collections.deque()
+        self._wake = threading.Event()
+        self._stopping = False
+        self._thread = threading.Thread(target=self._run, name="vehicle-estimates", daemon=True)
+        self._thread.start()
+
+    def submit(self, batches: Sequence[EstimateBatch]) -> None:
+        """Queue a tick's batches for publication (returns at once)."""
+        if len(self._queue) >= VEHICLE_QUEUE_TICKS:
+            with contextlib.suppress(IndexError):  # the thread may have taken it meanwhile
+                self.dropped += sum(len(b) for b in self._queue.popleft())
+        self._queue.append(batches)
+        self._wake.set()
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Publish what is queued, stop the thread, undeclare the publishers and their listeners."""
+        self._stopping = True
+        self._wake.set()
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            log.warning("the vehicle estimate publisher did not stop within %g s", timeout_s)
+        for entity in [*self.listeners, *self.pubs.values()]:
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()
+        self.listeners, self.pubs, self.settling = [], {}, {}
+
+    def _run(self) -> None:
+        while True:
+            self._wake.wait(VEHICLE_IDLE_REFRESH_S)
+            self._wake.clear()
+            idle = not self._queue
+            while self._queue:
+                batches = self._queue.popleft()
+                try:
+                    self.publish(batches)
+                except Exception:  # a failed put or declaration: counted and logged, the thread goes on
+                    self.errors += 1
+                    log.exception("publishing %d vehicles' estimates failed", sum(len(b) for b in batches))
+            if self._stopping:
+                return
+            if idle and self.subscribed_only:
+                with contextlib.suppress(Exception):
+                    self.refresh_matching()
+
+    def publish(self, batches: Sequence[EstimateBatch]) -> None:
+        """Encode and put ``batches`` on the vehicles' keys, in every encoding someone subscribes to."""
+        if self.subscribed_only:
+            self.refresh_matching()
+        pubs = self.pubs
+        for batch in batches:
+            for kind, (encode, _) in VEHICLE_ENCODINGS.items():
+                unmatched = self.unmatched_keys[kind]
+                ids = batch.vehicle_ids
+                if unmatched:
+                    rows = [j for j, vehicle_id in enumerate(ids) if vehicle_id not in unmatched]
+                    if not rows:
+                        continue
+                    ids = [ids[j] for j in rows]
+                    documents = encode(batch, rows)
+                else:
+                    documents = encode(batch, None)
+                for vehicle_id, document in zip(ids, documents, strict=True):
+                    pub = pubs.get((vehicle_id, kind))
+                    if pub is None:
+                        pub = pubs[vehicle_id, kind] = self.declare(vehicle_id, kind)
+                    pub.put(document)
+                self.sent += len(documents)
+
+    def declare(self, vehicle_id: str, kind: Kind) -> Any:
+        """The publisher of ``vehicle_id``'s estimates in the encoding of key ``kind`` (with its matching listener
+        when only subscribed keys get estimates)."""
+        pub = self.session.declare_publisher(
+            vehicle_key(vehicle_id, kind, self.prefix),
+            congestion_control=self.congestion,
+            encoding=VEHICLE_ENCODINGS[kind][1],
+        )
+        if self.subscribed_only:
+            events, key = self.match_events, (vehicle_id, kind)  # a deque: appending from Zenoh's threads is safe
+            # indirect=False: the append runs on Zenoh's own thread. The default runs every callback handler on a
+            # Python thread of its own: one thread per vehicle (1,014 threads at 1,000 vehicles, soak benchmark)
+            callback: zenoh.handlers.Callback[Any] = zenoh.handlers.Callback(
+                lambda status: events.append((key, status.matching)), indirect=False
+            )
+            self.listeners.append(pub.declare_matching_listener(callback))
+            self.settling.pop(key, None)  # keep the dict in declaration order
+            self.settling[key] = time.monotonic()
+        return pub
+
+    def refresh_matching(self, now: float | None = None) -> int:
+        """Bring the keys nobody subscribes to up to date; return how many vehicles have no subscriber at all.
+
+        Each publisher's matching listener reports every change, applied here in the order it came; a publisher
+        whose first MATCH_SETTLE_S have passed has its status read once, since a listener reports changes only.
+        A publisher still settling is taken as matched."""
+        events, unmatched, settling = self.match_events, self.unmatched_keys, self.settling
+        while events:
+            (vehicle_id, kind), matched = events.popleft()
+            if (vehicle_id, kind) in settling:
+                continue  # taken as matched until its status is read below
+            (unmatched[kind].discard if matched else unmatched[kind].add)(vehicle_id)
+        if settling:
+            now = time.monotonic() if now is None else now
+            while settling:  # in the order the publishers were declared, so the oldest comes first
+                key, declared = next(iter(settling.items()))
+                if now - declared < MATCH_SETTLE_S:
+                    break
+                del settling[key]
+                try:
+                    matched = self.pubs[key].matching_status.matching
+                except (KeyError, zenoh.ZError):
+                    matched = True  # unknown: keep publishing
+                (unmatched[key[1]].discard if matched else unmatched[key[1]].add)(key[0])
+        sets = list(unmatched.values())
+        self.unmatched = len(set.intersection(*sets)) if sets else 0
+        return self.unmatched
+
+
 class Transport:
     """The service's Zenoh session: measurement and liveliness subscriptions, estimate and alarm publication."""
 
@@ -222,13 +393,7 @@ class Transport:
         self._ownership_pub: Any = None
         self._ownership_sub: Any = None
         self._token: Any = None
-        self._estimate_pubs: dict[str, Any] = {}
-        # with vehicle_estimates='subscribed': each estimate publisher's matching listener, the changes they
-        # reported (appended from Zenoh's threads), the publishers still settling, and the keys nobody matches
-        self._listeners: list[Any] = []
-        self._match_events: collections.deque[tuple[str, bool]] = collections.deque()
-        self._settling: dict[str, float] = {}
-        self._unmatched: set[str] = set()
+        self._vehicle: VehicleEstimates | None = None  # each vehicle's own estimate keys, from open() on
         self._fleet_pub: Any = None
         self._alarm_pubs: dict[str, Any] = {}
         self._truth: dict[str, Any] = {}
@@ -328,6 +493,9 @@ class Transport:
                 congestion_control=self._estimate_cc,
                 encoding=zenoh.Encoding.APPLICATION_JSON,
             )
+            self._vehicle = VehicleEstimates(
+                session, self.prefix, self._estimate_cc, self.settings.vehicle_estimates == "subscribed"
+            )
         except zenoh.ZError as exc:
             self.close()
             raise TransportError(f"zenoh: cannot declare the service's subscriptions: {exc}") from exc
@@ -376,88 +544,29 @@ class Transport:
                 out.append((vehicle_id, sample.payload.to_bytes()))
         return out
 
-    def publish_estimates(self, batches: Sequence[EstimateBatch]) -> tuple[int, int]:
-        """Publish a tick's estimates; returns (per-vehicle messages, estimates in the fleet message).
+    def publish_estimates(self, batches: Sequence[EstimateBatch]) -> int:
+        """Publish a tick's estimates; return how many went into the fleet message.
 
-        Each vehicle's estimate goes to its own key; with ``zenoh.vehicle_estimates='subscribed'``, not when
-        no subscriber matched that key at the last :meth:`refresh_matching` (then its document is not even
-        made). The whole tick goes as one :class:`~service.protocol.FleetEstimates` message when a
-        subscriber matches the replica's fleet key.
+        Each vehicle's estimate goes to its own keys, JSON and binary, from the :class:`VehicleEstimates` thread
+        (this call only queues them); with ``zenoh.vehicle_estimates='subscribed'``, only in the encodings a
+        subscriber matches (a document nobody reads is not even made). The whole tick goes as one
+        :class:`~service.protocol.FleetEstimates` message, here, when a subscriber matches the replica's fleet key.
         """
-        pubs, unmatched = self._estimate_pubs, self._unmatched
-        sent = 0
-        for batch in batches:
-            ids = batch.vehicle_ids
-            if unmatched:  # only with vehicle_estimates='subscribed'
-                rows = [j for j, vehicle_id in enumerate(ids) if vehicle_id not in unmatched]
-                ids = [ids[j] for j in rows]
-                documents = batch.documents(rows)
-            else:
-                documents = batch.documents()
-            for vehicle_id, document in zip(ids, documents, strict=True):
-                pub = pubs.get(vehicle_id)
-                if pub is None:
-                    pub = pubs[vehicle_id] = self._declare_estimate_publisher(vehicle_id)
-                pub.put(document)
-            sent += len(documents)
-        in_fleet = 0
+        self._require_vehicle().submit(batches)
         if self._fleet_pub is not None and batches and self._fleet_pub.matching_status.matching:
             self._fleet_pub.put(encode_fleet_estimates(self.replica_id, batches))
-            in_fleet = sum(len(b) for b in batches)
-        return sent, in_fleet
+            return sum(len(b) for b in batches)
+        return 0
 
-    def _declare_estimate_publisher(self, vehicle_id: str) -> Any:
-        pub = self.session.declare_publisher(
-            vehicle_key(vehicle_id, "estimate", self.prefix),
-            congestion_control=self._estimate_cc,
-            encoding=zenoh.Encoding.APPLICATION_JSON,
-        )
-        if self.settings.vehicle_estimates == "subscribed":
-            events = self._match_events  # a deque: appending from Zenoh's threads is safe
-            # indirect=False: the append runs on Zenoh's own thread. The default runs every callback handler on a
-            # Python thread of its own: one thread per vehicle (1,014 threads at 1,000 vehicles, soak benchmark)
-            callback: zenoh.handlers.Callback[Any] = zenoh.handlers.Callback(
-                lambda status: events.append((vehicle_id, status.matching)), indirect=False
-            )
-            self._listeners.append(pub.declare_matching_listener(callback))
-            self._settling.pop(vehicle_id, None)  # keep the dict in declaration order
-            self._settling[vehicle_id] = time.monotonic()
-        return pub
+    @property
+    def vehicle_estimates(self) -> VehicleEstimates:
+        """The publisher of each vehicle's own estimates (its counters: sent, dropped, errors, unmatched)."""
+        return self._require_vehicle()
 
-    def refresh_matching(self, now: float | None = None) -> int:
-        """Bring the set of vehicle estimate keys nobody subscribes to up to date; return its size.
-
-        Each estimate publisher's matching listener reports every change, applied here in the order it came;
-        a publisher whose first MATCH_SETTLE_S have passed has its status read once, since a listener
-        reports changes only. The ingest loop calls this before every publication, so a new subscriber gets
-        a vehicle's estimates from the next tick on; with nothing queued and nothing settling it costs two
-        truth tests. Nothing is skipped when the setting ``zenoh.vehicle_estimates`` is 'always'."""
-        events, unmatched, settling = self._match_events, self._unmatched, self._settling
-        while events:
-            vehicle_id, matched = events.popleft()
-            if vehicle_id in settling:
-                continue  # taken as matched until its status is read below
-            if matched:
-                unmatched.discard(vehicle_id)
-            else:
-                unmatched.add(vehicle_id)
-        if not settling:
-            return len(unmatched)
-        now = time.monotonic() if now is None else now
-        while settling:  # in the order the publishers were declared, so the oldest comes first
-            vehicle_id, declared = next(iter(settling.items()))
-            if now - declared < MATCH_SETTLE_S:
-                break
-            del settling[vehicle_id]
-            try:
-                matched = self._estimate_pubs[vehicle_id].matching_status.matching
-            except zenoh.ZError:
-                matched = True  # unknown: keep publishing
-            if matched:
-                unmatched.discard(vehicle_id)
-            else:
-                unmatched.add(vehicle_id)
-        return len(unmatched)
+    def _require_vehicle(self) -> VehicleEstimates:
+        if self._vehicle is None:
+            raise TransportError("the transport is not open")
+        return self._vehicle
 
     def router_connected(self) -> bool:
         """Whether the session is connected to a router now (a client's link; a router counts itself)."""
@@ -483,16 +592,17 @@ class Transport:
         """Undeclare everything and close the session (an unclosed session can hang the process at exit)."""
         entities = [*self._meas.values(), *self._alive.values(), *self._truth.values()]
         fleet = [p for p in (self._fleet_pub, self._ownership_pub, self._ownership_sub) if p is not None]
-        for entity in [*entities, *fleet, *self._listeners, *self._estimate_pubs.values(), *self._alarm_pubs.values()]:
+        if self._vehicle is not None:  # first: it publishes what is queued on the open session
+            self._vehicle.close()
+            self._vehicle = None
+        for entity in [*entities, *fleet, *self._alarm_pubs.values()]:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         if self._token is not None:
             with contextlib.suppress(zenoh.ZError):
                 self._token.undeclare()
         self._meas, self._alive, self._token, self._ownership_pub, self._ownership_sub = {}, {}, None, None, None
-        self._estimate_pubs, self._alarm_pubs, self._truth = {}, {}, {}
-        self._listeners, self._settling, self._unmatched, self._fleet_pub = [], {}, set(), None
-        self._match_events.clear()
+        self._alarm_pubs, self._truth, self._fleet_pub = {}, {}, None
         if self._session is not None:
             self._session.close()  # type: ignore[no-untyped-call]
             self._session = None

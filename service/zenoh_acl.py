@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from service.protocol import (
+    BINARY_ESTIMATE_KIND,
     ProtocolError,
     check_vehicle_id,
     fleet_estimates_selector,
@@ -118,6 +119,7 @@ def access_control(
         fleet_selector("alive", prefix),
     )
     estimates, alarms = fleet_selector("estimate", prefix), fleet_selector("alarm", prefix)
+    binary_estimates = fleet_selector(BINARY_ESTIMATE_KIND, prefix)  # the same estimates in the binary encoding
     fleet_stream = fleet_estimates_selector(prefix)
     ownership = ownership_selector(prefix)  # replicas announce the buckets they take and give up (bucket leases)
     rules = [
@@ -126,20 +128,28 @@ def access_control(
         _rule("service-receive", ["put"], "egress", [measurements, truth, ownership]),
         _rule("service-follow-liveliness", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [alive]),
         _rule("service-receive-liveliness", ["liveliness_token"], "egress", [alive]),
-        _rule("service-publish", ["put"], "ingress", [estimates, alarms, fleet_stream, ownership]),
+        _rule("service-publish", ["put"], "ingress", [estimates, binary_estimates, alarms, fleet_stream, ownership]),
         _rule("service-liveliness", ["liveliness_token"], "ingress", [service_liveliness_selector(prefix)]),
         # its estimate publishers' matching listeners learn of the subscribers
         _rule(
-            "service-see-subscribers", ["declare_subscriber"], "egress", [estimates, alarms, fleet_stream, ownership]
+            "service-see-subscribers",
+            ["declare_subscriber"],
+            "egress",
+            [estimates, binary_estimates, alarms, fleet_stream, ownership],
         ),
         # a monitor: reads answers, ownership changes and liveliness, publishes nothing
-        _rule("monitor-subscribe", ["declare_subscriber"], "ingress", [estimates, alarms, fleet_stream, ownership]),
-        _rule("monitor-receive", ["put"], "egress", [estimates, alarms, fleet_stream, ownership]),
+        _rule(
+            "monitor-subscribe",
+            ["declare_subscriber"],
+            "ingress",
+            [estimates, binary_estimates, alarms, fleet_stream, ownership],
+        ),
+        _rule("monitor-receive", ["put"], "egress", [estimates, binary_estimates, alarms, fleet_stream, ownership]),
         _rule("monitor-follow-liveliness", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [alive]),
         _rule("monitor-receive-liveliness", ["liveliness_token"], "egress", [alive]),
         # every vehicle: may declare subscribers on the fleet's answers (delivery is per vehicle, below), and
         # learns of the service's measurement subscribers (a client only sends what some subscriber wants)
-        _rule("vehicle-subscribe", ["declare_subscriber"], "ingress", [estimates, alarms]),
+        _rule("vehicle-subscribe", ["declare_subscriber"], "ingress", [estimates, binary_estimates, alarms]),
         _rule("vehicle-see-subscribers", ["declare_subscriber"], "egress", [measurements]),
     ]
     vehicle_rules: dict[str, list[str]] = {}
@@ -152,7 +162,11 @@ def access_control(
                 f"{vid}/answers",
                 ["put"],
                 "egress",
-                [vehicle_key(vid, "estimate", prefix), vehicle_key(vid, "alarm", prefix)],
+                [
+                    vehicle_key(vid, "estimate", prefix),
+                    vehicle_key(vid, BINARY_ESTIMATE_KIND, prefix),
+                    vehicle_key(vid, "alarm", prefix),
+                ],
             ),
         ]
         vehicle_rules.setdefault(grant.identity, []).extend([f"{vid}/meas", f"{vid}/alive", f"{vid}/answers"])

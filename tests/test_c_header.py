@@ -111,3 +111,57 @@ def test_the_example_of_docs_integration_md_runs_as_printed(tmp_path):
         assert done.returncode == 0, (line, done.stderr)
         outputs.append(done.stdout)
     assert "".join(outputs) == expected
+
+
+def test_the_c_estimate_decoder_reads_python_binary_estimates_and_refuses_what_python_refuses(example):
+    """include/agv_fe/estimate.h: every field of service/protocol.py's binary estimate, bit for bit, NaN for the
+    columns a record does not carry; the C column list is the Python one."""
+    from service.protocol import (
+        ESTIMATE_COLUMNS,
+        ESTIMATE_REVISION,
+        STATE_COLUMNS,
+        EstimateBatch,
+        ProtocolError,
+        decode_binary_estimate,
+        encode_binary_estimates,
+    )
+
+    header = (ROOT / "include/agv_fe/estimate.h").read_text()
+    names = re.findall(r"AGV_FE_COLUMN_(\w+) = (\d+)", header)
+    assert [(name.lower(), int(i)) for name, i in names] == [(c, i) for i, c in enumerate(ESTIMATE_COLUMNS)]
+    assert f"#define AGV_FE_ESTIMATE_REVISION {ESTIMATE_REVISION}\n" in header
+    rng = np.random.default_rng(1)
+    for columns, fast in ((STATE_COLUMNS, None), (ESTIMATE_COLUMNS, np.array([True, False, True]))):
+        batch = EstimateBatch(["a", "b", "c"], np.array([0, 2**63 + 5, 17]), np.array([-(2**63), 0, 2**62]),
+                              rng.normal(0, 100, (3, len(columns))), np.array([True, False, True]),
+                              ["OK", "FAULT", "STALE"], "3f9a1c0b7d2e", fast, columns)  # fmt: skip
+        for payload in encode_binary_estimates(batch):
+            fields = _run(example, "decode-estimate", payload.hex()).stdout.split()
+            record = np.frombuffer(payload, np.dtype([("h", "V40"), ("v", "<f8", (len(columns),))]))[0]
+            assert [int(v) for v in fields[:5]] == [payload[5], payload[6], payload[7],
+                                                    int.from_bytes(payload[8:16], "little"),
+                                                    int.from_bytes(payload[16:24], "little", signed=True)]  # fmt: skip
+            assert fields[5] == "3f9a1c0b7d2e"
+            got = [float(v) for v in fields[6:]]
+            expected = [*record["v"].tolist(), *[math.nan] * (len(ESTIMATE_COLUMNS) - len(columns))]
+            assert [struct.pack("<d", v) for v in got[: len(columns)]] == [
+                struct.pack("<d", v) for v in expected[: len(columns)]
+            ]
+            assert all(math.isnan(v) for v in got[len(columns) :])
+    good = encode_binary_estimates(EstimateBatch(["a"], np.array([1]), np.array([2]), np.ones((1, 5)),
+                                                 np.array([True]), ["OK"], "v"))[0]  # fmt: skip
+    refused = {
+        "size": good[:-8],
+        "magic": b"AGVX" + good[4:],
+        "version": good[:4] + b"\x02" + good[5:],
+        "reserved": good[:6] + b"\x08" + good[7:],
+    }
+    for reason, payload in refused.items():
+        assert _decoded_estimate(example, payload) == f"error {ERRORS[reason]}", reason
+        with pytest.raises(ProtocolError):
+            decode_binary_estimate(payload, "a")
+    assert _decoded_estimate(example, good[:7] + b"\x04" + good[8:]) == "error -7"  # no level 4
+
+
+def _decoded_estimate(example: Path, payload: bytes) -> str:
+    return _run(example, "decode-estimate", payload.hex()).stdout.strip()

@@ -5,9 +5,11 @@
  *   cc -std=c99 -Wall -Wextra -pedantic -I include examples/c/agv_fe_example.c -o agv_fe_example
  *   ./agv_fe_example encode truck-7 42 1700000000420000000 10.5 0.01 120 0.002
  *   ./agv_fe_example decode 4147564d...
+ *   ./agv_fe_example decode-estimate 41475645...   (a binary estimate received on ".../estimate.bin")
  */
 #include <stdlib.h>
 
+#include "agv_fe/estimate.h"
 #include "agv_fe/measurement.h"
 
 static int encode(int argc, char **argv) {
@@ -42,18 +44,24 @@ static int encode(int argc, char **argv) {
     return 0;
 }
 
-static int decode(const char *hex) {
-    uint8_t payload[AGV_FE_MAX_MEASUREMENT_SIZE + 1];
-    size_t n = strlen(hex) / 2;
-    if (strlen(hex) % 2 != 0 || n > sizeof payload) {
-        fprintf(stderr, "expected at most %zu bytes in hex\n", sizeof payload);
+static int hex_bytes(const char *hex, uint8_t *out, size_t cap, size_t *n) {
+    *n = strlen(hex) / 2;
+    if (strlen(hex) % 2 != 0 || *n > cap) {
+        fprintf(stderr, "expected at most %zu bytes in hex\n", cap);
         return 2;
     }
-    for (size_t i = 0; i < n; i++) {
+    for (size_t i = 0; i < *n; i++) {
         unsigned byte;
         if (sscanf(hex + 2 * i, "%2x", &byte) != 1) return 2;
-        payload[i] = (uint8_t)byte;
+        out[i] = (uint8_t)byte;
     }
+    return 0;
+}
+
+static int decode(const char *hex) {
+    uint8_t payload[AGV_FE_MAX_MEASUREMENT_SIZE + 1];
+    size_t n;
+    if (hex_bytes(hex, payload, sizeof payload, &n) != 0) return 2;
     agv_fe_measurement m;
     int error = agv_fe_decode(payload, n, &m);
     if (error != 0) {
@@ -65,9 +73,27 @@ static int decode(const char *hex) {
     return 0;
 }
 
+static int decode_estimate(const char *hex) {
+    uint8_t payload[AGV_FE_ESTIMATE_HEADER_SIZE + 8 * 64];
+    size_t n;
+    if (hex_bytes(hex, payload, sizeof payload, &n) != 0) return 2;
+    agv_fe_estimate e;
+    int error = agv_fe_decode_estimate(payload, n, &e);
+    if (error != 0) {
+        printf("error %d\n", error);
+        return 1;
+    }
+    printf("%u %u %u %llu %lld %s", (unsigned)e.revision, (unsigned)e.flags, (unsigned)e.level,
+           (unsigned long long)e.seq, (long long)e.timestamp_ns, e.gain_version);
+    for (int i = 0; i < AGV_FE_N_COLUMNS; i++) printf(" %.17g", e.values[i]);
+    printf("\n");
+    return 0;
+}
+
 int main(int argc, char **argv) {
     if (argc >= 2 && strcmp(argv[1], "encode") == 0) return encode(argc, argv);
     if (argc == 3 && strcmp(argv[1], "decode") == 0) return decode(argv[2]);
-    fprintf(stderr, "usage: %s encode ID SEQ T_NS VX R TORQUE STEER | decode HEX\n", argv[0]);
+    if (argc == 3 && strcmp(argv[1], "decode-estimate") == 0) return decode_estimate(argv[2]);
+    fprintf(stderr, "usage: %s encode ID SEQ T_NS VX R TORQUE STEER | decode HEX | decode-estimate HEX\n", argv[0]);
     return 2;
 }

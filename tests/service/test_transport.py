@@ -27,18 +27,22 @@ def test_estimate_publishers_and_their_matching_listeners_start_no_thread_per_ve
     client = None
     try:
         ids = [f"many-{i:03d}" for i in range(60)]
-        pubs = transport._estimate_pubs  # as publish_estimates keeps them: a dropped publisher is undeclared
-        pubs[ids[0]] = transport._declare_estimate_publisher(ids[0])  # Zenoh's own pools start with the first one
+        vehicles = transport.vehicle_estimates
+        pubs = vehicles.pubs  # as the publisher thread keeps them: a dropped publisher is undeclared
+        pubs[ids[0], "estimate"] = vehicles.declare(ids[0], "estimate")  # Zenoh's own pools start with the first
         before = _os_threads()
         for vehicle_id in ids[1:]:
-            pubs[vehicle_id] = transport._declare_estimate_publisher(vehicle_id)
+            pubs[vehicle_id, "estimate"] = vehicles.declare(vehicle_id, "estimate")
         assert _os_threads() - before < 10  # 59 more publishers, each with a listener
+        # the publisher thread applies the listeners' reports (here, with nothing to publish, twice a second)
+        unmatched = vehicles.unmatched_keys["estimate"]
+        wait_for(lambda: set(ids) <= unmatched, what="every key seen unmatched once settled")
         client = open_session("client", settings.endpoint)
         watcher = client.declare_subscriber(vehicle_key(ids[7], "estimate"))
-        events = transport._match_events
-        wait_for(lambda: (ids[7], True) in events, what="the listener reporting the new subscriber")
+        wait_for(lambda: ids[7] not in unmatched, what="the listener reporting the new subscriber")
+        assert len(unmatched) == len(ids) - 1
         watcher.undeclare()
-        wait_for(lambda: (ids[7], False) in events, what="the listener reporting the subscriber gone")
+        wait_for(lambda: ids[7] in unmatched, what="the listener reporting the subscriber gone")
     finally:
         if client is not None:
             client.close()
