@@ -17,7 +17,9 @@ registry knows which vehicles a bucket holds. :class:`OwnershipWatch` joins the 
   (:meth:`service.fleet.AlarmBook.load`): it is latched there until acknowledged, as a cleared STALE alarm is.
 
 Nothing here runs per sample: one look at the lock thread's state per housekeeping round, and database reads
-only when the ownership changes.
+only when the ownership changes. The housekeeping loop never waits for them: a read runs in a thread, and a later
+round takes its result, so a database that hangs delays this module's lists and alarms, not the STALE checks of
+the replica's own vehicles.
 """
 
 from __future__ import annotations
@@ -40,6 +42,17 @@ log = logging.getLogger("agv_fe.service.ownership")
 
 #: the lock thread's latest view of the lock table (None: no shared database)
 OwnershipView = Callable[[], "LeaseState | None"]
+
+
+@dataclass(frozen=True)
+class _Read:
+    """What one read of the database found, for the unowned buckets ``unowned``; None where it was not read or
+    failed."""
+
+    unowned: frozenset[str]
+    vehicles: list[tuple[str, str, int]] | None
+    #: the ``unserved`` alarms still raised (read for a replica that became the warden)
+    raised: list[AlarmRecord] | None
 
 
 @dataclass(frozen=True)
@@ -78,6 +91,8 @@ class OwnershipWatch:
         self.warden = False
         #: the warden's raised ``unserved`` alarms, by vehicle
         self._raised: dict[str, AlarmRecord] = {}
+        #: the database read under way (in a thread), if any
+        self._reading: asyncio.Future[_Read] | None = None
 
     def attach(self, view: OwnershipView, storage: Storage) -> None:
         """Watch the lock table through ``view``; ``storage`` (a connection of the watch's own, used off the event
@@ -100,13 +115,16 @@ class OwnershipWatch:
         now = self._monotonic()
         self._since = {bucket: self._since.get(bucket, now) for bucket in unowned}
         self.unowned = sorted(unowned)
-        if unowned != self._read_for and not await self._read_vehicles(unowned):
-            return []
         if not state.warden:
             self._resign()
-            return []
-        if not self.warden and not await self._take_office():
-            return []
+        self._take_read(state.warden)
+        if not unowned:  # every bucket has an owner: no vehicle to read
+            self.vehicles, self._read_for = {}, unowned
+        to_office = state.warden and not self.warden
+        if self._reading is None and (unowned != self._read_for or to_office):
+            self._reading = asyncio.ensure_future(asyncio.to_thread(self._read, unowned, to_office))
+        if not self.warden or unowned != self._read_for:
+            return []  # the alarms wait for the registry of these buckets
         changes = self._cleared(unowned) + self._raised_now(now)
         if changes and self.engine.events.wants("alarm"):
             for change in changes:
@@ -136,43 +154,52 @@ class OwnershipWatch:
             if v.bucket in unowned and v.id not in self.engine.vehicles
         ]
 
-    # ------------------------------------------------------------------ reading the database (off the loop)
+    async def wait_read(self) -> None:
+        """Wait for the database read under way, if any (its result is taken at the next :meth:`check`)."""
+        if self._reading is not None:
+            await asyncio.wait([self._reading])
 
-    async def _read_vehicles(self, unowned: frozenset[str]) -> bool:
-        if not unowned:
-            self.vehicles, self._read_for = {}, unowned
-            return True
+    # ------------------------------------------------------------------ reading the database (in a thread)
+
+    def _read(self, unowned: frozenset[str], office: bool) -> _Read:
+        """The registry (when some bucket has no owner) and, for a new warden, the ``unserved`` alarms raised."""
         try:
-            rows = await asyncio.to_thread(self._require().vehicles)
-        except StorageError as exc:
+            storage = self._require()
+            vehicles = storage.vehicles() if unowned else []
+            latched = storage.latched_alarms() if office else None
+        except Exception as exc:  # a read of a database that failed or closed: tried again at a later round
             log.warning("the vehicles of the buckets without an owner could not be read: %s", exc)
-            return False
+            return _Read(unowned, None, None)
+        raised = None
+        if latched is not None:
+            raised = [AlarmRecord.from_dict(r) for r in latched if r["kind"] == "unserved" and r["state"] == "raised"]
+        return _Read(unowned, vehicles, raised)
+
+    def _take_read(self, warden: bool) -> None:
+        """Take a finished read: the unowned buckets' vehicles, and the office of warden if still held."""
+        if self._reading is None or not self._reading.done():
+            return
+        read, self._reading = self._reading.result(), None
+        if read.vehicles is None:
+            return
         self.vehicles = {
             vehicle_id: UnservedVehicle(vehicle_id, profile, bucket_of(vehicle_id))
-            for vehicle_id, profile, _ in rows
-            if bucket_of(vehicle_id) in unowned
+            for vehicle_id, profile, _ in read.vehicles
+            if bucket_of(vehicle_id) in read.unowned
         }
-        self._read_for = unowned
-        log.info(
-            "buckets without an owner: %s (%d registered vehicles unserved)",
-            ",".join(sorted(unowned)),
-            len(self.vehicles),
-        )
-        return True
-
-    async def _take_office(self) -> bool:
-        """Become the warden: the ``unserved`` alarms an earlier warden raised, from the database."""
-        try:
-            latched = await asyncio.to_thread(self._require().latched_alarms)
-        except StorageError as exc:
-            log.warning("the alarms of the buckets without an owner could not be read: %s", exc)
-            return False
-        records = [AlarmRecord.from_dict(r) for r in latched if r["kind"] == "unserved" and r["state"] == "raised"]
-        self.engine.alarms.load(records, served=False)
-        self._raised = {record.vehicle: record for record in records}
-        self.warden = True
-        log.info("this replica is the warden: it raises the alarms of vehicles whose bucket has no owner")
-        return True
+        if read.unowned != self._read_for and read.unowned:
+            log.info(
+                "buckets without an owner: %s (%d registered vehicles unserved)",
+                ",".join(sorted(read.unowned)),
+                len(self.vehicles),
+            )
+        self._read_for = read.unowned
+        if read.raised is not None and warden and not self.warden:
+            # the alarms an earlier warden raised and nobody cleared: this one clears or keeps them
+            self.engine.alarms.load(read.raised, served=False)
+            self._raised = {record.vehicle: record for record in read.raised}
+            self.warden = True
+            log.info("this replica is the warden: it raises the alarms of vehicles whose bucket has no owner")
 
     def _require(self) -> Storage:
         if self._storage is None:

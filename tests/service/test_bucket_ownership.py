@@ -76,6 +76,10 @@ def test_a_forgotten_vehicle_leaves_memory_and_its_alarms_with_it(fast_gains):
 # ---------------------------------------------------------------------- vehicles whose bucket has no owner
 
 
+#: shard.unserved_after_s in these tests [s]
+UNSERVED_AFTER_S = 2.0
+
+
 class LockTable:
     """What a replica's lock thread last saw (service/bucket_leases.py): the unowned buckets, the warden's lock."""
 
@@ -106,7 +110,11 @@ def unserved_kinds(changes: list[AlarmChange]) -> list[tuple[str, str]]:
     return sorted((c.record.vehicle, c.event.state) for c in changes)
 
 
-UNSERVED_AFTER_S = 2.0
+async def settle(watch: OwnershipWatch) -> list[AlarmChange]:
+    """One housekeeping round, and another once the database read it started (in a thread) is done."""
+    changes = await watch.check()
+    await watch.wait_read()
+    return changes + await watch.check()
 
 
 def test_the_warden_alarms_the_vehicles_of_a_bucket_without_owner_after_the_delay_and_clears_them(
@@ -116,19 +124,23 @@ def test_the_warden_alarms_the_vehicles_of_a_bucket_without_owner_after_the_dela
     engine = make_engine(fast_gains, clock=clock)
     orphans, others = ids_in("b03", 2), ids_in("b04", 1)
     watch, table = watch_of(engine, tmp_path, clock, orphans + others)
-    assert asyncio.run(watch.check()) == [] and watch.statuses() == [] and watch.unowned == []
-    table.state.unowned = ["b03"]  # its replica died: the lock is free
-    assert asyncio.run(watch.check()) == []  # listed at once, alarmed only after unserved_after_s
-    assert [(s["id"], s["served"], s["level"]) for s in watch.statuses()] == [(v, False, "STALE") for v in orphans]
-    clock.mono += UNSERVED_AFTER_S
-    raised = asyncio.run(watch.check())
-    assert unserved_kinds(raised) == [(v, "raised") for v in orphans]
-    assert {r.vehicle for r in engine.alarms.latched()} == set(orphans)  # GET /alarms of the warden lists them
-    assert asyncio.run(watch.check()) == []  # raised once
-    table.state.unowned = []  # an owner again
-    cleared = asyncio.run(watch.check())
-    assert unserved_kinds(cleared) == [(v, "cleared") for v in orphans]
-    assert watch.statuses() == [] and engine.alarms.latched() == []  # the owner holds them now, not the warden
+
+    async def rounds() -> None:
+        assert await settle(watch) == [] and watch.statuses() == [] and watch.unowned == [] and watch.warden
+        table.state.unowned = ["b03"]  # its replica died: the lock is free
+        assert await settle(watch) == []  # listed at once, alarmed only after unserved_after_s
+        assert [(s["id"], s["served"], s["level"]) for s in watch.statuses()] == [(v, False, "STALE") for v in orphans]
+        clock.mono += UNSERVED_AFTER_S
+        raised = await watch.check()
+        assert unserved_kinds(raised) == [(v, "raised") for v in orphans]
+        assert {r.vehicle for r in engine.alarms.latched()} == set(orphans)  # GET /alarms of the warden lists them
+        assert await settle(watch) == []  # raised once
+        table.state.unowned = []  # an owner again
+        cleared = await watch.check()
+        assert unserved_kinds(cleared) == [(v, "cleared") for v in orphans]
+        assert watch.statuses() == [] and engine.alarms.latched() == []  # the owner holds them now, not the warden
+
+    asyncio.run(rounds())
 
 
 def test_only_the_warden_raises_and_a_new_warden_takes_up_the_raised_alarms_from_the_database(
@@ -139,19 +151,23 @@ def test_only_the_warden_raises_and_a_new_warden_takes_up_the_raised_alarms_from
     orphans = ids_in("b07", 2)
     watch, table = watch_of(engine, tmp_path, clock, orphans)
     table.state.unowned, table.state.warden = ["b07"], False
-    asyncio.run(watch.check())
-    clock.mono += UNSERVED_AFTER_S
-    assert asyncio.run(watch.check()) == [] and len(watch.statuses()) == 2  # listed, not alarmed: not the warden
     # an earlier warden raised one of them and died: its alarm is in the database, raised
     earlier = AlarmRecord.from_dict({**stale_record(orphans[0], 5).to_dict(), "id": "al-earlier", "kind": "unserved"})
     storage = SqliteStorage(tmp_path / "fleet.sqlite3")
     storage.record_alarm_changes([(earlier.to_dict(), earlier.event("raised", 5).model_dump())])
-    table.state.warden = True
-    raised = asyncio.run(watch.check())
-    assert unserved_kinds(raised) == [(orphans[1], "raised")]  # the other one's alarm is the earlier warden's
-    assert engine.alarms.current(orphans[0], "unserved").id == "al-earlier"
-    table.state.unowned = None  # the lock connection failed: nothing is known, and the warden's lock went with it
-    assert asyncio.run(watch.check()) == [] and not watch.warden and engine.alarms.latched() == []
+
+    async def rounds() -> None:
+        await settle(watch)
+        clock.mono += UNSERVED_AFTER_S
+        assert await settle(watch) == [] and len(watch.statuses()) == 2  # listed, not alarmed: not the warden
+        table.state.warden = True
+        raised = await settle(watch)
+        assert unserved_kinds(raised) == [(orphans[1], "raised")]  # the other one's alarm is the earlier warden's
+        assert engine.alarms.current(orphans[0], "unserved").id == "al-earlier"
+        table.state.unowned = None  # the lock connection failed: nothing is known, and the warden's lock with it
+        assert await settle(watch) == [] and not watch.warden and engine.alarms.latched() == []
+
+    asyncio.run(rounds())
 
 
 def test_the_replica_that_serves_an_unserved_vehicle_again_loads_its_alarm_as_cleared(fast_gains):
