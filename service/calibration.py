@@ -549,6 +549,20 @@ def _hiding(channel: str, t: ChannelThresholds, nominal_torque_nm: float) -> str
     )
 
 
+#: What a calibration keeps of a running profile's parameters: what a data sheet states, and the yaw inertia.
+BASE_FROM_PROFILE = ("mass_kg", "yaw_inertia_kgm2", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m")
+
+
+def base_from_profile(spec: ProfileSpec) -> dict[str, Any]:
+    """The base of a calibration (``request["base"]`` of :func:`run_calibration`) from a running profile: its
+    parameters of BASE_FROM_PROFILE, its design options as they were set, and its alarm settings."""
+    return {
+        "params": {k: getattr(spec.params, k) for k in BASE_FROM_PROFILE},
+        "design": spec.design.model_dump(mode="json", exclude_unset=True),
+        "alarms": spec.alarms.model_dump(mode="json"),
+    }
+
+
 def run_calibration(request: dict[str, Any]) -> dict[str, Any]:
     """Worker-process entry point of ``POST /profiles/{name}/calibration``: plain data in and out.
 

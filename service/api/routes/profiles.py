@@ -18,7 +18,7 @@ from service.api.models import (
     ProfileInfo,
 )
 from service.app import Service
-from service.calibration import run_calibration
+from service.calibration import base_from_profile, run_calibration
 from service.fleet import ProfileBank
 from service.profile_policy import TooManyProfiles
 from service.profiles import PROFILE_NAME_PATTERN, ProfileSpec, check_profile_name
@@ -140,13 +140,7 @@ async def calibrate(
                 detail=f"no profile {name!r} to take the base parameters from: give 'base' with params.mass_kg, "
                 "front_axle_distance_m, rear_axle_distance_m and wheel_radius_m",
             )
-        spec = bank.spec
-        known = ("mass_kg", "yaw_inertia_kgm2", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m")
-        base = {
-            "params": {k: getattr(spec.params, k) for k in known},
-            "design": spec.design.model_dump(mode="json", exclude_unset=True),
-            "alarms": spec.alarms.model_dump(mode="json"),
-        }
+        base = base_from_profile(bank.spec)
     elif not isinstance(base.get("params"), dict):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, detail="base.params must be an object")
     request = {
