@@ -10,61 +10,168 @@ an estimate for every sample taken from the fleet stream, congestion control BLO
 The default run compares the estimate history on (the default) with it off. ``python -m
 agv_fe.benchmarks.service_config --baseline DIR LABEL`` adds the service of another checkout (for example a
 ``git worktree`` of an earlier commit) as a configuration, to measure a change of the code the same way.
+
+``--configs NAME,...`` runs named configurations (:data:`CONFIGURATIONS`), among them the service with
+everything on: the Zenoh link over TLS with mutual TLS, passwords and the access-control list of the bench fleet
+(secure_link.py), the estimate history on, and bucket leases on a real PostgreSQL server this benchmark starts
+(one replica, no ``--shard``: it holds all 16 buckets by lease). ``--vehicles N`` sets the fleet.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import json
 import statistics
 import sys
+import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import httpx
+
 from agv_fe.benchmarks import report_header
+from agv_fe.benchmarks.harness import wait_for
+from agv_fe.benchmarks.secure_link import (
+    FLEET_IDENTITY,
+    SecureLink,
+    issue_certificates,
+    plain_tcp_refused,
+    secure_link,
+)
 from agv_fe.benchmarks.service_load import (
     STEP_S,
     TARGET_HOLD_S,
     TARGET_P99_MS,
     TARGET_VEHICLES,
+    _metric,
     _step,
     _sustained,
     serving,
 )
+from agv_fe.pg_cluster import PostgresServer
+from service.protocol import N_BUCKETS
 
 #: How many times each configuration's service runs, alternating with the others.
 ROUNDS = 2
+#: How long a service with bucket leases may take to hold every bucket [s].
+LEASES_S = 60.0
 
 
 @dataclass(frozen=True)
 class Configuration:
-    """A service configuration: its label, the settings it changes (environment variables of ``agv-fe serve``), and
-    the checkout whose code it runs (None: this one)."""
+    """A service configuration: its label, the settings it changes (environment variables of ``agv-fe serve``), the
+    checkout whose code it runs (None: this one), whether its Zenoh link is TLS (secure_link.py; with the ACL of
+    the fleet unless ``acl`` is False), and whether it stores on PostgreSQL with bucket leases."""
 
     label: str
     env: dict[str, str] = field(default_factory=dict)
     source: Path | None = None
+    tls: bool = False
+    acl: bool = True
+    leases: bool = False
 
 
+_HISTORY_OFF = {"AGV_FE_HISTORY__ENABLED": "false"}
 #: The configurations of the default run: the estimate history on (the default) and off.
 HISTORY = (
     Configuration("history on (default)"),
-    Configuration("history off", {"AGV_FE_HISTORY__ENABLED": "false"}),
+    Configuration("history off", _HISTORY_OFF),
 )
+#: The configurations ``--configs`` names.
+CONFIGURATIONS = {
+    "plain": Configuration("plain TCP, history on (default)"),
+    "history-off": Configuration("plain TCP, history off", _HISTORY_OFF),
+    "tls": Configuration("TLS + ACL, history off", _HISTORY_OFF, tls=True),
+    "tls-history": Configuration("TLS + ACL, history on", tls=True),
+    "tls-history-noacl": Configuration("TLS without ACL, history on", tls=True, acl=False),
+    "tls-history-leases": Configuration("TLS + ACL, history on, PostgreSQL leases", tls=True, leases=True),
+}
+#: Capacity with everything on (issue 28): today's plain service beside TLS, TLS with history, and all three.
+EVERYTHING_ON = ("plain", "tls", "tls-history", "tls-history-leases")
+
+
+@dataclass(frozen=True)
+class Shared:
+    """What the runs of one measurement share: a scratch directory, the certificates of the TLS runs, and the
+    PostgreSQL server of the lease runs (each run gets a fresh database on it)."""
+
+    workdir: Path
+    certs: Path | None = None
+    postgres: PostgresServer | None = None
+
+
+@contextlib.contextmanager
+def shared_resources(configs: tuple[Configuration, ...]) -> Iterator[Shared]:
+    """Certificates if a configuration runs TLS, a PostgreSQL server if one runs leases; removed on the way out."""
+    with tempfile.TemporaryDirectory(prefix="agv-fe-bench-") as tmp:
+        workdir = Path(tmp)
+        certs = issue_certificates(workdir / "certs") if any(c.tls for c in configs) else None
+        postgres = PostgresServer().init() if any(c.leases for c in configs) else None
+        try:
+            yield Shared(workdir, certs, postgres)
+        finally:
+            if postgres is not None:
+                postgres.close()
+
+
+def _service_env(config: Configuration, vehicles: int, shared: Shared) -> tuple[dict[str, str], SecureLink | None]:
+    """The settings of one run of ``config`` (a new TLS endpoint and database each run), and its TLS link."""
+    env = {"AGV_FE_INGEST__ESTIMATE_EVERY_N": "1", **config.env}
+    link = None
+    if config.tls:
+        if shared.certs is None:
+            raise ValueError(f"configuration {config.label!r} runs TLS but no certificates were issued")
+        link = secure_link(shared.certs, Path(tempfile.mkdtemp(dir=shared.workdir)), vehicles, acl=config.acl)
+        env.update(link.env)
+    if config.leases:
+        if shared.postgres is None:
+            raise ValueError(f"configuration {config.label!r} runs leases but no PostgreSQL server was started")
+        env.update({"AGV_FE_DATABASE__URL": shared.postgres.database(), "AGV_FE_SHARD__MODE": "leases"})
+    return env, link
+
+
+def _buckets(http: httpx.Client) -> int:
+    return len(http.get("/health").json()["buckets"])
 
 
 def measure_one(
-    config: Configuration, vehicles: int = TARGET_VEHICLES, hold_s: float = TARGET_HOLD_S
+    config: Configuration, vehicles: int = TARGET_VEHICLES, hold_s: float = TARGET_HOLD_S, shared: Shared | None = None
 ) -> dict[str, Any]:
-    """One service of ``config``: a STEP_S step of ``vehicles`` (registers them, warms up), then the hold."""
-    env = {"AGV_FE_INGEST__ESTIMATE_EVERY_N": "1", **config.env}
-    with serving(env, cwd=config.source) as (endpoint, http, proc, _):
-        warm = _step(endpoint, http, proc.pid, vehicles, 1, stream="fleet", arrival="spread")
-        hold = _step(endpoint, http, proc.pid, vehicles, 1, hold_s, stream="fleet", arrival="spread")
-        # the setting took effect: the history's series exist on /metrics only while it runs
-        history = "agv_fe_history_rows_written_total" in http.get("/metrics").text
-    return {"configuration": config.label, "warm": warm, "hold": hold, "history": history}
+    """One service of ``config``: a STEP_S step of ``vehicles`` (registers them, warms up), then the hold.
+    ``shared``: from :func:`shared_resources` (default: made for this run alone)."""
+    with contextlib.ExitStack() as stack:
+        if shared is None:
+            shared = stack.enter_context(shared_resources((config,)))
+        env, link = _service_env(config, vehicles, shared)
+        with serving(env, cwd=config.source) as (endpoint, http, proc, _):
+            if config.leases:  # one replica takes every bucket at its first lease rounds
+                wait_for(
+                    lambda: _buckets(http) == N_BUCKETS, LEASES_S, what=f"the service to lease {N_BUCKETS} buckets"
+                )
+            clients = link.clients if link is not None else None
+            warm = _step(endpoint, http, proc.pid, vehicles, 1, stream="fleet", arrival="spread", clients=clients)
+            hold = _step(endpoint, http, proc.pid, vehicles, 1, hold_s, "fleet", "spread", clients)
+            metrics = http.get("/metrics").text
+            buckets = _buckets(http)
+            # the link is TLS only: a plain TCP client gets no session (after the steps, which it cannot disturb)
+            refused = plain_tcp_refused(endpoint) if link is not None else False
+    return {
+        "configuration": config.label,
+        "warm": warm,
+        "hold": hold,
+        # the settings took effect: the history's series exist on /metrics only while it runs, the lease
+        # gauge only with leases
+        "history": "agv_fe_history_rows_written_total" in metrics,
+        "endpoint": endpoint,
+        "plain_tcp_refused": refused,
+        "acl_rules": link.acl_rules if link is not None else 0,
+        "leases": _metric(metrics, "agv_fe_lease_connected") == 1,
+        "buckets": buckets,
+    }
 
 
 def measure(
@@ -74,10 +181,17 @@ def measure(
     hold_s: float = TARGET_HOLD_S,
 ) -> list[dict[str, Any]]:
     """Every configuration once per round, in order, ``rounds`` times; the runs in the order they were made."""
+    with shared_resources(configs) as shared:
+        return _alternate(configs, rounds, vehicles, hold_s, shared)
+
+
+def _alternate(
+    configs: tuple[Configuration, ...], rounds: int, vehicles: int, hold_s: float, shared: Shared
+) -> list[dict[str, Any]]:
     runs = []
     for r in range(rounds):
         for config in configs:
-            run = measure_one(config, vehicles, hold_s)
+            run = measure_one(config, vehicles, hold_s, shared)
             run["round"] = r + 1
             hold = run["hold"]
             print(
@@ -117,10 +231,11 @@ def render(
         ),
         f"{vehicles:,} vehicles at 100 Hz, each at its own phase of the 10 ms period, an estimate for every sample "
         "taken from the fleet stream, congestion control BLOCK; generator, receiver and service share the machine's "
-        f"two cores. Each configuration's service ran {len(runs) // max(1, len(configs))} times, alternating with "
+        f"two cores. Each configuration's service ran {_times(len(runs) // max(1, len(configs)))}, alternating with "
         f"the others (one round runs each once, in the order below): a {STEP_S:.0f} s step that registers the "
         f"fleet, then a {TARGET_HOLD_S:.0f} s hold whose p99 latency is taken per {STEP_S:.0f} s window "
         "(agv_fe/benchmarks/service_config.py, the steps of service_load.py).\n",
+        *_setup(configs, runs),
         "| configuration | runs | zero loss, keeping up | p99 per window: median / worst [ms] "
         f"| ratio of median p99 to '{first['label']}' | windows under {TARGET_P99_MS:.0f} ms | service CPU [cores] "
         f"| CPU ratio to '{first['label']}' |",
@@ -136,20 +251,98 @@ def render(
         "",
         "Every run, in the order made:",
         "",
-        "| round | configuration | estimate history running | warm-up step p99 [ms] | hold: zero loss | hold p50 [ms] "
-        "| hold p99 per window [ms] | service CPU [cores] |",
-        "|---|---|---|---|---|---|---|---|",
+        "| round | configuration | Zenoh link | storage | estimate history running | warm-up step p99 [ms] "
+        "| hold: zero loss | hold p50 [ms] | hold p99 per window [ms] | service CPU [cores] |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         h = r["hold"]
         lines.append(
-            f"| {r['round']} | {r['configuration']} | {'yes' if r['history'] else 'no'} | {r['warm']['p99_ms']:.2f} "
-            f"| {'yes' if h['zero_loss'] else 'no'} "
+            f"| {r['round']} | {r['configuration']} | {_link(r)} | {_storage(r)} | {'yes' if r['history'] else 'no'} "
+            f"| {r['warm']['p99_ms']:.2f} | {'yes' if h['zero_loss'] else 'no'} "
             f"| {h['p50_ms']:.2f} | {', '.join(f'{x:.2f}' for x in h['p99_windows_ms'])} | {h['service_cpu']:.2f} |"
         )
     lines += ["", "```json", json.dumps(runs, indent=1), "```", ""]
     return "\n".join(lines)
 
+
+def _times(n: int) -> str:
+    return "once" if n == 1 else f"{n} times"
+
+
+def _link(run: dict[str, Any]) -> str:
+    """The run's Zenoh link as checked: TCP, or TLS that refused a plain TCP client, with or without the ACL."""
+    if not run.get("endpoint", "tcp/").startswith("tls/"):
+        return "TCP"
+    refused = "plain TCP refused" if run["plain_tcp_refused"] else "**plain TCP let in**"
+    acl = f"ACL of {run['acl_rules']:,} rules" if run["acl_rules"] else "no ACL"
+    return f"TLS ({refused}), {acl}"
+
+
+def _storage(run: dict[str, Any]) -> str:
+    return f"PostgreSQL, leases, {run['buckets']} buckets" if run.get("leases") else "SQLite"
+
+
+def _setup(configs: tuple[Configuration, ...], runs: list[dict[str, Any]]) -> list[str]:
+    """How the TLS and the lease configurations ran, when the run has any."""
+    lines = []
+    if any(c.tls for c in configs):
+        rules = max((r.get("acl_rules", 0) for r in runs), default=0)
+        lines.append(
+            "TLS: the service is the Zenoh router, listening on `tls/127.0.0.1:PORT` only, with the router certificate "
+            "of `make certs` (a fresh CA in a temporary directory), mutual TLS, user/password and, unless marked "
+            f"otherwise, the access-control list `agv-fe zenoh-acl` generates for the fleet ({rules:,} rules): one "
+            f"simulator identity, `{FLEET_IDENTITY}`, listed for every vehicle. The generator connects as that "
+            "identity, the receiver as the read-only `agv-dashboard`, both with deploy/zenoh/secure/client.json5 "
+            "(agv_fe/benchmarks/secure_link.py). Each run checks that a plain TCP client gets no session there.\n"
+        )
+    if any(c.leases for c in configs):
+        lines.append(
+            "Leases: a PostgreSQL server started by the benchmark on the same machine (agv_fe/pg_cluster.py), a fresh "
+            "database for each run, `AGV_FE_SHARD__MODE=leases` and no `--shard`: the one replica takes all "
+            f"{N_BUCKETS} buckets by lease before the fleet starts, and its lease round (the live replicas counted "
+            "in the database) runs every 0.5 s meanwhile.\n"
+        )
+    return lines
+
+
+#: The comparison with everything on (issue 28), how to run it, kept in service_config.md until it is measured.
+EVERYTHING_ON_SECTION = """## Capacity with everything on: TLS, estimate history, bucket leases
+
+**Not yet measured.** The target (issue 28): 1,500 vehicles on the fleet stream with TLS and the estimate
+history on, zero loss and p99 < 10 ms in every 10 s window of the hold. The comparison alternates today's plain
+service with three secured ones, two rounds each, in one run (about 20 minutes; run it with nothing else on
+the machine):
+
+```sh
+.venv/bin/python -m agv_fe.benchmarks.service_config \\
+    --configs plain,tls,tls-history,tls-history-leases --vehicles 1500 \\
+    --out docs/benchmarks/service_config_everything_on.md
+```
+
+| name | configuration |
+|---|---|
+| `plain` | today's service: TCP, estimate history on (the default), SQLite |
+| `tls` | the Zenoh link over TLS: mutual TLS, user/password, the fleet's access-control list; history off |
+| `tls-history` | the same with the history on: the target's configuration |
+| `tls-history-leases` | the same on a PostgreSQL server the benchmark starts, bucket leases on (one replica) |
+
+`history-off` (TCP, history off) and `tls-history-noacl` (TLS, history on, no ACL: the ACL's own cost) can be
+added to the list; `--rounds N` and `--env AGV_FE_NAME=VALUE` (a setting of every service) work as with
+`--baseline`. The target is met when the summary's row `TLS + ACL, history on` reads zero loss and keeping up
+"yes" and every window under 10 ms (the lease row: the same with leases on).
+
+With TLS the service is the Zenoh router on `tls/127.0.0.1:PORT` with the router certificate of `make certs`
+(issued into a temporary directory); the generator publishes for the whole fleet as one simulator identity
+(`bench-fleet-sim`, listed for every vehicle, as `agv-fleet-sim` is in the compose fleet) and the receiver reads
+the fleet stream as `agv-dashboard`, both with deploy/zenoh/secure/client.json5
+(agv_fe/benchmarks/secure_link.py). The ACL is on: the router's configuration for 1,500 vehicles holds 4,513
+rules, and a router opened with it in under a second (a probe while building this; not a capacity figure).
+Each TLS run checks that a plain TCP client gets no session at the service's endpoint; the report's run table
+says so. `tests/agv_fe/test_bench_service_config.py` runs `tls`, `tls-history` and `tls-history-leases` with
+10 vehicles for a few seconds each (every estimate received over TLS; no timing asserted).
+
+"""
 
 #: Earlier runs of the default comparison, kept below the current figures (docs/benchmarks/service_config.md).
 EARLIER_RUNS = """## Earlier runs
@@ -180,35 +373,71 @@ def run(out_dir: Path) -> Path:
         "agv-fe bench --only service_config",
     )  # fmt: skip
     head, data = text.split("```json", 1)
-    path.write_text(head + EARLIER_RUNS + "\n```json" + data)
+    path.write_text(head + EVERYTHING_ON_SECTION + EARLIER_RUNS + "\n```json" + data)
     return path
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``--baseline DIR LABEL``: compare this checkout's service with the one of DIR, both with the same ``--env``."""
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
-    parser.add_argument("--baseline", nargs=2, metavar=("DIR", "LABEL"), required=True)
-    parser.add_argument("--label", default="this checkout", help="the label of this checkout's service")
+    which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument(
+        "--configs",
+        metavar="NAME,...",
+        help=f"comma-separated configurations, in the order they alternate: {', '.join(CONFIGURATIONS)} "
+        f"(everything on, issue 28: {','.join(EVERYTHING_ON)})",
+    )
+    which.add_argument("--baseline", nargs=2, metavar=("DIR", "LABEL"), help="this checkout against DIR's service")
+    parser.add_argument("--label", default="this checkout", help="with --baseline: this checkout's label")
     parser.add_argument("--out", type=Path, required=True, help="the report to write")
     parser.add_argument("--rounds", type=int, default=ROUNDS)
+    parser.add_argument("--vehicles", type=int, default=TARGET_VEHICLES, help="the fleet (default %(default)s)")
     parser.add_argument(
-        "--env", action="append", default=[], metavar="NAME=VALUE", help="a setting for both services (repeatable)"
+        "--env", action="append", default=[], metavar="NAME=VALUE", help="a setting for every service (repeatable)"
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _chosen(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, env: dict[str, str]
+) -> tuple[tuple[Configuration, ...], str, str]:
+    """The configurations the command line names, the report's title, and the option that names them."""
+    if args.configs is not None:
+        names = [n.strip() for n in args.configs.split(",") if n.strip()]
+        if not names or any(n not in CONFIGURATIONS for n in names):
+            parser.error(f"--configs takes names of {', '.join(CONFIGURATIONS)}, got {args.configs!r}")
+        configs = tuple(dataclasses.replace(CONFIGURATIONS[n], env={**CONFIGURATIONS[n].env, **env}) for n in names)
+        return (
+            configs,
+            f"Service capacity by configuration: {'; '.join(c.label for c in configs)}",
+            (f"--configs {','.join(names)}"),
+        )
     source, label = Path(args.baseline[0]).resolve(), args.baseline[1]
     if not (source / "agv_fe").is_dir():
         parser.error(f"{source} is not a checkout of this project (no agv_fe/ in it)")
+    configs = (Configuration(label, env, source), Configuration(args.label, env))
+    return configs, f"Service capacity: {label} against {args.label}", f"--baseline DIR '{label}'"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``--configs NAME,...``: the named configurations, alternated; ``--baseline DIR LABEL``: this checkout's
+    service against the one of DIR. Both with the same ``--env`` settings on top, ``--vehicles`` in the fleet."""
+    parser = _parser()
+    args = parser.parse_args(argv)
     bad = [e for e in args.env if "=" not in e or not e.startswith("AGV_FE_")]
     if bad:
         parser.error(f"--env takes AGV_FE_NAME=VALUE, got {', '.join(bad)}")
+    if args.vehicles < 1 or args.rounds < 1:
+        parser.error("--vehicles and --rounds take a positive number")
     env = dict(e.split("=", 1) for e in args.env)
-    configs = (Configuration(label, env, source), Configuration(args.label, env))
-    runs = measure(configs, args.rounds)
+    configs, title, which = _chosen(parser, args, env)
+    fleet = "" if args.vehicles == TARGET_VEHICLES else f" --vehicles {args.vehicles}"
     settings = "".join(f" --env {e}" for e in args.env)
-    command = f"python -m agv_fe.benchmarks.service_config --baseline DIR '{label}'{settings} --out {args.out}"
-    text = render(f"Service capacity: {label} against {args.label}", configs, runs, TARGET_VEHICLES, command)
+    command = f"python -m agv_fe.benchmarks.service_config {which}{fleet}{settings} --out {args.out}"
+    runs = measure(configs, args.rounds, args.vehicles)
+    text = render(title, configs, runs, args.vehicles, command)
+    note = "(rewrites this file; DIR is a checkout of the baseline, e.g. a `git worktree`)" if args.baseline else ""
     text = text.replace("`make bench` runs every benchmark; ", "").replace(
-        "(either rewrites this file)", "(rewrites this file; DIR is a checkout of the baseline, e.g. a `git worktree`)"
+        "(either rewrites this file)", note or "(rewrites this file)"
     )
     args.out.write_text(text)
     print(f"written {args.out}")

@@ -37,6 +37,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -77,18 +78,33 @@ PACE_FRACTION = 0.99
 READY_S = 300.0
 
 
+def vehicle_ids(n: int) -> list[str]:
+    """The ids of a fleet of ``n`` bench vehicles, as the load generator publishes them."""
+    return [f"bench-{i:05d}" for i in range(n)]
+
+
+@dataclass(frozen=True)
+class SecureClients:
+    """The Zenoh files of the load generator and of the receiver on a TLS link (docs/deployment.md): each a
+    (JSON5 client configuration, credentials file) pair, the configuration naming its client certificate."""
+
+    generator: tuple[Path, Path]
+    receiver: tuple[Path, Path]
+
+
 @contextlib.contextmanager
 def serving(
     env: dict[str, str], cwd: Path | None = None
 ) -> Iterator[tuple[str, httpx.Client, subprocess.Popen[bytes], Path]]:
     """`agv-fe serve` in a process of its own until it is ready: the embedded router on a free loopback port, a
     fresh data directory, bearer token 'bench', congestion control BLOCK, and ``env`` on top; ``cwd``: a checkout
-    whose code the service runs (default: this one). Yields (Zenoh endpoint, HTTP client, process, data
+    whose code the service runs (default: this one). ``env`` may set AGV_FE_ZENOH__ENDPOINT (with the configuration
+    file of a TLS router listening there); default a free TCP port. Yields (Zenoh endpoint, HTTP client, process, data
     directory); stops the service (and what it spawned) on the way out."""
     from service.settings import Settings
 
     with tempfile.TemporaryDirectory() as data_dir:
-        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        endpoint = env.get("AGV_FE_ZENOH__ENDPOINT") or f"tcp/127.0.0.1:{free_port()}"
         settings = Settings(
             data_dir=Path(data_dir),
             http={"port": free_port()},
@@ -113,18 +129,22 @@ def _templates(ids: list[str]) -> list[bytearray]:
     return templates
 
 
-def _generator(endpoint: str, n: int, duration_s: float, out: Any, phases: int = 1) -> None:
+def _generator(
+    endpoint: str, n: int, duration_s: float, out: Any, phases: int = 1, files: tuple[Path, Path] | None = None
+) -> None:
     """Publish n vehicles at 100 Hz for duration_s; report samples sent and the time it took.
 
     phases = 1: every vehicle sends at the start of each period (aligned clocks, the worst case);
-    phases > 1: vehicle i sends at phase (i % phases) / phases of each period (independent clocks)."""
+    phases > 1: vehicle i sends at phase (i % phases) / phases of each period (independent clocks).
+    files: the session's (configuration, credentials) on a TLS link (:class:`SecureClients`)."""
     import zenoh
 
     from service.protocol import vehicle_key
     from service.transport import open_session
 
-    session = open_session("client", endpoint)
-    ids = [f"bench-{i:05d}" for i in range(n)]
+    config_file, credentials_file = files or (None, None)
+    session = open_session("client", endpoint, config_file=config_file, credentials_file=credentials_file)
+    ids = vehicle_ids(n)
     pubs = [
         session.declare_publisher(vehicle_key(v, "meas"), congestion_control=zenoh.CongestionControl.BLOCK) for v in ids
     ]
@@ -161,18 +181,26 @@ def _generator(endpoint: str, n: int, duration_s: float, out: Any, phases: int =
     session.close()
 
 
-def _receiver(endpoint: str, stop_after_s: float, out: Any, ready: Any, stream: str = "vehicle") -> None:
+def _receiver(
+    endpoint: str,
+    stop_after_s: float,
+    out: Any,
+    ready: Any,
+    stream: str = "vehicle",
+    files: tuple[Path, Path] | None = None,
+) -> None:
     """Count estimates and record their latency until stop_after_s of silence-bounded time.
 
     stream "vehicle": one subscription to every vehicle's estimate key; "fleet": the replicas' fleet stream,
-    where every estimate of a message arrived when the message did."""
+    where every estimate of a message arrived when the message did. files: as :func:`_generator`'s."""
     import orjson
     import zenoh
 
     from service.protocol import fleet_estimates_selector, fleet_selector
     from service.transport import open_session
 
-    session = open_session("client", endpoint)
+    config_file, credentials_file = files or (None, None)
+    session = open_session("client", endpoint, config_file=config_file, credentials_file=credentials_file)
     selector = fleet_selector("estimate") if stream == "vehicle" else fleet_estimates_selector()
     sub = session.declare_subscriber(selector, zenoh.handlers.FifoChannel(1 << 20))
     time.sleep(0.3)
@@ -236,11 +264,13 @@ def _step(
     duration_s: float | None = None,
     stream: str = "vehicle",
     arrival: str = "spread",
+    clients: SecureClients | None = None,
 ) -> dict[str, Any]:
     """One step of a sweep: n vehicles at 100 Hz for duration_s against the service of process ``pid``; its
-    counts, latencies [ms], CPU shares and verdicts (zero loss, paced)."""
+    counts, latencies [ms], CPU shares and verdicts (zero loss, paced). ``clients``: the generator's and the
+    receiver's files when the service's endpoint is TLS."""
     duration_s = STEP_S if duration_s is None else duration_s
-    gen, rec, diff, cpu = _drive(endpoint, http, pid, n, duration_s, stream, arrival)
+    gen, rec, diff, cpu = _drive(endpoint, http, pid, n, duration_s, stream, arrival, clients)
     latency = _latencies(rec)
     expected_estimates = gen["sent"] // every_n
     rate = gen["sent"] / gen["elapsed_s"]
@@ -282,7 +312,14 @@ def _step(
 
 
 def _drive(
-    endpoint: str, http: httpx.Client, pid: int, n: int, duration_s: float, stream: str, arrival: str
+    endpoint: str,
+    http: httpx.Client,
+    pid: int,
+    n: int,
+    duration_s: float,
+    stream: str,
+    arrival: str,
+    clients: SecureClients | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any], dict[str, float], dict[str, float]]:
     """Run the receiver and the generator processes for one step. Returns what the generator and the receiver
     reported, the change of the service's STEP_COUNTERS, and the CPU time [s] the service and the receiver
@@ -290,14 +327,17 @@ def _drive(
     ctx = multiprocessing.get_context("spawn")
     gen_q, rec_q = ctx.Queue(), ctx.Queue()
     ready = ctx.Event()
-    receiver = ctx.Process(target=_receiver, args=(endpoint, WARMUP_S + duration_s + 6.0, rec_q, ready, stream))
+    files = (clients.generator, clients.receiver) if clients is not None else (None, None)
+    receiver = ctx.Process(
+        target=_receiver, args=(endpoint, WARMUP_S + duration_s + 6.0, rec_q, ready, stream, files[1])
+    )
     receiver.start()
     ready.wait(30)
     before = http.get("/metrics").text
     cpu0 = _cpu_s(pid)
     receiver_cpu0 = _cpu_s(receiver.pid) if receiver.pid is not None else 0.0
     phases = SPREAD_PHASES if arrival == "spread" else 1
-    generator = ctx.Process(target=_generator, args=(endpoint, n, duration_s, gen_q, phases))
+    generator = ctx.Process(target=_generator, args=(endpoint, n, duration_s, gen_q, phases, files[0]))
     generator.start()
     gen = gen_q.get(timeout=duration_s * 10 + 60)
     cpu1 = _cpu_s(pid)
@@ -362,7 +402,7 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: in
         engine = FleetEngine(EngineConfig(estimate_every_n=every_n, history_samples=50))
         engine.add_profile("default", ProfileSpec())
         engine.activate("default", gains)
-        ids = [f"bench-{i:05d}" for i in range(n)]
+        ids = vehicle_ids(n)
         keys = [vehicle_key(v, "meas") for v in ids]
         templates = _templates(ids)
         elapsed = 0.0
