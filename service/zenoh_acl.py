@@ -152,24 +152,8 @@ def access_control(
         _rule("vehicle-subscribe", ["declare_subscriber"], "ingress", [estimates, binary_estimates, alarms]),
         _rule("vehicle-see-subscribers", ["declare_subscriber"], "egress", [measurements]),
     ]
-    vehicle_rules: dict[str, list[str]] = {}
-    for grant in grants:
-        vid = grant.vehicle_id
-        rules += [
-            _rule(f"{vid}/meas", ["put"], "ingress", [vehicle_key(vid, "meas", prefix)]),
-            _rule(f"{vid}/alive", ["liveliness_token"], "ingress", [vehicle_key(vid, "alive", prefix)]),
-            _rule(
-                f"{vid}/answers",
-                ["put"],
-                "egress",
-                [
-                    vehicle_key(vid, "estimate", prefix),
-                    vehicle_key(vid, BINARY_ESTIMATE_KIND, prefix),
-                    vehicle_key(vid, "alarm", prefix),
-                ],
-            ),
-        ]
-        vehicle_rules.setdefault(grant.identity, []).extend([f"{vid}/meas", f"{vid}/alive", f"{vid}/answers"])
+    own_rules, vehicle_rules = _vehicle_rules(grants, prefix)
+    rules += own_rules
     identities = [SERVICE_IDENTITY, MONITOR_IDENTITY, *vehicle_rules]
     policies = [
         {
@@ -194,6 +178,31 @@ def access_control(
         "subjects": [_subject(identity, identify_by) for identity in identities],
         "policies": policies,
     }
+
+
+def _vehicle_rules(grants: Sequence[VehicleGrant], prefix: str) -> tuple[list[dict[str, Any]], dict[str, list[str]]]:
+    """Each vehicle's own rules (it puts its measurements and liveliness token, and receives its own answers), in
+    the order of ``grants``, and the ids of those rules by identity."""
+    rules: list[dict[str, Any]] = []
+    by_identity: dict[str, list[str]] = {}
+    for grant in grants:
+        vid = grant.vehicle_id
+        rules += [
+            _rule(f"{vid}/meas", ["put"], "ingress", [vehicle_key(vid, "meas", prefix)]),
+            _rule(f"{vid}/alive", ["liveliness_token"], "ingress", [vehicle_key(vid, "alive", prefix)]),
+            _rule(
+                f"{vid}/answers",
+                ["put"],
+                "egress",
+                [
+                    vehicle_key(vid, "estimate", prefix),
+                    vehicle_key(vid, BINARY_ESTIMATE_KIND, prefix),
+                    vehicle_key(vid, "alarm", prefix),
+                ],
+            ),
+        ]
+        by_identity.setdefault(grant.identity, []).extend([f"{vid}/meas", f"{vid}/alive", f"{vid}/answers"])
+    return rules, by_identity
 
 
 def router_config(
