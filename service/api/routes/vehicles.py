@@ -21,6 +21,7 @@ from service.api.deps import STORAGE_UNAVAILABLE, Operator, ServiceDep, profile_
 from service.api.models import AlarmInfo, EstimateHistory, VehicleAssignment, VehicleDetail, VehicleStatus
 from service.app import Service
 from service.fleet import UnknownProfile, UnknownVehicle, Vehicle
+from service.fleet.listing import vehicle_page
 from service.history import rows_table, table_rows
 from service.protocol import VEHICLE_ID_PATTERN, EstimateRow, Level
 from service.storage import Storage
@@ -40,9 +41,6 @@ def _vehicle(service: Service, vehicle_id: str) -> Vehicle:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail=str(exc.args[0])) from exc
 
 
-#: Statuses written per round while a level filter fills a page: a short page of a large fleet does not write
-#: every vehicle's document.
-LEVEL_FILTER_ROUND = 512
 LIST_LIMIT_MAX = 100_000
 
 
@@ -81,49 +79,14 @@ async def list_vehicles(
         ),
     ] = None,
 ) -> Response:
-    engine = service.engine
     if profile is not None:
         profile_bank(service, profile)
-    candidates = sorted(
-        (
-            v
-            for v in engine.vehicles.values()
-            if (profile is None or v.profile == profile) and (after is None or v.id > after)
-        ),
-        key=lambda v: v.id,
+    page = vehicle_page(
+        service.engine, service.ownership.statuses(), profile=profile, level=level, after=after, limit=limit
     )
-    wanted = len(candidates) if limit is None else limit
-    rows: list[dict[str, Any]] = []
-    read = 0  # candidates whose status was written
-    if level is None:
-        rows = engine.vehicle_statuses(candidates[:wanted])
-        read = len(rows)
-    else:
-        while len(rows) < wanted and read < len(candidates):
-            chunk = candidates[read : read + max(LEVEL_FILTER_ROUND, wanted - len(rows))]
-            for row in engine.vehicle_statuses(chunk):
-                read += 1
-                if row["level"] == level:
-                    rows.append(row)
-                    if len(rows) == wanted:
-                        break
-    for row in rows:
-        row["served"] = True
-    # the vehicles of buckets no replica holds (a shared database's replica died): listed, level STALE, not served
-    unserved = [
-        row
-        for row in service.ownership.statuses()
-        if (profile is None or row["profile"] == profile)
-        and (after is None or row["id"] > after)
-        and (level is None or row["level"] == level)
-    ]
-    more = read < len(candidates)
-    if unserved:
-        merged = sorted(rows + unserved, key=lambda row: row["id"])
-        cap = len(merged) if limit is None else limit
-        rows, more = merged[:cap], more or len(merged) > cap
+    rows = page.rows
     headers = {}
-    if limit is not None and len(rows) == limit and more:
+    if limit is not None and len(rows) == limit and page.more:
         query = {k: v for k, v in request.query_params.items() if k != "after"}
         headers["Link"] = f'<{request.url.path}?{urlencode({**query, "after": rows[-1]["id"]})}>; rel="next"'
     # the documents as they are, by one orjson call: this handler runs on the event loop that runs ingest, and
