@@ -83,7 +83,7 @@ class Histogram:
 class VehicleEstimateCounters(Protocol):
     """What /metrics reads of the publisher of each vehicle's own estimates (service.transport.VehicleEstimates)."""
 
-    sent: int
+    sent: dict[str, int]
     dropped: int
     errors: int
     unmatched: int
@@ -303,13 +303,15 @@ class ServiceCollector(Collector):
         )
         yield _one(CounterMetricFamily("agv_fe_estimates", "estimates computed"), stats["estimates"])
         vehicle = m.vehicle_estimates
-        yield _one(
-            CounterMetricFamily(
-                "agv_fe_estimates_published",
-                "estimates published on Zenoh on their vehicle's keys (one per encoding someone subscribes to)",
-            ),
-            0 if vehicle is None else vehicle.sent,
+        published = CounterMetricFamily(
+            "agv_fe_estimates_published",
+            "estimates published on Zenoh on their vehicle's key, by encoding (json on .../estimate, binary on "
+            ".../estimate.bin)",
+            labels=["encoding"],
         )
+        for encoding, n in ({"json": 0, "binary": 0} if vehicle is None else vehicle.sent).items():
+            published.add_metric([encoding], n)
+        yield published
         yield _one(
             CounterMetricFamily(
                 "agv_fe_vehicle_estimates_dropped",

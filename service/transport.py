@@ -226,6 +226,8 @@ VEHICLE_ENCODINGS: dict[Kind, tuple[Callable[[EstimateBatch, Sequence[int] | Non
     "estimate": (_json_documents, zenoh.Encoding.APPLICATION_JSON),
     BINARY_ESTIMATE_KIND: (encode_binary_estimates, zenoh.Encoding.APPLICATION_OCTET_STREAM),
 }
+#: The name of each encoding on /metrics.
+ENCODING_NAMES: dict[Kind, str] = {"estimate": "json", BINARY_ESTIMATE_KIND: "binary"}
 
 
 class VehicleEstimates:
@@ -239,8 +241,8 @@ class VehicleEstimates:
     ``VEHICLE_QUEUE_TICKS`` ticks behind (a subscriber slower than the fleet with congestion control BLOCK),
     the oldest tick's estimates are dropped and counted in :attr:`dropped`.
 
-    Counters (written by one thread each, read by any): :attr:`sent` messages put, :attr:`dropped` estimates
-    dropped, :attr:`errors` publications that failed, :attr:`unmatched` vehicles nobody listens to in any encoding.
+    Counters (written by one thread each, read by any): :attr:`sent` messages put by encoding name
+    (:data:`ENCODING_NAMES`), :attr:`dropped` estimates dropped, :attr:`errors` publications that failed, :attr:`unmatched` vehicles nobody listens to in any encoding.
     """
 
     def __init__(self, session: zenoh.Session, prefix: str, congestion: Any, subscribed_only: bool) -> None:
@@ -254,7 +256,7 @@ class VehicleEstimates:
         self.match_events: collections.deque[tuple[tuple[str, Kind], bool]] = collections.deque()
         self.settling: dict[tuple[str, Kind], float] = {}
         self.unmatched_keys: dict[Kind, set[str]] = {kind: set() for kind in VEHICLE_ENCODINGS}
-        self.sent = 0
+        self.sent: dict[str, int] = dict.fromkeys(ENCODING_NAMES.values(), 0)
         self.dropped = 0
         self.errors = 0
         self.unmatched = 0
@@ -324,7 +326,7 @@ class VehicleEstimates:
                     if pub is None:
                         pub = pubs[vehicle_id, kind] = self.declare(vehicle_id, kind)
                     pub.put(document)
-                self.sent += len(documents)
+                self.sent[ENCODING_NAMES[kind]] += len(documents)
 
     def declare(self, vehicle_id: str, kind: Kind) -> Any:
         """The publisher of ``vehicle_id``'s estimates in the encoding of key ``kind`` (with its matching listener

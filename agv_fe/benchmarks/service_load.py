@@ -50,11 +50,13 @@ FLEET_SIZES = (100, 250, 500, 750, 1000, 1250, 1500, 2000)
 STEP_S = 10.0
 WARMUP_S = 2.0
 #: The sweeps, (estimate every n-th sample, how the receiver takes them, when the vehicles send): "vehicle", a
-#: subscription to every vehicle's own estimate key; "fleet", the replica's one-message-per-tick fleet stream;
+#: subscription to every vehicle's own estimate key (JSON); "vehicle-bin", to every vehicle's binary estimate key
+#: (``.../estimate.bin``); "fleet", the replica's one-message-per-tick fleet stream;
 #: "spread", each vehicle at its own phase of the period (independent clocks); "aligned", all at its start.
 Mode = tuple[int, str, str]
 ESTIMATE_MODES: tuple[Mode, ...] = (
     (1, "vehicle", "spread"),
+    (1, "vehicle-bin", "spread"),
     (10, "vehicle", "spread"),
     (1, "fleet", "spread"),
     (1, "fleet", "aligned"),
@@ -191,17 +193,22 @@ def _receiver(
 ) -> None:
     """Count estimates and record their latency until stop_after_s of silence-bounded time.
 
-    stream "vehicle": one subscription to every vehicle's estimate key; "fleet": the replicas' fleet stream,
-    where every estimate of a message arrived when the message did. files: as :func:`_generator`'s."""
+    stream "vehicle": one subscription to every vehicle's estimate key; "vehicle-bin": to every vehicle's binary
+    estimate key; "fleet": the replicas' fleet stream, where every estimate of a message arrived when the message
+    did. files: as :func:`_generator`'s."""
     import orjson
     import zenoh
 
-    from service.protocol import fleet_estimates_selector, fleet_selector
+    from service.protocol import BINARY_ESTIMATE_KIND, fleet_estimates_selector, fleet_selector
     from service.transport import open_session
 
     config_file, credentials_file = files or (None, None)
     session = open_session("client", endpoint, config_file=config_file, credentials_file=credentials_file)
-    selector = fleet_selector("estimate") if stream == "vehicle" else fleet_estimates_selector()
+    selector = {
+        "vehicle": fleet_selector("estimate"),
+        "vehicle-bin": fleet_selector(BINARY_ESTIMATE_KIND),
+        "fleet": fleet_estimates_selector(),
+    }[stream]
     sub = session.declare_subscriber(selector, zenoh.handlers.FifoChannel(1 << 20))
     time.sleep(0.3)
     ready.set()
@@ -221,8 +228,11 @@ def _receiver(
                 stamps.extend(group["t_ns"])
                 latencies.extend(now - t for t in group["t_ns"])
             continue
-        i = payload.find(marker) + len(marker)
-        stamp = int(payload[i : payload.find(b",", i)])
+        if stream == "vehicle-bin":  # the measurement's t_ns, int64 at byte 16 of the binary estimate
+            stamp = int.from_bytes(payload[16:24], "little", signed=True)
+        else:
+            i = payload.find(marker) + len(marker)
+            stamp = int(payload[i : payload.find(b",", i)])
         stamps.append(stamp)
         latencies.append(now - stamp)
     out.put({"received": len(latencies), "latencies_ns": latencies.tobytes(), "stamps_ns": stamps.tobytes()})
@@ -249,7 +259,8 @@ STEP_COUNTERS = (
     "agv_fe_measurements_accepted_total",
     "agv_fe_measurements_rejected_total",
     "agv_fe_samples_missing_total",
-    "agv_fe_estimates_published_total",
+    'agv_fe_estimates_published_total{encoding="json"}',
+    'agv_fe_estimates_published_total{encoding="binary"}',
     "agv_fe_fleet_estimates_published_total",
     "agv_fe_tick_batch_measurements_count",
 )
@@ -294,7 +305,8 @@ def _step(
         "receiver_cpu": cpu["receiver_s"] / gen["elapsed_s"],
         "estimate_every_n": every_n,
         "stream": stream,
-        "published_per_vehicle": int(diff["agv_fe_estimates_published_total"]),
+        "published_per_vehicle": int(diff['agv_fe_estimates_published_total{encoding="json"}']),
+        "published_per_vehicle_binary": int(diff['agv_fe_estimates_published_total{encoding="binary"}']),
         "published_in_fleet_stream": int(diff["agv_fe_fleet_estimates_published_total"]),
         "service_ticks": int(diff["agv_fe_tick_batch_measurements_count"]),
         "arrival": arrival,
@@ -522,6 +534,8 @@ def _mode_name(every_n: int, stream: str = "vehicle", arrival: str = "spread") -
     what = "an estimate for every sample" if every_n == 1 else f"an estimate for every {every_n}th sample"
     if stream == "fleet":
         what = f"{what}, taken from the fleet stream (one message per tick)"
+    elif stream == "vehicle-bin":
+        what = f"{what}, on each vehicle's binary key (a subscriber on every key)"
     else:
         what = f"{what}, on each vehicle's key" + (" (a subscriber on every key)" if every_n == 1 else "")
     if arrival == "aligned":

@@ -19,13 +19,19 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
     monkeypatch.setattr(bench, "STEP_S", 3.0)
     monkeypatch.setattr(bench, "WARMUP_S", 1.0)
     monkeypatch.setattr(bench, "ENGINE_TICKS", 30)
-    modes = ((1, "vehicle", "spread"), (10, "vehicle", "spread"), (1, "fleet", "spread"), (1, "fleet", "aligned"))
+    modes = (
+        (1, "vehicle", "spread"),
+        (1, "vehicle-bin", "spread"),
+        (10, "vehicle", "spread"),
+        (1, "fleet", "spread"),
+        (1, "fleet", "aligned"),
+    )
     path = bench.run(tmp_path, sizes=(10,), modes=modes)
     assert "Machine speed during this run: one observer step for 1,000 vehicles" in path.read_text()
     text = path.read_text()
     sweeps = json.loads(text.rsplit("```json\n", 1)[1].split("\n```")[0])
     assert [(sw["estimate_every_n"], sw["stream"], sw["arrival"]) for sw in sweeps] == list(modes)
-    for sweep, expected in zip(sweeps, (3000, 300, 3000, 3000), strict=True):
+    for sweep, expected in zip(sweeps, (3000, 3000, 300, 3000, 3000), strict=True):
         (row,) = sweep["service"]
         (engine,) = sweep["engine"]
         assert row["vehicles"] == 10 and row["sent"] == 3000 and row["zero_loss"]
@@ -38,15 +44,19 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
         assert 0 < row["service_ticks"] <= row["accepted"]
         assert f"({row['accepted'] / row['service_ticks']:.0f}) | {bench._verdict(row)} |" in text
     # the fleet stream carried every estimate; the vehicle keys, which nobody watched, stopped after the first second
-    (fleet,) = sweeps[2]["service"]
+    (fleet,) = sweeps[3]["service"]
     assert fleet["published_in_fleet_stream"] == 3000 and fleet["published_per_vehicle"] < 3000
     (keys,) = sweeps[0]["service"]
     assert keys["published_per_vehicle"] == 3000 and keys["published_in_fleet_stream"] == 0
+    assert keys["published_per_vehicle_binary"] < 3000  # nobody watched the binary keys
+    (binary,) = sweeps[1]["service"]
+    assert binary["published_per_vehicle_binary"] == 3000 and binary["published_per_vehicle"] < 3000
     # each mode's headline says what its own step measured: a lower bound when the step kept up, none otherwise
     for sweep, ending in zip(
         sweeps,
         (
             "vehicle's key (a subscriber on every key)",
+            "vehicle's binary key (a subscriber on every key)",
             "every 10th sample, on each vehicle's key",
             "the fleet stream (one message per tick)",
             "aligned clocks, the worst case)",
@@ -57,7 +67,7 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
         said = "at least 10 vehicles (the largest size tried)" if bench._sustained(row) else "none of the sizes tried"
         assert f"{ending}: **{said}**" in text
     verdicts = text.split("**Against the targets (this run).**")[1:]
-    assert len(verdicts) == 4
+    assert len(verdicts) == 5
     for sweep, verdict in zip(sweeps, verdicts, strict=True):
         (row,) = sweep["service"]
         line = verdict.split("\n", 1)[0]

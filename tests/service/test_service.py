@@ -367,7 +367,7 @@ def _fleet_stream_case(server, skips: bool) -> None:
     def counters() -> tuple[float, float, float]:
         m = parse_metrics(server.get("/metrics").text)
         return (
-            m.value("agv_fe_estimates_published_total"),
+            m.value("agv_fe_estimates_published_total", encoding="json"),
             m.value("agv_fe_fleet_estimates_published_total"),
             m.value("agv_fe_estimate_keys_unmatched"),
         )
