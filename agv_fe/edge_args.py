@@ -51,6 +51,16 @@ def add_transport_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_estimates_argument(parser: argparse.ArgumentParser) -> None:
+    """--estimates: which of its estimate keys a vehicle reads back (docs/protocol.md)."""
+    parser.add_argument(
+        "--estimates",
+        choices=("json", "binary"),
+        default="json",
+        help="read the estimates back as JSON (.../estimate, default) or in the binary encoding (.../estimate.bin)",
+    )
+
+
 def transport_options(args: argparse.Namespace) -> Any:
     """The TransportOptions the flags describe; a CommandError for impossible combinations."""
     from edge_client.transport import TransportOptions
@@ -125,6 +135,7 @@ def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--progress", type=float, default=5.0, metavar="S", help="seconds between progress lines (default 5)"
     )
+    add_estimates_argument(parser)
 
 
 def check_bridge_arguments(args: argparse.Namespace) -> None:
@@ -157,7 +168,9 @@ def run_bridge(
     from edge_client.recording import RecordingError
     from edge_client.transport import close_session
 
-    options = PublisherOptions(truth_rate_hz=0.0, buffer_s=0.0, prefix=args.prefix, warmup_s=0.0)
+    options = PublisherOptions(
+        truth_rate_hz=0.0, buffer_s=0.0, prefix=args.prefix, warmup_s=0.0, estimate_encoding=args.estimates
+    )
     progress = ProgressPrinter()
     try:
         with contextlib.ExitStack() as stack:

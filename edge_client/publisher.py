@@ -34,7 +34,8 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, TextIO
+from functools import partial
+from typing import TYPE_CHECKING, Literal, TextIO
 
 import numpy as np
 
@@ -43,6 +44,7 @@ from edge_client.sources import SampleSource
 from edge_client.stats import LatencyHistogram
 from edge_client.transport import Received, Subscription, VehicleLinks, connected_nodes
 from service.protocol import (
+    BINARY_ESTIMATE_KIND,
     DEFAULT_PREFIX,
     FLAG_SEQUENCE_RESTART,
     Alarm,
@@ -50,6 +52,7 @@ from service.protocol import (
     GroundTruth,
     Measurement,
     ProtocolError,
+    decode_binary_estimate,
     fleet_selector,
     parse_vehicle_key,
 )
@@ -69,15 +72,20 @@ class PublisherOptions:
     warmup_s : estimates before this are left out of the 'quiet' peak (observer convergence) [s];
     gil_switch_interval_s : Python's thread switch interval during :meth:`FleetPublisher.run` (None = leave
     it). Estimates arrive on zenoh's threads; at the default 5 ms a receiving thread can hold the
-    interpreter for up to 5 ms after the pacing loop's deadline. 0.5 ms bounds that wait."""
+    interpreter for up to 5 ms after the pacing loop's deadline. 0.5 ms bounds that wait.
+    estimate_encoding : which of each vehicle's estimate keys to subscribe to: 'json' (``.../estimate``) or
+    'binary' (``.../estimate.bin``, docs/protocol.md); the service makes only the encodings someone reads."""
 
     truth_rate_hz: float = 10.0
     buffer_s: float = 2.0
     warmup_s: float = 2.0
     prefix: str = DEFAULT_PREFIX
     gil_switch_interval_s: float | None = 0.0005
+    estimate_encoding: Literal["json", "binary"] = "json"
 
     def __post_init__(self) -> None:
+        if self.estimate_encoding not in ("json", "binary"):
+            raise ValueError(f"estimate_encoding must be 'json' or 'binary', got {self.estimate_encoding!r}")
         if not 0 <= self.truth_rate_hz <= 1000:
             raise ValueError(f"truth_rate_hz must be in [0, 1000], got {self.truth_rate_hz}")
         if not 0 <= self.buffer_s <= 600:
@@ -262,8 +270,9 @@ class FleetPublisher:
         self._put_measurement = self.links.measurement_putters()
         self._subscriptions: list[Subscription] = []
         try:
+            kind = BINARY_ESTIMATE_KIND if self.options.estimate_encoding == "binary" else "estimate"
             self._subscriptions.append(
-                Subscription(session, fleet_selector("estimate", self.options.prefix), self._on_estimate)
+                Subscription(session, fleet_selector(kind, self.options.prefix), self._on_estimate)
             )
             self._subscriptions.append(
                 Subscription(session, fleet_selector("alarm", self.options.prefix), self._on_alarm)
@@ -285,7 +294,9 @@ class FleetPublisher:
         i = self._vehicle_of(rx.key)
         if i is None:
             return
-        estimate = rx.decode(Estimate.decode)
+        binary = self.options.estimate_encoding == "binary"
+        vehicle_id = self.ids[i]
+        estimate = rx.decode(partial(decode_binary_estimate, vehicle_id=vehicle_id) if binary else Estimate.decode)
         if estimate is None:
             self.bad_messages += 1
             return
@@ -303,7 +314,7 @@ class FleetPublisher:
                 peaks = record.peak_faulty if estimate.seq >= self._onset_seq[i] else record.peak_quiet
                 peaks[0] = max(peaks[0], abs(estimate.torque_fault))
                 peaks[1] = max(peaks[1], abs(estimate.steer_fault))
-        self._write_log("estimate", rx)
+        self._write_log("estimate", rx, estimate.model_dump_json() if binary else None)
 
     def _on_alarm(self, rx: Received) -> None:
         i = self._vehicle_of(rx.key)
@@ -321,10 +332,12 @@ class FleetPublisher:
                 record.alarm_events.append(AlarmEvent(rx.received_ns, alarm))
         self._write_log("alarm", rx)
 
-    def _write_log(self, kind: str, rx: Received) -> None:
+    def _write_log(self, kind: str, rx: Received, document: str | None = None) -> None:
+        """One JSON line: the message as received, or ``document`` (a binary estimate as its JSON document)."""
         if self._log is None:
             return
-        line = f'{{"type":"{kind}","received_unix_ns":{time.time_ns()},"message":{rx.payload.decode()}}}\n'
+        message = rx.payload.decode() if document is None else document
+        line = f'{{"type":"{kind}","received_unix_ns":{time.time_ns()},"message":{message}}}\n'
         with self._log_lock:
             self._log.write(line)
 

@@ -9,7 +9,13 @@ from pathlib import Path
 from typing import Any
 
 from agv_fe.common import CommandError, fail
-from agv_fe.edge_args import ProgressPrinter, add_transport_arguments, stop_on_interrupt, transport_options
+from agv_fe.edge_args import (
+    ProgressPrinter,
+    add_estimates_argument,
+    add_transport_arguments,
+    stop_on_interrupt,
+    transport_options,
+)
 
 #: Mirrors edge_client.fleet_mix (MIX_KINDS, DEFAULT_MIX) without importing it at start-up; a test keeps them equal.
 MIX_KINDS_HELP = "healthy, torque_bias, torque_loe, steer_bias, steer_sinusoidal, intermittent"
@@ -55,6 +61,7 @@ def register(sub: Any) -> None:
     parser.add_argument(
         "--progress", type=float, default=1.0, metavar="S", help="seconds between progress lines (default 1)"
     )
+    add_estimates_argument(parser)
     add_transport_arguments(parser)
     parser.set_defaults(handler=run)
 
@@ -91,7 +98,9 @@ def run(args: argparse.Namespace) -> int:
             gusts=args.gusts,
             id_prefix=args.id_prefix,
             transport=transport_options(args),
-            publisher=PublisherOptions(truth_rate_hz=args.truth_hz, buffer_s=args.buffer, prefix=args.prefix),
+            publisher=PublisherOptions(
+                truth_rate_hz=args.truth_hz, buffer_s=args.buffer, prefix=args.prefix, estimate_encoding=args.estimates
+            ),
             log_path=Path(args.log) if args.log else None,
         )
         try:

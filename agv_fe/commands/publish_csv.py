@@ -10,7 +10,13 @@ from pathlib import Path
 from typing import Any
 
 from agv_fe.common import CommandError, add_bag_argument, fail, read_input
-from agv_fe.edge_args import ProgressPrinter, add_transport_arguments, stop_on_interrupt, transport_options
+from agv_fe.edge_args import (
+    ProgressPrinter,
+    add_estimates_argument,
+    add_transport_arguments,
+    stop_on_interrupt,
+    transport_options,
+)
 
 
 def register(sub: Any) -> None:
@@ -32,6 +38,7 @@ def register(sub: Any) -> None:
     parser.add_argument(
         "--progress", type=float, default=1.0, metavar="S", help="seconds between progress lines (default 1)"
     )
+    add_estimates_argument(parser)
     add_transport_arguments(parser)
     parser.set_defaults(handler=run)
 
@@ -64,7 +71,9 @@ def run(args: argparse.Namespace) -> int:
     except TransportError as exc:
         return fail(CommandError(str(exc)))
     progress = ProgressPrinter()
-    options = PublisherOptions(truth_rate_hz=0.0, buffer_s=args.buffer, prefix=args.prefix, warmup_s=0.0)
+    options = PublisherOptions(
+        truth_rate_hz=0.0, buffer_s=args.buffer, prefix=args.prefix, warmup_s=0.0, estimate_encoding=args.estimates
+    )
     try:
         with contextlib.ExitStack() as stack:
             stack.callback(close_session, session)

@@ -33,9 +33,12 @@ def recording_file(tmp_path):
     return path
 
 
+@pytest.mark.parametrize("estimates", ["json", "binary"])
 def test_publish_csv_streams_the_recording_exactly_and_collects_estimates(
-    router, estimation_service, recording_file, tmp_path
+    router, estimation_service, recording_file, tmp_path, estimates
 ):
+    """With --estimates binary the vehicle reads its estimates from .../estimate.bin: the same records (logged as
+    their JSON documents), and the service makes them only for that key."""
     listener = open_session(router.client())
     counter = Counter(listener)
     time.sleep(0.3)
@@ -54,6 +57,8 @@ def test_publish_csv_streams_the_recording_exactly_and_collects_estimates(
                 router.endpoint,
                 "--log",
                 str(tmp_path / "back.jsonl"),
+                "--estimates",
+                estimates,
             ],
             capture_output=True,
             text=True,
