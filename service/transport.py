@@ -242,7 +242,8 @@ class VehicleEstimates:
     the oldest tick's estimates are dropped and counted in :attr:`dropped`.
 
     Counters (written by one thread each, read by any): :attr:`sent` messages put by encoding name
-    (:data:`ENCODING_NAMES`), :attr:`dropped` estimates dropped, :attr:`errors` publications that failed, :attr:`unmatched` vehicles nobody listens to in any encoding.
+    (:data:`ENCODING_NAMES`), :attr:`dropped` estimates dropped, :attr:`errors` publications that failed,
+    :attr:`unmatched` vehicles nobody listens to in any encoding.
     """
 
     def __init__(self, session: zenoh.Session, prefix: str, congestion: Any, subscribed_only: bool) -> None:
