@@ -123,7 +123,7 @@ class ProgressPrinter:
 
 
 def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
-    """The flags every live bridge (ros2-bridge, can-bridge) has besides its own and the zenoh ones."""
+    """The flags every live bridge (ros2-bridge, can-bridge) has besides its own, the zenoh ones included."""
     parser.add_argument("--vehicle", required=True, metavar="ID", help="vehicle id (1-64 of A-Z a-z 0-9 _ . -)")
     parser.add_argument(
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until Ctrl-C)"
@@ -136,10 +136,12 @@ def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
         "--progress", type=float, default=5.0, metavar="S", help="seconds between progress lines (default 5)"
     )
     add_estimates_argument(parser)
+    add_transport_arguments(parser)
 
 
-def check_bridge_arguments(args: argparse.Namespace) -> None:
-    """A CommandError naming the flag of :func:`add_bridge_arguments` at fault."""
+def check_bridge_arguments(args: argparse.Namespace) -> Any:
+    """The transport options of a live bridge's flags (:func:`add_bridge_arguments`), or a CommandError naming the
+    flag at fault."""
     from service.protocol import ProtocolError, check_vehicle_id
 
     try:
@@ -152,6 +154,7 @@ def check_bridge_arguments(args: argparse.Namespace) -> None:
         raise CommandError(f"--wait: expected seconds >= 0, got {args.wait}")
     if not (math.isfinite(args.progress) and args.progress > 0):
         raise CommandError(f"--progress: expected seconds > 0, got {args.progress}")
+    return transport_options(args)
 
 
 def run_bridge(

@@ -28,15 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from agv_fe.benchmarks import report_header
-from agv_fe.benchmarks.bridge_latency import (
-    BridgeLatency,
-    MeasurementReceipts,
-    router_session,
-    summarise,
-    table_row,
-    write,
-)
+from agv_fe.benchmarks import bridge_latency, report_header
 from agv_fe.benchmarks.harness import free_port
 
 RUN_S = 30.0
@@ -116,7 +108,7 @@ def _decode_us(database: Any, frames: list[Any]) -> float:
     return (time.perf_counter() - started) / (repeats * len(frames)) * 1e6
 
 
-def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
+def measure(run_s: float = RUN_S, seed: int = 0) -> bridge_latency.BridgeLatency:
     """Run the vehicle, the router and the bridge (module docstring); the latencies of the samples carried."""
     import can
     import cantools
@@ -127,8 +119,8 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
     fixed, torque, body = _frames(database)
     decode_us = _decode_us(database, [*fixed, torque(7)])
     port = free_port()
-    session = router_session(port)
-    receipts = MeasurementReceipts(session, VEHICLE)
+    session = bridge_latency.router_session(port)
+    receipts = bridge_latency.MeasurementReceipts(session, VEHICLE)
     channel = f"agv-fe-bench-{uuid.uuid4().hex[:8]}"  # a virtual bus of this run alone
     bus = can.Bus(interface="virtual", channel=channel)
     put_ns: dict[int, int] = {}
@@ -151,7 +143,7 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
         receipts.undeclare()
         session.close()
     cpu_s = time.process_time() - cpu_before - sum(vehicle_cpu_s)
-    return summarise(receipts.received, put_ns, decode_us, cpu_s, run_s)
+    return bridge_latency.summarise(receipts.received, put_ns, decode_us, cpu_s, run_s)
 
 
 def _bridge(files: Path, channel: str, port: int, run_s: float) -> None:
@@ -200,10 +192,10 @@ def _send(
 
 
 def run(out_dir: Path, run_s: float = RUN_S) -> Path:
-    return write(out_dir, "can_bridge", measure(run_s), report)
+    return bridge_latency.write(out_dir, "can_bridge", measure(run_s), report)
 
 
-def report(r: BridgeLatency) -> str:
+def report(r: bridge_latency.BridgeLatency) -> str:
     return (
         report_header("CAN bridge: latency added", "can_bridge")
         + "One vehicle's CAN frames, encoded with its DBC by cantools, sent on python-can's in-process `virtual` bus "
@@ -215,7 +207,7 @@ def report(r: BridgeLatency) -> str:
         "| samples sent | carried by a measurement | measurements | total p50 / p99 / max [ms] | "
         "grid hold p50 / p99 [ms] | after the tick p50 / p99 [ms] | decode per frame [us] | "
         "bridge CPU, at most (start-up included) |\n"
-        "|---|---|---|---|---|---|---|---|\n" + table_row(r) + "## Reading\n\n"
+        "|---|---|---|---|---|---|---|---|\n" + bridge_latency.table_row(r) + "## Reading\n\n"
         f"**Added latency: {r.total_p50_ms:.1f} ms at the median, {r.total_p99_ms:.1f} ms at the 99th "
         "percentile.** Most of it is the grid by design: a frame waits for the next 10 ms grid point "
         f"(grid hold, {r.hold_p50_ms:.1f} ms at the median for frames at a random phase, never more than a "

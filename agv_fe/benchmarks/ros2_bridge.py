@@ -20,15 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from agv_fe.benchmarks import report_header
-from agv_fe.benchmarks.bridge_latency import (
-    BridgeLatency,
-    MeasurementReceipts,
-    router_session,
-    summarise,
-    table_row,
-    write,
-)
+from agv_fe.benchmarks import bridge_latency, report_header
 from agv_fe.benchmarks.harness import free_port
 
 RUN_S = 30.0
@@ -94,7 +86,7 @@ def _decode_us(store: Any, builders: dict[str, Any], mapping: Any) -> float:
     return (time.perf_counter() - started) / (repeats * len(raws)) * 1e6
 
 
-def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
+def measure(run_s: float = RUN_S, seed: int = 0) -> bridge_latency.BridgeLatency:
     """Run the vehicle, the router and the bridge (module docstring); the latencies of the samples carried."""
     import yaml
 
@@ -106,8 +98,8 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
     builders = _messages(store)
     decode_us = _decode_us(store, builders, mapping)
     port = free_port()
-    session = router_session(port)
-    receipts = MeasurementReceipts(session, VEHICLE)
+    session = bridge_latency.router_session(port)
+    receipts = bridge_latency.MeasurementReceipts(session, VEHICLE)
     publishers = {
         topic: session.declare_publisher(topic_key(0, topic, s.type, store.hash_rihs01(s.type)))
         for topic, s in ((s.topic, s) for s in mapping.signals().values())
@@ -135,7 +127,7 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> BridgeLatency:
             session.close()
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu_s = (usage.ru_utime - usage_before.ru_utime) + (usage.ru_stime - usage_before.ru_stime)
-    return summarise(receipts.received, put_ns, decode_us, cpu_s, run_s)
+    return bridge_latency.summarise(receipts.received, put_ns, decode_us, cpu_s, run_s)
 
 
 def _publish(
@@ -164,10 +156,10 @@ def _publish(
 
 
 def run(out_dir: Path, run_s: float = RUN_S) -> Path:
-    return write(out_dir, "ros2_bridge", measure(run_s), report)
+    return bridge_latency.write(out_dir, "ros2_bridge", measure(run_s), report)
 
 
-def report(r: BridgeLatency) -> str:
+def report(r: bridge_latency.BridgeLatency) -> str:
     return (
         report_header("ROS 2 bridge: latency added", "ros2_bridge")
         + f"One vehicle's four topics (nav_msgs/Odometry, sensor_msgs/Imu, ackermann_msgs/AckermannDriveStamped, "
@@ -178,7 +170,7 @@ def report(r: BridgeLatency) -> str:
         "| samples put | carried by a measurement | measurements | total p50 / p99 / max [ms] | "
         "grid hold p50 / p99 [ms] | after the tick p50 / p99 [ms] | decode per message [us] | "
         "bridge CPU (start-up included) |\n"
-        "|---|---|---|---|---|---|---|---|\n" + table_row(r) + "## Reading\n\n"
+        "|---|---|---|---|---|---|---|---|\n" + bridge_latency.table_row(r) + "## Reading\n\n"
         f"**Added latency: {r.total_p50_ms:.1f} ms at the median, {r.total_p99_ms:.1f} ms at the 99th "
         "percentile.** Most of it is the grid by design: a message waits for the next 10 ms grid point "
         f"(grid hold, {r.hold_p50_ms:.1f} ms at the median for messages at a random phase, never more than a "

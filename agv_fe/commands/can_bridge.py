@@ -8,13 +8,7 @@ import textwrap
 from typing import Any
 
 from agv_fe.common import CommandError, fail
-from agv_fe.edge_args import (
-    add_bridge_arguments,
-    add_transport_arguments,
-    check_bridge_arguments,
-    run_bridge,
-    transport_options,
-)
+from agv_fe.edge_args import add_bridge_arguments, check_bridge_arguments, run_bridge
 
 
 def register(sub: Any) -> None:
@@ -35,13 +29,12 @@ def register(sub: Any) -> None:
     parser.add_argument("--channel", default="can0", help="the interface's channel (default can0)")
     parser.add_argument("--bitrate", type=int, default=None, help="bit rate, for interfaces that set it [bit/s]")
     add_bridge_arguments(parser)
-    add_transport_arguments(parser)
     parser.set_defaults(handler=run)
 
 
 def _check(args: argparse.Namespace) -> tuple[Any, Any, Any]:
     """The mapping, the DBC database and the transport options, or a CommandError naming what is wrong."""
-    check_bridge_arguments(args)
+    transport = check_bridge_arguments(args)
     if args.bitrate is not None and args.bitrate <= 0:
         raise CommandError(f"--bitrate: expected bit/s > 0, got {args.bitrate}")
     try:
@@ -60,7 +53,7 @@ def _check(args: argparse.Namespace) -> tuple[Any, Any, Any]:
         resolve(database, mapping, args.dbc)  # every mapped message and signal exists, before the bus is opened
     except RecordingError as exc:
         raise CommandError(str(exc)) from exc
-    return mapping, database, transport_options(args)
+    return mapping, database, transport
 
 
 def open_bus(args: argparse.Namespace) -> Any:

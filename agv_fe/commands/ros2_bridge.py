@@ -9,13 +9,7 @@ import textwrap
 from typing import Any
 
 from agv_fe.common import CommandError, fail
-from agv_fe.edge_args import (
-    add_bridge_arguments,
-    add_transport_arguments,
-    check_bridge_arguments,
-    run_bridge,
-    transport_options,
-)
+from agv_fe.edge_args import add_bridge_arguments, check_bridge_arguments, run_bridge
 
 
 def register(sub: Any) -> None:
@@ -43,7 +37,6 @@ def register(sub: Any) -> None:
         help="also republish the vehicle's alarm events as this ROS 2 topic (diagnostic_msgs/msg/DiagnosticStatus "
         "named agv_fe/<vehicle>/<kind>, level WARN / ERROR / STALE while raised, OK once cleared)",
     )
-    add_transport_arguments(parser)
     parser.set_defaults(handler=run)
 
 
@@ -51,7 +44,7 @@ def _check(args: argparse.Namespace) -> tuple[Any, Any]:
     """The mapping and the transport options, or a CommandError naming the flag at fault."""
     from edge_client.recording import RecordingError
 
-    check_bridge_arguments(args)
+    transport = check_bridge_arguments(args)
     for flag, topic, example in (("--republish", args.republish, "/agv_fe/status"),
                                  ("--republish-alarms", args.republish_alarms, "/agv_fe/alarms")):  # fmt: skip
         if topic is not None and not re.fullmatch(r"(/[A-Za-z_][A-Za-z0-9_]*)+", topic):
@@ -67,7 +60,7 @@ def _check(args: argparse.Namespace) -> tuple[Any, Any]:
         typestore_for(mapping)  # unknown types and field paths are refused before joining the network
     except RecordingError as exc:
         raise CommandError(str(exc)) from exc
-    return mapping, transport_options(args)
+    return mapping, transport
 
 
 def run(args: argparse.Namespace) -> int:
