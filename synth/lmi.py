@@ -291,8 +291,9 @@ class Theorem2LMIs:
             if form == "vertex":
                 for rho in dc.vertices():
                     Q = Psi @ dc.A_at(i, rho) - self.X[i] @ dc.C
+                    # symmetric by construction: cvxpy's PSD constraint reads one triangle
                     block = cp.bmat([[self.alpha_sq * P_i, Q.T], [Q, sym_R - P_j]])
-                    constraints.append(_sym(block) >> margin * np.eye(2 * n))
+                    constraints.append(block >> margin * np.eye(2 * n))
             else:
                 Q0 = Psi @ dc.A_centre(i) - self.X[i] @ dc.C
                 L0 = cp.bmat([[self.alpha_sq * P_i, Q0.T], [Q0, sym_R - P_j]])
@@ -331,7 +332,7 @@ class Theorem2LMIs:
 def petersen_block(
     L0: cp.Expression, a: list[cp.Expression], bbT: list[FloatArray | cp.Expression], name: str
 ) -> tuple[cp.Expression, list[cp.Variable]]:
-    """[[L0 - sum_k lambda_k b_k b_k^T, a_1 .. a_K], [a_k^T, diag(lambda)]] (symmetrised) and the lambda_k.
+    """[[L0 - sum_k lambda_k b_k b_k^T, a_1 .. a_K], [a_k^T, diag(lambda)]] and the lambda_k.
 
     Petersen's lemma: for one term (K = 1) this is positive definite for some lambda > 0 exactly when
     L0 + t (a b^T + b a^T) > 0 for every t in [-1, 1], i.e. the LMI at both ends of the scalar uncertainty that
@@ -353,7 +354,8 @@ def petersen_block(
     Returns
     -------
     block : cvxpy.Expression
-        The Petersen block.
+        The Petersen block, symmetric by construction when L0 and the b_k b_k^T are (cvxpy's PSD constraint
+        reads one triangle, so a symmetrised copy would only double what it compiles).
     multipliers : list of cvxpy.Variable
         lambda_k.
     """
@@ -363,11 +365,7 @@ def petersen_block(
         top_left = top_left - lam * bbT_k
     diag = cp.diag(cp.hstack(lams)) if len(lams) > 1 else cp.reshape(lams[0], (1, 1), order="C")
     block = cp.bmat([[top_left, cp.hstack(a)], [cp.hstack(a).T, diag]])
-    return _sym(block), lams
-
-
-def _sym(block: cp.Expression) -> cp.Expression:
-    return 0.5 * (block + block.T)
+    return block, lams
 
 
 def _decoupling_in(dc: DesignCoordinates) -> tuple[FloatArray, FloatArray]:

@@ -266,7 +266,7 @@ class _H2Problem:
                 constraints.append(block >> s.margin * np.eye(2 * n + s.n_terms))
             RB_i = cp.hstack([self.R @ self.B_fixed, -self.X[i] @ self.Sigma_v])
             cost = cp.bmat([[self.Z, RB_i.T, D_1.T], [RB_i, sym_R - P_j, zeros_nz], [D_1, zeros_nz.T, eye_z]])
-            constraints.append(0.5 * (cost + cost.T) >> 0)
+            constraints.append(cost >> 0)  # symmetric by construction, as every block here
         self.n_lmis = len(constraints) - len(distinct_P)
         self.problem = cp.Problem(cp.Minimize(cp.trace(self.Z)), constraints)
 
