@@ -215,7 +215,7 @@ Whatever form was solved, the same numpy checks accept or refuse the gains.
 (commit cbe5855, 3 designs under the profiler): cvxpy's compile 71 % (canonicalising some 14,000
 expression nodes per problem, extracting coefficients, converting the PSD cones), Clarabel 15 %,
 the numpy verification 8 % (most of it the grid's eigenvalues), the rest building the problem and
-the existence check. Now, after the first design of a structure (5 designs under the profiler):
+the existence check. After changes 1-3 below, past the first design of a structure (5 designs under the profiler):
 Clarabel's solve 66 %, the grid's eigenvalues 18 %, the rest of the verification 7 %, everything
 else 9 % (the existence check, cvxpy putting the parameters in and the solution out, Clarabel's
 setup).
@@ -237,39 +237,43 @@ setup).
    detectability check of the same model nor the grid spectral radius of the fast set's own
    gains, computed by the fast set's verification; both were recomputed. The fast set's decay
    LMIs under the common P(h) and R are still checked at every vertex.
+4. *No symmetrised copies.* Every LMI block went to cvxpy as 0.5 (B + B^T). cvxpy's PSD
+   constraint reads one triangle of its argument, and every block is symmetric by construction,
+   so the copy only doubled the expressions cvxpy compiles. Without it the solver's data are the
+   same to the last bit (compared for the quiet set's problem and the paper's four forms) and
+   the quiet set's compile fell from 0.46 to 0.16 s; the paper's forms compile about 40 % faster.
 
-The gains are those of before: the content hash of every design in the table, computed from the
-gains rounded as stored, is unchanged, and so is every certified decay rate.
+The gains are those of before: the content hash of every design, computed from the gains
+rounded as stored, is unchanged, and so is every certified decay rate.
 
-**Before and after, one window** (2026-11-26 21:04-21:13 UTC, load average 6 to 7 on the 2
-cores from other work: fresh processes per design, the two versions alternated, commit cbe5855
-against this change). The default design, median of 5 after the first: 1.55, 1.25, 2.37 s
-before, 0.59, 0.68, 0.75 s after (three alternations); the first design in a process: 1.56,
-1.39, 1.84 s before, 2.30, 2.40, 1.95 s after. The one-set robust design 0.55 against 0.37 s, the
-'h2' form 0.83 against 0.28 s, the calibrated car 3.46 against 1.40 s (one alternation each).
-The paper's designs, which this change touches only through the dropped zeros, moved within
-the noise; dropping the zeros alone, alternated in one process (21:26 UTC, load about 4), left
-their solves as they were: Clarabel 1.135 s with the zeros dropped against 1.126 s with them kept
-on the 16-LMI Petersen form, 7.69 s against 8.45 s on the vertex form as printed (medians of 3
-and 2). That form's wall time in
-the table, above the 5.85 s of the history, is the load: its factorisations share the caches
-with the other work. Earlier the same evening, the default design took 1.07 s before (median of 5, 20:44
-UTC, load 0.2) and 0.41 s after (20:58, load about 7); its first design in a process 1.12 s
-(20:48, load about 3).
+**Before and after, one window** (2026-11-26 21:32-21:34 UTC, load average about 3 on the 2
+cores from other work; a fresh process per design, commit cbe5855 and this change alternated,
+three times each). Median of 5 after the first design in the process, then the first:
 
-**What the first design costs, and what is left.** The first design of a structure in a
-process compiles as before, and it is not faster: the compile with parameters took 0.39 s
-against 0.36 s without on the quiet set, and in the loaded window above the first design in a
-process took 0.1 to 1.0 s longer than before. The service's synthesis workers are
-long-lived processes, so only their first job pays it, and calibration pays it once for all of
-its decay-rate candidates; `agv-fe synth` runs in a fresh process and always pays it. Left:
-a worker could compile the default structures when it starts (the service's job pool), and
-the cold compile could be cut by building Clarabel's matrices directly instead of through
-cvxpy. The two solves of a switched design cannot run in parallel: the quiet set's LMIs hold
-the fast set's gains. Clarabel has no warm start of its iterate; cvxpy reuses a Clarabel solver
-only when chordal decomposition and presolve are off, which was slower here (below). The
-paper's designs still compile per design (their only parameter is the decay rate of the
-bisection).
+| design | before: median of 5 [s] | after | before: first [s] | after |
+|---|---|---|---|---|
+| the default (switched) design | 0.99, 1.05, 1.02 | 0.39, 0.41, 0.41 | 1.08, 1.06, 1.05 | 0.73, 0.84, 0.76 |
+| calibrated car, cornering drag | 1.63, 1.57, 1.64 | 0.75, 0.68, 0.67 | 1.79, 1.71, 1.77 | 1.17, 1.28, 1.32 |
+| one gain set | 0.35, 0.38, 0.39 | 0.16, 0.16, 0.17 | 0.38, 0.38, 0.41 | 0.30, 0.33, 0.33 |
+| paper, Petersen, mirror-reduced | 0.45, 0.40, 0.37 | 0.34, 0.37, 0.35 | 0.51, 0.52, 0.60 | 0.39, 0.45, 0.42 |
+
+Dropping the zeros left the paper's solves as they were (alternated in one process, 21:26 UTC,
+load about 4: Clarabel 1.135 s with the zeros dropped against 1.126 s with them kept on the
+16-LMI Petersen form, 7.69 s against 8.45 s on the vertex form as printed). That form's time is
+Clarabel's factorisations, which this change does not touch, and it moves with the machine's
+load (compare the history).
+
+**Where the first design's time goes, and what is left.** The first design of a structure in a
+process compiles its problems (the compile with parameters costs about what it cost without; the
+symmetrised copies were the larger part). The service's synthesis workers are long-lived
+processes, so only their first job pays it, and calibration pays it once for all of its
+decay-rate candidates; `agv-fe synth` runs in a fresh process and always pays it. Left: a
+worker could compile the default structures when it starts (the service's job pool); the
+compile could be cut further by building Clarabel's matrices directly instead of through cvxpy.
+The two solves of a switched design cannot run in parallel: the quiet set's LMIs hold the fast
+set's gains. Clarabel has no warm start of its iterate; cvxpy reuses a Clarabel solver only when
+chordal decomposition and presolve are off, which was slower here (below). The paper's designs
+still compile per design (their only parameter is the decay rate of the bisection).
 
 ## History
 
