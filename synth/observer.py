@@ -37,7 +37,7 @@ service: :func:`observer_step` and :func:`switched_step` are stateless,
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -146,11 +146,14 @@ class RuntimeGains:
     measured_low: FloatArray
     measured_high: FloatArray
     #: a switched design's quiet set (rows as WT, XT) and both sets stacked; None for one gain set. XT_pair
-    #: holds the fast set's reported rows, the quiet set's, then the innovation, which is the same in both
+    #: holds the quiet set's reported rows and the innovation (the same in both sets), then the fast set's
+    #: reported rows ``fast_rows``: those that differ from the quiet set's (the fault rows, where the output
+    #: gains differ), the only ones a mixed batch must pick per vehicle
     WT_quiet: FloatArray | None = None
     WT_pair: FloatArray | None = None
     XT_quiet: FloatArray | None = None
     XT_pair: FloatArray | None = None
+    fast_rows: slice = field(default_factory=lambda: slice(0, 0))
     #: the switching rule (synth.options.SwitchingRule) in samples; the innovation rows of XT carry
     #: the statistic's weight sqrt((1 - lambda) / 2) / sigma
     switch_threshold: float = np.inf
@@ -252,12 +255,15 @@ class RuntimeGains:
         WT_quiet, XT_quiet = rest[0]
         period = gains.params.sample_period_s
         k = K_rows.size
+        differ = np.flatnonzero(np.any(XT[:k] != XT_quiet[:k], axis=1))
+        fast_rows = slice(int(differ[0]), int(differ[-1]) + 1) if differ.size else slice(0, 0)
         return replace(
             one_set,
             WT_quiet=WT_quiet,
             WT_pair=np.vstack([WT, WT_quiet]),
             XT_quiet=XT_quiet,
-            XT_pair=np.vstack([XT[:k], XT_quiet[:k], XT[k:]]),
+            XT_pair=np.vstack([XT_quiet, XT[fast_rows]]),
+            fast_rows=fast_rows,
             switch_threshold=rule.threshold,
             switch_forgetting=rule.forgetting,
             hold_samples=round(rule.hold_s / period),
@@ -509,8 +515,9 @@ def _gain_products(
 ) -> tuple[FloatArray, FloatArray]:
     """Line 9's z_{k+1} rows W^T Phi, shape (n, nv), and the reported rows X^T x (the output gain's estimate,
     then the weighted innovation), from the set each vehicle runs: one GEMM each for a batch on one set, or
-    for a mixed batch both sets stacked, the fast vehicles' columns copied over the quiet ones."""
-    n, nv, k = rt.n, Phi.shape[1], rt.K_rows.size
+    for a mixed batch both sets stacked, the fast vehicles' columns copied over the quiet ones (of the reported
+    rows, only ``rt.fast_rows``, the rows where the sets differ)."""
+    n, nv = rt.n, Phi.shape[1]
     WT_quiet, WT_pair, XT_quiet, XT_pair = rt.WT_quiet, rt.WT_pair, rt.XT_quiet, rt.XT_pair
     if mixed is None and fast is not None:
         mixed = 0 < np.count_nonzero(fast) < nv
@@ -522,9 +529,9 @@ def _gain_products(
     both = WT_pair @ Phi
     z_rows = both[n:]
     np.copyto(z_rows, both[:n], where=fast)
-    x_both = XT_pair @ x  # [fast set's reported rows; quiet set's; innovation]
-    x_rows = x_both[k:]
-    np.copyto(x_rows[:k], x_both[:k], where=fast)
+    x_both = XT_pair @ x  # [quiet set's reported rows; innovation; fast set's reported rows fast_rows]
+    x_rows = x_both[: XT_quiet.shape[0]]
+    np.copyto(x_rows[rt.fast_rows], x_both[XT_quiet.shape[0] :], where=fast)
     return z_rows, x_rows
 
 
