@@ -192,3 +192,23 @@ def test_gains_without_an_output_gain_keep_their_hash(paper_gains):
     assert g.K is None and not np.any(g.output_gain)
     assert g.content_hash() == gains_hash(g.params, g.bounds, g.options, g.N, g.L, g.M, g.E)
     assert "K" not in g.to_dict()["matrices"]
+
+
+def test_a_design_reuses_the_problem_compiled_for_its_structure_and_finds_the_same_gains(robust_gains):
+    """The H2 LMIs are compiled once per structure (synth.robust.H2Structure) and re-solved with new numbers: a
+    redesign with other numbers of the same structure reuses the compiled problem, and a design solved on a reused
+    problem is the one a fresh compile gives, to the last stored digit (its content hash)."""
+    from synth.params import VehicleParams
+    from synth.robust import _PROBLEMS, forget_compiled_problems
+
+    options = DesignOptions(switching=None)
+    heavier = VehicleParams(effective_mass_kg=VehicleParams().effective_mass_kg * 1.1)
+    forget_compiled_problems()
+    fresh = synthesize(heavier, options=options)
+    compiled = dict(_PROBLEMS)
+    assert len(compiled) == 1
+    reused = synthesize(options=options)  # the paper's car: other numbers, the same structure
+    assert list(_PROBLEMS.values()) == list(compiled.values())  # the same problem object, not a second compile
+    assert reused.certificate.content_hash == robust_gains.certificate.content_hash
+    assert synthesize(heavier, options=options).certificate.content_hash == fresh.certificate.content_hash
+    assert fresh.certificate.content_hash != robust_gains.certificate.content_hash
