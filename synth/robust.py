@@ -271,8 +271,9 @@ class _H2Problem:
         self.problem = cp.Problem(cp.Minimize(cp.trace(self.Z)), constraints)
 
 
-#: Compiled H2 problems by structure, at most this many (the oldest dropped first).
-_PROBLEMS_KEPT = 16
+#: Compiled H2 problems by structure, at most this many (the oldest dropped first); each holds 10-13 MB (a switched
+#: design needs two, a profile with the cornering drag two more).
+_PROBLEMS_KEPT = 8
 _PROBLEMS: dict[H2Structure, _H2Problem] = {}
 _PROBLEMS_LOCK = threading.Lock()
 
