@@ -112,11 +112,14 @@ def test_version_is_the_installed_distributions():
 def test_replay_checks_its_input_before_designing_gains(tmp_path, monkeypatch, capsys):
     """A missing or broken recording is reported at once, not after a design of several seconds."""
     from agv_fe import common
-    from agv_fe.cli import main
+    from agv_fe.cli import build_parser, main
 
     def no_design(*args, **kwargs):
         raise AssertionError("a design was started before the input was checked")
 
+    # every command module is imported before the patch: one that imports the name (agv_fe.commands.synth) would
+    # otherwise keep the stand-in for the rest of the session, and a later test's `agv-fe synth` would fail
+    build_parser()
     monkeypatch.setattr(common, "synthesize_or_fail", no_design)
     assert main(["replay", str(tmp_path / "missing.csv"), "--out", str(tmp_path / "o.csv")]) == 2
     assert "missing.csv" in capsys.readouterr().err
