@@ -1894,17 +1894,22 @@ def _alpha_section(document: dict[str, Any]) -> list[str]:
         for name, label in (("observer", ESTIMATOR_LABELS["observer"]), (ALPHA, ALPHA_LABEL)):
             if name == "observer" and case["kind"] != "loss_of_effectiveness":
                 continue
-            e = case[name]["default"]
-            w, f = e["warn"], e["fault"]
-            lines.append(
-                f"| {case['label']} | {label} | {_delay(w['p50_s'])} / {_delay(w['p95_s'])} / "
-                f"{_delay(w['worst_detected_s'])} | {100 * w['never_share']:.0f} % | {_delay(f['p50_s'])} / "
-                f"{_delay(f['p95_s'])} / {_delay(f['worst_detected_s'])} | {100 * f['never_share']:.0f} % | "
-                f"{e['warn_before_onset']} | {e['other_warn_raised']} / {e['other_fault_raised']} "
-                f"({e['runs_with_other_alarm']}) |"
-            )
+            lines.append(_delay_row(case["label"], label, case[name]["default"]))
     lines.append("")
     return lines
+
+
+def _delay_row(case_label: str, rule_label: str, e: dict[str, Any]) -> str:
+    """A row of a detection-delay table: WARN and FAULT delays p50 / p95 / worst and never-detected share, WARN
+    before the onset, the other channel's alarms."""
+    w, f = e["warn"], e["fault"]
+    return (
+        f"| {case_label} | {rule_label} | {_delay(w['p50_s'])} / {_delay(w['p95_s'])} / "
+        f"{_delay(w['worst_detected_s'])} | {100 * w['never_share']:.0f} % | {_delay(f['p50_s'])} / "
+        f"{_delay(f['p95_s'])} / {_delay(f['worst_detected_s'])} | {100 * f['never_share']:.0f} % | "
+        f"{e['warn_before_onset']} | {e['other_warn_raised']} / {e['other_fault_raised']} "
+        f"({e['runs_with_other_alarm']}) |"
+    )
 
 
 def _calibration_section(document: dict[str, Any]) -> list[str]:
@@ -2142,15 +2147,7 @@ def _delay_section(document: dict[str, Any]) -> list[str]:
         del key
         for name in ESTIMATOR_LABELS:
             for rule in _main_rules(document):
-                e = case[name][rule]
-                w, f = e["warn"], e["fault"]
-                lines.append(
-                    f"| {case['label']} | {_rule_label(name, rule)} | {_delay(w['p50_s'])} / {_delay(w['p95_s'])} / "
-                    f"{_delay(w['worst_detected_s'])} | {100 * w['never_share']:.0f} % | {_delay(f['p50_s'])} / "
-                    f"{_delay(f['p95_s'])} / {_delay(f['worst_detected_s'])} | {100 * f['never_share']:.0f} % | "
-                    f"{e['warn_before_onset']} | {e['other_warn_raised']} / {e['other_fault_raised']} "
-                    f"({e['runs_with_other_alarm']}) |"
-                )
+                lines.append(_delay_row(case["label"], _rule_label(name, rule), case[name][rule]))
     lines.append("")
     return lines
 
