@@ -78,9 +78,11 @@ OWNERSHIP_RING_CAPACITY = 256
 #: client session learns of existing subscribers only after a round trip to its router, and reports "no
 #: match" until then; afterwards its matching listener reports every change [s].
 MATCH_SETTLE_S = 1.0
-#: Ticks of per-vehicle estimates the publisher thread may fall behind by; beyond, the oldest tick's are dropped
-#: (counted): the ingest loop never waits for a vehicle's subscriber.
-VEHICLE_QUEUE_TICKS = 100
+#: How far the publisher thread may fall behind the ingest loop [s]: a tick's per-vehicle estimates still queued
+#: this long after the tick are dropped (counted), so the ingest loop never waits for a vehicle's subscriber. A
+#: burst of new vehicles (two publishers and listeners each, declared by the thread) takes a good part of a
+#: second at 1,000 vehicles; a queue bounded by a count of 1 ms ticks dropped estimates there.
+VEHICLE_QUEUE_MAX_AGE_S = 2.0
 #: How often the publisher thread looks at the subscribers that came or went while no estimate is due [s].
 VEHICLE_IDLE_REFRESH_S = 0.5
 
@@ -238,8 +240,8 @@ class VehicleEstimates:
     the GIL while it sends. With ``subscribed_only`` (setting ``zenoh.vehicle_estimates='subscribed'``), a
     vehicle's estimate is encoded and sent only in the encodings someone subscribes to: each publisher has a
     matching listener, whose reports this thread applies before every publication. If the thread falls
-    ``VEHICLE_QUEUE_TICKS`` ticks behind (a subscriber slower than the fleet with congestion control BLOCK),
-    the oldest tick's estimates are dropped and counted in :attr:`dropped`.
+    ``VEHICLE_QUEUE_MAX_AGE_S`` behind (a subscriber slower than the fleet with congestion control BLOCK), the
+    oldest ticks' estimates are dropped and counted in :attr:`dropped`.
 
     Counters (written by one thread each, read by any): :attr:`sent` messages put by encoding name
     (:data:`ENCODING_NAMES`), :attr:`dropped` estimates dropped, :attr:`errors` publications that failed,
@@ -261,18 +263,22 @@ class VehicleEstimates:
         self.dropped = 0
         self.errors = 0
         self.unmatched = 0
-        self._queue: collections.deque[Sequence[EstimateBatch]] = collections.deque()
+        self._queue: collections.deque[tuple[float, Sequence[EstimateBatch]]] = collections.deque()
         self._wake = threading.Event()
+        self._take = threading.Lock()  # taking the oldest tick: the thread to publish it, submit() to drop it
         self._stopping = False
         self._thread = threading.Thread(target=self._run, name="vehicle-estimates", daemon=True)
         self._thread.start()
 
     def submit(self, batches: Sequence[EstimateBatch]) -> None:
         """Queue a tick's batches for publication (returns at once)."""
-        if len(self._queue) >= VEHICLE_QUEUE_TICKS:
-            with contextlib.suppress(IndexError):  # the thread may have taken it meanwhile
-                self.dropped += sum(len(b) for b in self._queue.popleft())
-        self._queue.append(batches)
+        now = time.monotonic()
+        queue = self._queue
+        if queue and now - queue[0][0] > VEHICLE_QUEUE_MAX_AGE_S:
+            with self._take:  # the thread takes from the same end
+                while queue and now - queue[0][0] > VEHICLE_QUEUE_MAX_AGE_S:
+                    self.dropped += sum(len(b) for b in queue.popleft()[1])
+        queue.append((now, batches))
         self._wake.set()
 
     def close(self, timeout_s: float = 5.0) -> None:
@@ -293,7 +299,10 @@ class VehicleEstimates:
             self._wake.clear()
             idle = not self._queue
             while self._queue:
-                batches = self._queue.popleft()
+                with self._take:
+                    if not self._queue:
+                        break
+                    _, batches = self._queue.popleft()
                 try:
                     self.publish(batches)
                 except Exception:  # a failed put or declaration: counted and logged, the thread goes on
