@@ -47,6 +47,7 @@ from synth.errors import BadParameters, check_shape
 from synth.fuzzy import RULE_CORNERS
 from synth.gains import ObserverGains
 from synth.model import FloatArray
+from synth.options import SwitchingRule
 
 #: Index of the steering fault delta_f (at sample k) in the augmented state.
 STEER_FAULT_INDEX = N_STATES + 1
@@ -252,23 +253,7 @@ class RuntimeGains:
         )
         if not rest or rule is None:
             return one_set
-        WT_quiet, XT_quiet = rest[0]
-        period = gains.params.sample_period_s
-        k = K_rows.size
-        differ = np.flatnonzero(np.any(XT[:k] != XT_quiet[:k], axis=1))
-        fast_rows = slice(int(differ[0]), int(differ[-1]) + 1) if differ.size else slice(0, 0)
-        return replace(
-            one_set,
-            WT_quiet=WT_quiet,
-            WT_pair=np.vstack([WT, WT_quiet]),
-            XT_quiet=XT_quiet,
-            XT_pair=np.vstack([XT_quiet, XT[fast_rows]]),
-            fast_rows=fast_rows,
-            switch_threshold=rule.threshold,
-            switch_forgetting=rule.forgetting,
-            hold_samples=round(rule.hold_s / period),
-            start_samples=round(rule.start_s / period),
-        )
+        return _with_quiet_set(one_set, rest[0], rule, gains.params.sample_period_s)
 
     @property
     def switched(self) -> bool:
@@ -698,3 +683,27 @@ class FuzzyObserver:
             self.runtime, self.z, self.stat, self.left, np.atleast_2d(y), np.atleast_2d(u)
         )
         return result
+
+
+def _with_quiet_set(
+    one_set: RuntimeGains, quiet: tuple[FloatArray, FloatArray], rule: SwitchingRule, period: float
+) -> RuntimeGains:
+    """``one_set`` (the fast set's runtime gains) with the quiet set's stacked weights ``quiet`` = (WT, XT) and the
+    switching rule of a switched design (docs/switched-gains.md); a mixed batch picks per vehicle only the output
+    rows where the two sets' output gains differ."""
+    WT, XT, k = one_set.WT, one_set.XT, one_set.K_rows.size
+    WT_quiet, XT_quiet = quiet
+    differ = np.flatnonzero(np.any(XT[:k] != XT_quiet[:k], axis=1))
+    fast_rows = slice(int(differ[0]), int(differ[-1]) + 1) if differ.size else slice(0, 0)
+    return replace(
+        one_set,
+        WT_quiet=WT_quiet,
+        WT_pair=np.vstack([WT, WT_quiet]),
+        XT_quiet=XT_quiet,
+        XT_pair=np.vstack([XT_quiet, XT[fast_rows]]),
+        fast_rows=fast_rows,
+        switch_threshold=rule.threshold,
+        switch_forgetting=rule.forgetting,
+        hold_samples=round(rule.hold_s / period),
+        start_samples=round(rule.start_s / period),
+    )
