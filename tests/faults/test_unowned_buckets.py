@@ -60,6 +60,10 @@ class AlarmLog:
         with self._lock:
             return {a.vehicle for a in self.events if a.kind == kind and a.state == state}
 
+    def forget(self) -> None:
+        with self._lock:
+            self.events.clear()
+
     def close(self) -> None:
         self._sub.undeclare()
 
@@ -119,7 +123,9 @@ def test_a_dead_static_shards_vehicles_are_listed_and_alarmed_as_unserved_until_
         its_buckets = set(r1.get("/health").json()["buckets"])
         its_vehicles = {v for v in VEHICLES if bucket_of(v) in its_buckets}
         assert its_vehicles and its_vehicles != set(VEHICLES)
-        assert r0.get("/replicas").json()["unowned_buckets"] == [] and unserved_rows(r0) == set()
+        # r1's buckets had no owner until it started: r0 sees them owned from its next lock round on
+        wait_for(lambda: r0.get("/replicas").json()["unowned_buckets"] == [], what="r1's buckets owned, seen by r0")
+        assert unserved_rows(r0) == set() and alarms.vehicles("unserved", "raised") == set()
         r1.kill()
         # unserved: listed at once, alarmed once the bucket has had no owner for UNSERVED_AFTER_S
         wait_for(lambda: unserved_rows(r0) == its_vehicles, what="the dead replica's vehicles listed as unserved")
@@ -161,7 +167,13 @@ def test_buckets_waiting_for_a_takeover_by_leases_show_their_vehicles_as_unserve
             lambda: sorted(len(s.get("/health").json()["buckets"]) for s in replicas.values()) == [8, 8],
             what="the buckets shared 8/8",
         )
-        assert unserved_rows(r0) == set() and alarms.vehicles("unserved", "raised") == set()
+        wait_for(lambda: r0.get("/replicas").json()["unowned_buckets"] == [], what="every bucket owned, seen by r0")
+        assert unserved_rows(r0) == set()
+        # a bucket handed from r0 to r1 at the start has no owner for a lease round; on a loaded machine that can
+        # outlast UNSERVED_AFTER_S and raise an alarm, cleared when r1 takes it: start from a settled fleet
+        wait_for(lambda: alarms.vehicles("unserved", "raised") <= alarms.vehicles("unserved", "cleared"),
+                 what="no unserved alarm left from the start")  # fmt: skip
+        alarms.forget()
         with psycopg.connect(postgres_url, autocommit=True) as member:  # a third member that takes nothing
             member.execute("SELECT pg_advisory_lock(%s, pg_backend_pid())", (MEMBER_LOCKS,))
             unowned = wait_for(
@@ -180,4 +192,4 @@ def test_buckets_waiting_for_a_takeover_by_leases_show_their_vehicles_as_unserve
         for srv in replicas.values():  # each cleared alarm is held by the replica that serves the vehicle
             held = latched_unserved(srv)
             served = {v for v in waiting if bucket_of(v) in srv.get("/health").json()["buckets"]}
-            assert set(held) == served and all(a["state"] == "cleared" for a in held.values())
+            assert set(held) & waiting == served and all(a["state"] == "cleared" for a in held.values())
