@@ -32,14 +32,14 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import psycopg
 
+from service.pg_session import SessionThread
 from service.protocol import all_buckets
-from service.storage import StorageError
-from service.storage_postgres import CONNECT_TIMEOUT_S, redacted
+from service.storage_postgres import CONNECT_TIMEOUT_S
 
 log = logging.getLogger("agv_fe.service.leases")
 
@@ -98,73 +98,135 @@ class LeaseState:
     warden: bool = False
 
 
-class BucketLeases:
+class _LockThread(SessionThread):
+    """Bucket locks held on a session of its own by a thread that runs a round every ``interval_s``: a failed
+    session is recorded in the state (and logged once) and opened again at the next round; the state is read and
+    written under a lock. Subclasses say what a round does (``_round``) and which buckets they hold."""
+
+    #: True: :meth:`start` runs the first round itself, and the thread waits an interval before its first one
+    round_at_start = False
+
+    def __init__(
+        self,
+        url: str,
+        interval_s: float,
+        index: dict[str, int],
+        *,
+        purpose: str,
+        application_name: str,
+        thread_name: str,
+        join_timeout_s: float,
+    ) -> None:
+        super().__init__(
+            url,
+            purpose=purpose,
+            application_name=application_name,
+            thread_name=thread_name,
+            join_timeout_s=join_timeout_s,
+        )
+        self.interval_s = interval_s
+        #: bucket name -> the second key of its lock
+        self._index = index
+        self._lock = threading.Lock()
+        self.state = LeaseState()
+
+    # ------------------------------------------------------------------ what the subclasses say
+
+    def _connect(self) -> None:
+        """Open the session (the first one, at start)."""
+        raise NotImplementedError
+
+    def _reconnect(self) -> None:
+        """Open a new session after a failed one (in the thread)."""
+        self._connect()
+
+    def _round(self) -> None:
+        raise NotImplementedError
+
+    def _holding(self) -> set[str]:
+        """The buckets shown as owned."""
+        raise NotImplementedError
+
+    def _log_failure(self, exc: psycopg.Error, problem: str) -> None:
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ the lifecycle
+
+    def _begin(self) -> None:
+        self._connect()
+        if self.round_at_start:
+            self._round()
+
+    def _run(self) -> None:
+        if not self.round_at_start and not self._stop.is_set():
+            self._attempt()
+        while not self._stop.wait(self.interval_s):
+            self._attempt()
+
+    def _attempt(self) -> None:
+        try:
+            if self._live_session() is None:
+                self._reconnect()
+            self._round()
+        except psycopg.Error as exc:
+            self._connection_failed(exc)
+
+    def _connection_failed(self, exc: psycopg.Error) -> None:
+        problem = f"{type(exc).__name__}: {str(exc).strip()}"
+        if self.state.problem is None:
+            self._log_failure(exc, problem)
+        self._set(connected=False, problem=problem, unowned=None, warden=False)
+        self._end_session()
+
+    def _require(self) -> psycopg.Connection[Any]:
+        if self._conn is None:
+            raise psycopg.OperationalError(f"the {self._purpose} connection is closed")
+        return self._conn
+
+    def _set(self, **changes: Any) -> None:
+        with self._lock:
+            for name, value in changes.items():
+                setattr(self.state, name, value)
+            self.state.owned = sorted(self._holding(), key=self._index.__getitem__)
+
+    def snapshot(self) -> LeaseState:
+        with self._lock:
+            s = self.state
+            return replace(s, owned=list(s.owned), unowned=None if s.unowned is None else list(s.unowned))
+
+
+class BucketLeases(_LockThread):
     """This replica's share of the buckets, held as session advisory locks on a connection of its own."""
 
     def __init__(
         self, url: str, interval_s: float, on_gain: Handover, on_lose: Handover, buckets: list[str] | None = None
     ) -> None:
-        self.url = url
-        self.location = redacted(url)
-        self.interval_s = interval_s
         self.buckets = buckets if buckets is not None else all_buckets()
-        self._index = {b: int(b[1:], 16) for b in self.buckets}
+        super().__init__(
+            url,
+            interval_s,
+            {b: int(b[1:], 16) for b in self.buckets},
+            purpose="lease",
+            application_name="agv-fe-leases",
+            thread_name="bucket-leases",
+            join_timeout_s=HANDOVER_TIMEOUT_S + interval_s + 10,
+        )
         self._on_gain, self._on_lose = on_gain, on_lose
-        self._conn: psycopg.Connection[Any] | None = None
         self._owned: set[str] = set()
         #: buckets locked whose serving failed: tried again each round
         self._unserved: set[str] = set()
-        self._stop = threading.Event()
-        self._lock = threading.Lock()
-        self.state = LeaseState()
-        self._thread = threading.Thread(target=self._run, name="bucket-leases", daemon=True)
-
-    def start(self) -> None:
-        try:
-            self._connect()
-        except psycopg.Error as exc:
-            raise StorageError(f"{self.location}: cannot open the lease connection: {exc}") from exc
-        self._thread.start()
-
-    def halt(self) -> None:
-        """Stop taking and giving buckets (the locks stay held)."""
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(HANDOVER_TIMEOUT_S + self.interval_s + 10)
-
-    def close(self) -> None:
-        """Halt, then end the session: PostgreSQL releases every lock of this replica at once."""
-        self.halt()
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
 
     # ------------------------------------------------------------------ the lease thread
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                if self._conn is None or self._conn.closed or self._conn.broken:
-                    self._reconnect()
-                self._round()
-                self._set(connected=True, problem=None, rounds=self.state.rounds + 1)
-            except psycopg.Error as exc:
-                self._connection_failed(exc)
-            self._stop.wait(self.interval_s)
-
     def _connect(self) -> None:
-        conn = psycopg.connect(
-            self.url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S, application_name="agv-fe-leases"
-        )
+        conn = self._new_session()
         conn.execute("SELECT pg_advisory_lock(%s, pg_backend_pid())", (MEMBER_LOCKS,))
         self._conn = conn
         self._set(connected=True, problem=None, warden=False)  # a new session holds no warden's lock yet
 
     def _reconnect(self) -> None:
         """A new session: lock the buckets served until now again; give up at once those another replica took."""
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
+        self._end_session()
         self._connect()
         conn = self._require()
         kept = {b for b in sorted(self._owned) if self._try_lock(conn, b)}
@@ -174,24 +236,16 @@ class BucketLeases:
             self._give_up(taken, wait=False)
         log.warning("leases: connected to %s again, serving %d buckets", self.location, len(self._owned))
 
-    def _connection_failed(self, exc: BaseException) -> None:
-        problem = f"{type(exc).__name__}: {str(exc).strip()}"
-        if self.state.problem is None:
-            log.error(
-                "leases: the lease connection to %s failed (%s); serving the %d buckets held until it is back",
-                self.location,
-                problem,
-                len(self._owned),
-            )
-        self._set(connected=False, problem=problem, unowned=None, warden=False)
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
+    def _log_failure(self, exc: psycopg.Error, problem: str) -> None:
+        log.error(
+            "leases: the lease connection to %s failed (%s); serving the %d buckets held until it is back",
+            self.location,
+            problem,
+            len(self._owned),
+        )
 
-    def _require(self) -> psycopg.Connection[Any]:
-        if self._conn is None:
-            raise psycopg.OperationalError("the lease connection is closed")
-        return self._conn
+    def _holding(self) -> set[str]:
+        return self._owned
 
     def _round(self) -> None:
         conn = self._require()
@@ -219,6 +273,7 @@ class BucketLeases:
                 self._serve(gained)
         self._serve([b for b in retry if b in self._owned])
         self._observe(conn)
+        self._set(connected=True, problem=None, rounds=self.state.rounds + 1)
 
     def _observe(self, conn: psycopg.Connection[Any]) -> None:
         """The fleet's ownership after this round: the buckets nobody holds, and whether this replica is warden."""
@@ -265,22 +320,8 @@ class BucketLeases:
             return False
         return True
 
-    def _set(self, **changes: Any) -> None:
-        with self._lock:
-            for name, value in changes.items():
-                setattr(self.state, name, value)
-            self.state.owned = sorted(self._owned, key=self._index.__getitem__)
 
-    def snapshot(self) -> LeaseState:
-        with self._lock:
-            s = self.state
-            unowned = None if s.unowned is None else list(s.unowned)
-            return LeaseState(
-                list(s.owned), s.members, s.connected, s.gained, s.lost, s.rounds, s.problem, unowned, s.warden
-            )
-
-
-class StaticBucketLocks:
+class StaticBucketLocks(_LockThread):
     """A static shard's buckets (``--shard I/N``) on a shared database: shared advisory locks, and the fleet's view.
 
     The replica serves its buckets whatever happens here; the locks only say so in the lock table, so that every
@@ -291,67 +332,37 @@ class StaticBucketLocks:
     tries the warden's lock, as :class:`BucketLeases` does each round.
     """
 
+    round_at_start = True
+
     def __init__(self, url: str, buckets: list[str], interval_s: float) -> None:
-        self.url = url
-        self.location = redacted(url)
-        self.interval_s = interval_s
+        super().__init__(
+            url,
+            interval_s,
+            {b: int(b[1:], 16) for b in all_buckets()},
+            purpose="bucket-lock",
+            application_name="agv-fe-bucket-locks",
+            thread_name="bucket-locks",
+            join_timeout_s=interval_s + CONNECT_TIMEOUT_S + 10,
+        )
         self.buckets = list(buckets)
-        self._index = {b: int(b[1:], 16) for b in all_buckets()}
-        self._conn: psycopg.Connection[Any] | None = None
         self._held: set[str] = set()
         #: buckets of this shard a replica with leases held exclusively (logged once)
         self._contested: set[str] = set()
-        self._stop = threading.Event()
-        self._lock = threading.Lock()
-        self.state = LeaseState()
-        self._thread = threading.Thread(target=self._run, name="bucket-locks", daemon=True)
-
-    def start(self) -> None:
-        try:
-            self._connect()
-            self._round()
-        except psycopg.Error as exc:
-            raise StorageError(f"{self.location}: cannot open the bucket-lock connection: {exc}") from exc
-        self._thread.start()
-
-    def close(self) -> None:
-        """Stop the thread and end the session: the locks go with it."""
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(self.interval_s + CONNECT_TIMEOUT_S + 10)
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
 
     def _connect(self) -> None:
-        if self._conn is not None:
-            self._conn.close()
-        self._conn = None
+        self._end_session()
         self._held = set()
-        self._conn = psycopg.connect(
-            self.url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S, application_name="agv-fe-bucket-locks"
-        )
+        self._conn = self._new_session()
         self._set(warden=False)
 
-    def _run(self) -> None:
-        while not self._stop.wait(self.interval_s):
-            try:
-                if self._conn is None or self._conn.closed or self._conn.broken:
-                    self._connect()
-                self._round()
-            except psycopg.Error as exc:
-                if self.state.problem is None:
-                    log.error("bucket locks: the connection to %s failed: %s", self.location, exc)
-                problem = f"{type(exc).__name__}: {str(exc).strip()}"
-                self._set(connected=False, problem=problem, unowned=None, warden=False)
-                if self._conn is not None:
-                    self._conn.close()
-                    self._conn = None
+    def _log_failure(self, exc: psycopg.Error, problem: str) -> None:
+        log.error("bucket locks: the connection to %s failed: %s", self.location, exc)
+
+    def _holding(self) -> set[str]:
+        return self._held
 
     def _round(self) -> None:
-        if self._conn is None:
-            raise psycopg.OperationalError("the bucket-lock connection is closed")
-        conn = self._conn
+        conn = self._require()
         for bucket in [b for b in self.buckets if b not in self._held]:
             row = conn.execute("SELECT pg_try_advisory_lock_shared(%s, %s)", (BUCKET_LOCKS, self._index[bucket]))
             if (got := row.fetchone()) and got[0]:
@@ -364,15 +375,3 @@ class StaticBucketLocks:
         warden = self.state.warden or try_warden(conn)
         unowned = unowned_buckets(conn, self._index)
         self._set(connected=True, problem=None, rounds=self.state.rounds + 1, unowned=unowned, warden=warden)
-
-    def _set(self, **changes: Any) -> None:
-        with self._lock:
-            for name, value in changes.items():
-                setattr(self.state, name, value)
-            self.state.owned = sorted(self._held, key=self._index.__getitem__)
-
-    def snapshot(self) -> LeaseState:
-        with self._lock:
-            s = self.state
-            unowned = None if s.unowned is None else list(s.unowned)
-            return LeaseState(list(s.owned), 0, s.connected, 0, 0, s.rounds, s.problem, unowned, s.warden)

@@ -16,7 +16,6 @@ LISTEN/NOTIFY, designs claimed with advisory locks.
 from __future__ import annotations
 
 import logging
-import threading
 import zlib
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -24,8 +23,8 @@ from typing import Any
 
 import psycopg
 
-from service.storage import StorageError
-from service.storage_postgres import CONNECT_TIMEOUT_S, PROFILE_CHANNEL, redacted
+from service.pg_session import SessionThread
+from service.storage_postgres import CONNECT_TIMEOUT_S, PROFILE_CHANNEL
 
 log = logging.getLogger("agv_fe.service.config")
 
@@ -41,32 +40,26 @@ def design_key(profile: str) -> int:
     return zlib.crc32(profile.encode()) - (1 << 31)
 
 
-class SharedConfig:
-    """This replica's side of the shared configuration: its design claims and its listener."""
+class SharedConfig(SessionThread):
+    """This replica's side of the shared configuration: its design claims (on its session, used on the event loop,
+    short queries only) and its listener (a thread on a session of its own)."""
 
     def __init__(self, url: str, on_change: Changed, resync_s: float = 2.0) -> None:
-        self.url = url
-        self.location = redacted(url)
+        super().__init__(
+            url,
+            purpose="claims",
+            application_name="agv-fe-claims",
+            thread_name="config-listener",
+            join_timeout_s=resync_s + CONNECT_TIMEOUT_S + 5,
+        )
         self.resync_s = resync_s
         self._on_change = on_change
-        self._claims: psycopg.Connection[Any] | None = None
         self._held: set[str] = set()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._listen, name="config-listener", daemon=True)
         #: notifications received (for /metrics and tests)
         self.notifications = 0
 
-    def _connect(self, name: str) -> psycopg.Connection[Any]:
-        return psycopg.connect(self.url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S, application_name=name)
-
-    def open(self) -> None:
-        """The claims connection (used on the event loop, short queries only)."""
-        try:
-            self._claims = self._connect("agv-fe-claims")
-        except psycopg.Error as exc:
-            raise StorageError(f"{self.location}: cannot open the claims connection: {exc}") from exc
-
     def start_listening(self) -> None:
+        """The listener thread (the claims session is opened before, by :meth:`open`)."""
         self._thread.start()
 
     def claim(self, profile: str) -> bool:
@@ -74,7 +67,7 @@ class SharedConfig:
         if profile in self._held:
             return True
         try:
-            conn = self._claims if self._claims is not None and not self._claims.broken else self._reopen()
+            conn = self._live_session() or self._reopen()
             row = conn.execute("SELECT pg_try_advisory_lock(%s, %s)", (DESIGN_LOCKS, design_key(profile))).fetchone()
         except psycopg.Error as exc:
             log.warning("config: cannot claim the design of profile %s: %s", profile, exc)
@@ -89,25 +82,25 @@ class SharedConfig:
             return
         self._held.discard(profile)
         try:
-            if self._claims is not None and not self._claims.broken:
-                self._claims.execute("SELECT pg_advisory_unlock(%s, %s)", (DESIGN_LOCKS, design_key(profile)))
+            if (conn := self._live_session()) is not None:
+                conn.execute("SELECT pg_advisory_unlock(%s, %s)", (DESIGN_LOCKS, design_key(profile)))
         except psycopg.Error as exc:  # the session is gone, and its locks with it
             log.warning("config: releasing the design claim of %s: %s", profile, exc)
 
     def _reopen(self) -> psycopg.Connection[Any]:
         """A new claims session: the claims of the old one went with it."""
-        if self._claims is not None:
-            self._claims.close()
+        self._end_session()
         self._held.clear()
-        self._claims = self._connect("agv-fe-claims")
-        return self._claims
+        self._conn = self._new_session()
+        return self._conn
 
-    def _listen(self) -> None:
+    def _run(self) -> None:
+        """Listen for the profile changes; compare every profile after each ``resync_s`` without one."""
         conn: psycopg.Connection[Any] | None = None
         while not self._stop.is_set():
             try:
                 if conn is None or conn.broken:
-                    conn = self._connect("agv-fe-listener")
+                    conn = self._new_session("agv-fe-listener")
                     conn.execute(f"LISTEN {PROFILE_CHANNEL}")
                     self._on_change(None)  # what changed while nobody listened
                 for notify in conn.notifies(timeout=self.resync_s, stop_after=64):
@@ -123,12 +116,3 @@ class SharedConfig:
                 self._stop.wait(self.resync_s)
         if conn is not None:
             conn.close()
-
-    def close(self) -> None:
-        """Stop listening; ending the claims session releases every design claim."""
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(self.resync_s + CONNECT_TIMEOUT_S + 5)
-        if self._claims is not None:
-            self._claims.close()
-            self._claims = None

@@ -5,11 +5,14 @@ others, which read it from the database (LISTEN/NOTIFY), verify it and never des
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from pathlib import Path
 
 import psycopg
 import pytest
 
+from agv_fe.pg_cluster import PostgresServer
+from service.shared_config import DESIGN_LOCKS, SharedConfig, design_key
 from tests.faults.helpers import RouterProcess
 from tests.faults.test_bucket_leases import replica
 from tests.service.helpers import FAST_DESIGN, free_port, job_done, parse_metrics, wait_for
@@ -62,3 +65,26 @@ def test_a_profile_change_through_one_replica_activates_the_same_gains_on_all_wi
         for srv in replicas.values():
             srv.close()
         router.stop()
+
+
+def test_a_claim_opens_the_claims_session_again_once_the_stopped_server_is_back(
+    postgres_server: PostgresServer,
+) -> None:
+    """The claims session broken by a stopped server and a new one refused meanwhile: the first claim after the
+    server is back opens a new session and takes the design lock, which another session then cannot take."""
+    url = postgres_server.database()
+    shared = SharedConfig(url, on_change=lambda _: Future())  # the listener is not started: never called
+    shared.open()
+    try:
+        postgres_server.stop("immediate")
+        try:
+            assert not shared.claim("default")  # the session breaks
+            assert not shared.claim("default")  # a new one is refused
+        finally:
+            postgres_server.start()
+        assert shared.claim("default")
+        with psycopg.connect(url, autocommit=True) as other:
+            row = other.execute("SELECT pg_try_advisory_lock(%s, %s)", (DESIGN_LOCKS, design_key("default")))
+            assert row.fetchone() == (False,)
+    finally:
+        shared.close()
