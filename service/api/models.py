@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+import dataclasses
+from typing import TYPE_CHECKING, Any, Literal, get_type_hints
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, create_model
 
 from service.calibration import GUST_N
+from service.fleet.alarms import AlarmRecord
 from service.profiles import ProfileSpec
-from service.protocol import AlarmKind, Estimate, EstimateRow, Level
+from service.protocol import Estimate, EstimateRow, Level
 
 _COUNTERS_EXAMPLE: dict[str, JsonValue] = {
     "accepted": 12000,
@@ -188,51 +190,40 @@ class VehicleStatus(BaseModel):
     rejected: dict[str, int] = Field(description="rejected or dropped samples by reason")
 
 
-class AlarmInfo(BaseModel):
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {
-                    "id": "al-3c5d0e1f2a4b",
-                    "vehicle": "truck-7",
-                    "profile": "default",
-                    "kind": "torque_fault",
-                    "level": "FAULT",
-                    "peak_level": "FAULT",
-                    "state": "raised",
-                    "acknowledged": False,
-                    "raised_t_ns": 1_700_000_012_000_000_000,
-                    "cleared_t_ns": None,
-                    "acknowledged_t_ns": None,
-                    "acknowledged_by": None,
-                    "value": 212.5,
-                    "threshold": 200.0,
-                    "message": "|T_f| >= 200 N m for 0.5 s",
-                    "occurrences": 1,
-                    "updated_t_ns": 1_700_000_012_000_000_000,
-                    "latched": True,
-                }
-            ]
-        }
-    )
+def _required_fields(record: type[Any], leave_out: set[str]) -> dict[str, Any]:
+    """The fields of the dataclass ``record``, but ``leave_out``, as pydantic field definitions: the same names,
+    types and order, each required (the answer always carries every one)."""
+    hints = get_type_hints(record)
+    return {f.name: (hints[f.name], ...) for f in dataclasses.fields(record) if f.name not in leave_out}
 
-    id: str
-    vehicle: str
-    profile: str
-    kind: AlarmKind
-    level: Level
-    peak_level: Level
-    state: Literal["raised", "cleared"]
-    acknowledged: bool
-    raised_t_ns: int
-    cleared_t_ns: int | None
-    acknowledged_t_ns: int | None
-    acknowledged_by: str | None
-    value: float | None
-    threshold: float | None
-    message: str
-    occurrences: int
-    updated_t_ns: int
+
+if TYPE_CHECKING:
+    _AlarmFields = BaseModel
+else:
+    #: the fields of an alarm as AlarmRecord.to_dict gives them (all but ``extra``, kept in memory only): a field
+    #: added to AlarmRecord is in the API too
+    _AlarmFields = create_model("_AlarmFields", **_required_fields(AlarmRecord, {"extra"}))
+
+_ALARM_EXAMPLE = AlarmRecord(
+    id="al-3c5d0e1f2a4b",
+    vehicle="truck-7",
+    profile="default",
+    kind="torque_fault",
+    level="FAULT",
+    peak_level="FAULT",
+    raised_t_ns=1_700_000_012_000_000_000,
+    value=212.5,
+    threshold=200.0,
+    message="|T_f| >= 200 N m for 0.5 s",
+    updated_t_ns=1_700_000_012_000_000_000,
+).to_dict()
+
+
+# an alarm (AlarmRecord, field for field) and whether it is still latched; no docstring: the OpenAPI schema of
+# AlarmInfo has no description
+class AlarmInfo(_AlarmFields):
+    model_config = ConfigDict(json_schema_extra={"examples": [{**_ALARM_EXAMPLE, "latched": True}]})
+
     latched: bool = Field(description="shown until the condition is cleared and an operator acknowledged it")
 
 

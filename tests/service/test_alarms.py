@@ -178,3 +178,18 @@ def test_effectiveness_levels_raise_on_a_held_loss_and_clear_when_it_is_gone():
     # the thresholds are checked: FAULT below WARN
     with pytest.raises(ValueError, match="effectiveness_fault must be below effectiveness_warn"):
         AlarmThresholds(effectiveness_warn=0.8, effectiveness_fault=0.85)
+
+
+def test_the_apis_alarm_is_the_stored_record_field_for_field_then_latched():
+    """AlarmInfo (service/api/models.py) is derived from AlarmRecord: the fields of to_dict, in their order and
+    all required, then ``latched``; an acknowledged, cleared record is answered unchanged."""
+    from service.api.models import AlarmInfo
+
+    book = AlarmBook()
+    raised = book.raise_level("v", "p", "torque_fault", "FAULT", 1, 22.0, 20.0, "m")
+    book.acknowledge(raised.record.id, 2, "op")
+    record = book.clear("v", "torque_fault", 3).record.to_dict()
+    assert list(AlarmInfo.model_fields) == [*record, "latched"]
+    assert all(f.is_required() for f in AlarmInfo.model_fields.values())
+    assert AlarmInfo(**record, latched=False).model_dump() == {**record, "latched": False}
+    assert record["acknowledged_by"] == "op" and record["state"] == "cleared" and record["cleared_t_ns"] == 3
