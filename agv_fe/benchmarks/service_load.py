@@ -157,6 +157,7 @@ def _generator(
     period = 1.0 / RATE_HZ
     ticks = int(duration_s * RATE_HZ)
     start = time.monotonic()
+    cpu0 = time.process_time()
     late = 0
     for k in range(ticks):
         for p, group in enumerate(groups):
@@ -176,7 +177,8 @@ def _generator(
         else:
             late += 1
     elapsed = time.monotonic() - start
-    out.put({"sent": ticks * n, "elapsed_s": elapsed, "late_ticks": late, "ticks": ticks})
+    cpu_s = time.process_time() - cpu0
+    out.put({"sent": ticks * n, "elapsed_s": elapsed, "late_ticks": late, "ticks": ticks, "cpu_s": cpu_s})
     time.sleep(0.5)
     for pub in pubs:
         pub.undeclare()
@@ -303,6 +305,7 @@ def _step(
         "p99_all_ms": latency["p99_all_ms"],
         "service_cpu": cpu["service_s"] / gen["elapsed_s"],
         "receiver_cpu": cpu["receiver_s"] / gen["elapsed_s"],
+        "generator_cpu": gen["cpu_s"] / gen["elapsed_s"],
         "estimate_every_n": every_n,
         "stream": stream,
         "published_per_vehicle": int(diff['agv_fe_estimates_published_total{encoding="json"}']),
@@ -485,7 +488,8 @@ def _sweep(sizes: tuple[int, ...], every_n: int, stream: str = "vehicle", arriva
             print(
                 f"  {n} vehicles: {row['rate_msg_s']:.0f} msg/s, zero loss {row['zero_loss']}, "
                 f"paced {row['paced']}, p50 {row['p50_ms']:.2f} ms, p99 {row['p99_ms']:.2f} ms, "
-                f"service CPU {row['service_cpu']:.2f}, receiver CPU {row['receiver_cpu']:.2f}",
+                f"service CPU {row['service_cpu']:.2f}, receiver CPU {row['receiver_cpu']:.2f}, "
+                f"generator CPU {row['generator_cpu']:.2f}",
                 flush=True,
             )
             if not _sustained(row):
@@ -600,8 +604,9 @@ def _report(
             + "\n",
             "| vehicles | target msg/s | achieved msg/s | samples sent | accepted | missing | rejected "
             "| estimates received / expected | p50 [ms] | p99 [ms] | max [ms] | p99 incl. first 2 s [ms] "
-            "| service CPU [cores] | receiver CPU [cores] | ticks per s (measurements per tick) | result |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "| service CPU [cores] | receiver CPU [cores] | generator CPU [cores] "
+            "| ticks per s (measurements per tick) | result |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in rows:
             verdict = _verdict(r)
@@ -610,7 +615,8 @@ def _report(
                 f"| {r['missing']} | {r['rejected']} | {r['estimates_received']} / {r['estimates_expected']} "
                 f"| {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | {r['max_ms']:.1f} "
                 f"| {r.get('p99_all_ms', float('nan')):.1f} | {r['service_cpu']:.2f} "
-                f"| {r.get('receiver_cpu', float('nan')):.2f} | {_ticks(r)} | {verdict} |"
+                f"| {r.get('receiver_cpu', float('nan')):.2f} | {r.get('generator_cpu', float('nan')):.2f} "
+                f"| {_ticks(r)} | {verdict} |"
             )
         lines += [
             "",
