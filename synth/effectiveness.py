@@ -76,11 +76,13 @@ class EffectivenessResult:
     alpha : (nv, 2) estimated effectiveness of [torque, steering] [-]
     total : (nv, 2) estimated total fault b + (alpha - 1) u [N m, rad]
     bias : (nv, 2) estimated bias b [N m, rad]
+    alpha_sigma : (nv, 2) the filter's posterior standard deviation of alpha, sqrt(P_theta_theta) [-]
     """
 
     alpha: FloatArray
     total: FloatArray
     bias: FloatArray
+    alpha_sigma: FloatArray
 
 
 class EffectivenessEstimator:
@@ -267,7 +269,13 @@ class EffectivenessEstimator:
         theta = self.par[rows, :, 1]
         bias = f_hat - theta * H
         total = f_hat + theta * (u_d - H)
-        return EffectivenessResult(alpha=1.0 + theta, total=total, bias=bias)
+        return EffectivenessResult(alpha=1.0 + theta, total=total, bias=bias, alpha_sigma=self.alpha_sigma(rows))
+
+    def alpha_sigma(self, rows: np.ndarray) -> FloatArray:
+        """The posterior standard deviation of alpha_hat of ``rows``, (k, 2) [-]: sqrt(P_theta_theta) of each
+        channel's filter (the prior ``initial_alpha_sigma`` until the row's stage starts). It grows while the
+        demand holds still (theta unobservable) and shrinks with the demand's changes (docs/math.md section 14)."""
+        return np.sqrt(self.P[rows, :, 1, 1])
 
     def _update(self, rows: np.ndarray, f_hat: FloatArray, H: FloatArray) -> None:
         """One Kalman step per channel of [b, theta] with the measurement f_hat = b + theta H."""
@@ -290,7 +298,7 @@ class EffectivenessStep:
     """One step of :class:`EffectivenessObserver` for a batch: the observer's result with the total faults.
 
     x_hat : (nv, n) the observer's reported estimate, its fault rows replaced by the total faults
-    in_domain : (nv,) as the observer's; alpha, bias : (nv, 2) as :class:`EffectivenessResult`;
+    in_domain : (nv,) as the observer's; alpha, bias, alpha_sigma : (nv, 2) as :class:`EffectivenessResult`;
     observer_faults : (nv, 2) the observer's own (additive) fault estimate
     """
 
@@ -299,6 +307,7 @@ class EffectivenessStep:
     alpha: FloatArray
     bias: FloatArray
     observer_faults: FloatArray
+    alpha_sigma: FloatArray
 
     @property
     def state(self) -> FloatArray:
@@ -349,4 +358,5 @@ class EffectivenessObserver:
             alpha=second.alpha,
             bias=second.bias,
             observer_faults=np.array(result.faults, dtype=float),
+            alpha_sigma=second.alpha_sigma,
         )
