@@ -77,13 +77,21 @@ class AlarmThresholds(BaseModel):
         "jump (implausible_seq) raise WARN sequence_rejected",
     )
     effectiveness_warn: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = Field(
-        0.9, description="an actuator's estimated effectiveness alpha below this raises WARN (effectiveness stage) [-]"
+        0.9,
+        description="an actuator's effectiveness alpha identified below this (the upper confidence bound "
+        "alpha_hat + effectiveness_confidence_k sigma_alpha below it) raises WARN (effectiveness stage) [-]",
     )
     effectiveness_fault: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = Field(
-        0.75, description="an actuator's estimated effectiveness alpha below this raises FAULT [-]"
+        0.75, description="an actuator's effectiveness alpha identified below this raises FAULT [-]"
     )
     effectiveness_after_s: Duration = Field(
-        1.0, description="how long alpha must stay below a threshold before it raises [s]"
+        1.0, description="how long alpha's upper confidence bound must stay below a threshold before it raises [s]"
+    )
+    effectiveness_confidence_k: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = Field(
+        3.0,
+        description="the effectiveness alarms compare alpha's upper confidence bound alpha_hat + k sigma_alpha "
+        "(sigma_alpha: the stage's posterior standard deviation) with the thresholds: alpha is alarmed only when "
+        "the data identify it below a threshold; 0 compares alpha_hat itself [-]",
     )
     rule: Literal["threshold", "cusum"] = Field(
         "threshold",

@@ -162,7 +162,8 @@ def replay(
 
     The levels are :class:`service.fleet.alarms.FaultLevels` fed the fault estimates on the time stamps
     t_ns = round(t * 1e9) [ns], warm-up from the observer's start; with the effectiveness stage, each
-    channel's level is the higher of that and :class:`~service.fleet.alarms.EffectivenessLevels` on alpha_hat.
+    channel's level is the higher of that and :class:`~service.fleet.alarms.EffectivenessLevels` on alpha_hat and
+    its sigma.
     A non-finite estimate is not fed and restarts the estimator from the next measurement (cold, like the
     service's bank).
     """
@@ -180,6 +181,7 @@ def replay(
     level = np.zeros((n, 2), dtype=np.intp)
     bias: FloatArray | None = None
     alpha: FloatArray | None = None
+    alpha_sigma: FloatArray = np.zeros((1, 2))
     estimator = None
     restarts = 0
     for k in range(n):
@@ -193,11 +195,11 @@ def replay(
         if isinstance(step, EffectivenessStep):
             if alpha is None or bias is None:
                 alpha, bias = np.ones((n, 2)), np.zeros((n, 2))
-            alpha[k], bias[k] = step.alpha[0], step.bias[0]
+            alpha[k], bias[k], alpha_sigma = step.alpha[0], step.bias[0], step.alpha_sigma
         if np.isfinite(x_hat[k]).all() and np.isfinite(f_hat[k]).all():
             levels.update(row, f_hat[k : k + 1], t)
             if alpha is not None and t[0] - levels.started_t_ns[0] >= levels.warmup_ns:
-                effectiveness.update(row, alpha[k : k + 1], t)
+                effectiveness.update(row, alpha[k : k + 1], alpha_sigma, t)
         else:
             estimator = None
             restarts += 1

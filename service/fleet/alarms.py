@@ -242,19 +242,25 @@ class FaultLevels:
 
 
 class EffectivenessLevels:
-    """The alarm levels of the actuators' estimated effectiveness (synth.effectiveness), one row per slot.
+    """The alarm levels of the actuators' effectiveness (synth.effectiveness), one row per slot: raised only when
+    the data identify a loss (docs/math.md section 14).
 
-    Two :class:`LevelDetector` on the loss 1 - alpha_hat (a gain above 1 is no loss): WARN below
-    ``effectiveness_warn``, FAULT below ``effectiveness_fault``, each held ``effectiveness_after_s``; cleared
-    with the profile's hysteresis and ``clear_after_s``. They run beside :class:`FaultLevels`, with its warm-up.
+    Two :class:`LevelDetector` on the identified loss 1 - (alpha_hat + k sigma_alpha), k =
+    ``effectiveness_confidence_k`` and sigma_alpha the stage's posterior standard deviation of alpha: WARN while
+    that upper confidence bound is below ``effectiveness_warn``, FAULT below ``effectiveness_fault``, each held
+    ``effectiveness_after_s``; cleared with the profile's hysteresis and ``clear_after_s``. Without excitation
+    (a demand that holds still) alpha is unobservable, sigma_alpha grows and nothing is raised. They run beside
+    :class:`FaultLevels`, with its warm-up.
     """
 
     def __init__(self, capacity: int, alarms: AlarmThresholds) -> None:
         self.torque = LevelDetector(capacity, 1.0, 1.0, 1.0, 0, 0)
         self.steer = LevelDetector(capacity, 1.0, 1.0, 1.0, 0, 0)
+        self.k = alarms.effectiveness_confidence_k
         self.configure(alarms)
 
     def configure(self, alarms: AlarmThresholds) -> None:
+        self.k = alarms.effectiveness_confidence_k
         settings = (
             1.0 - alarms.effectiveness_warn,
             1.0 - alarms.effectiveness_fault,
@@ -273,9 +279,14 @@ class EffectivenessLevels:
         self.torque.reset(rows, keep_level)
         self.steer.reset(rows, keep_level)
 
-    def update(self, rows: np.ndarray, alpha: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
-        """Feed alpha_hat (k, 2) [torque, steer] of one sample per row; the indices (into rows) whose level changed."""
-        loss = np.maximum(1.0 - alpha, 0.0)
+    def upper_bound(self, alpha: np.ndarray, alpha_sigma: np.ndarray) -> np.ndarray:
+        """alpha's upper confidence bound alpha_hat + k sigma_alpha, the value the thresholds are compared with [-]."""
+        return alpha + self.k * alpha_sigma
+
+    def update(self, rows: np.ndarray, alpha: np.ndarray, alpha_sigma: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+        """Feed alpha_hat and its posterior standard deviation, (k, 2) each [torque, steer], of one sample per row;
+        the indices (into rows) whose level changed. A gain above 1 is no loss."""
+        loss = np.maximum(1.0 - self.upper_bound(alpha, alpha_sigma), 0.0)
         torque = self.torque.update(rows, loss[:, 0], t_ns)
         steer = self.steer.update(rows, loss[:, 1], t_ns)
         if not len(steer):

@@ -48,7 +48,17 @@ from typing import Any, Literal
 
 import numpy as np
 
-from service.fleet.alarms import FAULT, LEVEL_NAMES, OK, WARN, AlarmBook, AlarmChange, AlarmRecord, seconds_to_ns
+from service.fleet.alarms import (
+    FAULT,
+    LEVEL_NAMES,
+    OK,
+    WARN,
+    AlarmBook,
+    AlarmChange,
+    AlarmRecord,
+    LevelDetector,
+    seconds_to_ns,
+)
 from service.fleet.bank import ALPHAS, FAULTS, ProfileBank, StepOutput
 from service.fleet.events import EventBus, FleetEvent
 from service.fleet.tick import Checked, Rows, TickResult
@@ -710,9 +720,10 @@ class FleetEngine:
             f = np.flatnonzero(finite)
             outside = (~in_domain[f] | ~vy_in_bounds[f]).astype(float)
             changed.update(f[bank.domain.update(slots[f], outside, t[f])].tolist())
-        if bank.stage is not None:  # the effectiveness alarms, on alpha_hat (finite rows)
+        if bank.stage is not None:  # the effectiveness alarms, on alpha_hat and its sigma (finite rows)
             f = np.flatnonzero(finite)
-            changed.update(f[bank.effectiveness.update(slots[f], est[f, ALPHAS], t[f])].tolist())
+            sigma = bank.stage.alpha_sigma(slots[f])
+            changed.update(f[bank.effectiveness.update(slots[f], est[f, ALPHAS], sigma, t[f])].tolist())
         for j in sorted(changed):
             self._alarm_transitions(bank, step.rows.vehicles[step.idx[j]], int(t[j]), est[j], result)
 
@@ -776,15 +787,7 @@ class FleetEngine:
              "|delta_f| >= {threshold:g} rad " + held),
         ]  # fmt: skip
         if bank.stage is not None:
-            held = f"for {a.effectiveness_after_s:g} s"
-            alpha = x5[ALPHAS].tolist()
-            w, f = a.effectiveness_warn, a.effectiveness_fault
-            channels += [
-                ("torque_effectiveness", int(bank.effectiveness.torque.level[slot]), alpha[0], w, f,
-                 "drive-torque effectiveness alpha <= {threshold:g} " + held),
-                ("steer_effectiveness", int(bank.effectiveness.steer.level[slot]), alpha[1], w, f,
-                 "steering effectiveness alpha <= {threshold:g} " + held),
-            ]  # fmt: skip
+            channels += self._effectiveness_channels(bank, slot, x5)
         for kind, level, value, warn, fault, message in channels:
             self._sync_alarm(vehicle, kind, level, value, warn, fault, message, t_ns, result)
         domain_level = int(bank.domain.level[slot])
@@ -804,6 +807,32 @@ class FleetEngine:
             self._emit(change, result)
         elif domain_level == OK and current is not None:
             self._emit(self.alarms.clear(vehicle.id, "out_of_domain", t_ns), result)
+
+    @staticmethod
+    def _effectiveness_channels(
+        bank: ProfileBank, slot: int, x5: np.ndarray
+    ) -> list[tuple[AlarmKind, int, float, float, float, str]]:
+        """The effectiveness alarms' (kind, level, alpha_hat, warn, fault, message): the message says why, alpha_hat
+        and its upper confidence bound alpha_hat + k sigma_alpha against the threshold (docs/math.md section 14)."""
+        a = bank.spec.alarms
+        levels = bank.effectiveness
+        alpha = x5[ALPHAS]
+        sigma = bank.stage.alpha_sigma(np.array([slot]))[0] if bank.stage is not None else np.zeros(2)
+        bound = levels.upper_bound(alpha, sigma)
+        out: list[tuple[AlarmKind, int, float, float, float, str]] = []
+        names: tuple[tuple[AlarmKind, str, LevelDetector], ...] = (
+            ("torque_effectiveness", "drive-torque", levels.torque),
+            ("steer_effectiveness", "steering", levels.steer),
+        )
+        for c, (kind, name, detector) in enumerate(names):
+            message = (
+                f"{name} effectiveness identified below {{threshold:g}}: alpha_hat {alpha[c]:.3f}, upper bound "
+                f"alpha_hat + {levels.k:g} sigma = {bound[c]:.3f} (sigma {sigma[c]:.3f}) for "
+                f"{a.effectiveness_after_s:g} s"
+            )
+            level = int(detector.level[slot])
+            out.append((kind, level, float(alpha[c]), a.effectiveness_warn, a.effectiveness_fault, message))
+        return out
 
     def _sync_alarm(
         self,

@@ -86,19 +86,25 @@ def test_an_effectiveness_alarm_raises_the_channels_level_when_alpha_stays_low(t
     # fault thresholds out of reach: only the effectiveness rule can raise the torque channel
     profile = tmp_path / "quiet.json"
     alarms = {"torque_warn_nm": 1e5, "torque_fault_nm": 2e5, "effectiveness_warn": 0.9, "effectiveness_after_s": 1.0}
-    profile.write_text(json.dumps({"alarms": alarms, "effectiveness": {"enabled": True, "torque_sigma_nm": 6.0}}))
-    out = tmp_path / "levels.csv"
-    assert main(["replay", str(rec), "--out", str(out), "--gains", str(gains), "--params", str(profile)]) == 0
-    capsys.readouterr()
-    rows = rows_of(out)
+    first_warn = {}
+    for k in (0.0, 3.0):  # 0: the rule on alpha_hat itself; 3 (the default): on alpha_hat + 3 sigma
+        settings = {"alarms": alarms | {"effectiveness_confidence_k": k}}
+        profile.write_text(json.dumps(settings | {"effectiveness": {"enabled": True, "torque_sigma_nm": 6.0}}))
+        out = tmp_path / "levels.csv"
+        assert main(["replay", str(rec), "--out", str(out), "--gains", str(gains), "--params", str(profile)]) == 0
+        capsys.readouterr()
+        rows = rows_of(out)
+        levels = [r["torque_level"] for r in rows]
+        assert {"WARN"} <= set(levels) <= {"OK", "WARN", "FAULT"}
+        first_warn[k] = levels.index("WARN")
+        assert set(levels[: first_warn[k]]) == {"OK"}
     t = np.array([float(r["t"]) for r in rows])
     alpha = np.array([float(r["torque_alpha_hat"]) for r in rows])
-    levels = [r["torque_level"] for r in rows]
-    # the rule written out: alpha_hat <= 0.9 held for 1 s after the 3 s warm-up
+    # the rule written out with k = 0: alpha_hat <= 0.9 held for 1 s after the 3 s warm-up
     low = (alpha <= 0.9) & (t >= 3.0)
-    expected = next(k for k in range(100, len(t)) if low[k - 100 : k + 1].all())
-    assert levels.index("WARN") == expected and ({"WARN"} <= set(levels) <= {"OK", "WARN", "FAULT"})
-    assert set(levels[:expected]) == {"OK"}
+    assert first_warn[0.0] == next(k for k in range(100, len(t)) if low[k - 100 : k + 1].all())
+    # the upper bound is above alpha_hat: identified later, within a second here (the demand swings)
+    assert first_warn[0.0] < first_warn[3.0] <= first_warn[0.0] + 100
 
 
 def test_the_stage_runs_beside_the_observer_only(tmp_path, capsys, files):

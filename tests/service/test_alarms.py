@@ -168,7 +168,7 @@ def test_effectiveness_levels_raise_on_a_held_loss_and_clear_when_it_is_gone():
         t = k * period
         a0 = 1.0 if k < 100 else 0.85 if k < 300 else 0.7 if k < 500 else 1.0
         alpha = np.array([[a0, 1.0], [1.0, 1.2]])
-        levels.update(rows, alpha, np.full(2, t, dtype=np.int64))
+        levels.update(rows, alpha, np.zeros((2, 2)), np.full(2, t, dtype=np.int64))
         history.append((levels.torque.level[0], levels.steer.level[1]))
     torque = [h[0] for h in history]
     assert torque.index(WARN) == 200  # 0.85 from k = 100, held 1 s
@@ -178,6 +178,35 @@ def test_effectiveness_levels_raise_on_a_held_loss_and_clear_when_it_is_gone():
     # the thresholds are checked: FAULT below WARN
     with pytest.raises(ValueError, match="effectiveness_fault must be below effectiveness_warn"):
         AlarmThresholds(effectiveness_warn=0.8, effectiveness_fault=0.85)
+
+
+def test_effectiveness_levels_compare_the_upper_confidence_bound_with_the_thresholds():
+    """alpha_hat 0.8 held: alarmed only while alpha_hat + k sigma is below the threshold, with k from the settings."""
+    from service.fleet.alarms import EffectivenessLevels
+
+    alarms = AlarmThresholds(effectiveness_after_s=1.0, effectiveness_confidence_k=3.0)
+    levels = EffectivenessLevels(3, alarms)
+    rows = np.arange(3)
+    alpha = np.full((3, 2), 0.8)
+    # sigma 0.05: bound 0.95, not identified; 0.03: bound 0.89 < 0.9 (WARN); 0.005: bound 0.815 (WARN, not FAULT)
+    sigma = np.array([[0.05, 0.05], [0.03, 0.03], [0.005, 0.005]])
+    np.testing.assert_allclose(levels.upper_bound(alpha, sigma)[:, 0], [0.95, 0.89, 0.815])
+    for k in range(150):
+        levels.update(rows, alpha, sigma, np.full(3, k * 10_000_000, dtype=np.int64))
+    assert levels.torque.level.tolist() == [OK, WARN, WARN] and levels.steer.level.tolist() == [OK, WARN, WARN]
+    # k = 0 is the rule on alpha_hat itself: all three at WARN from the next update on (timers kept)
+    levels.configure(alarms.model_copy(update={"effectiveness_confidence_k": 0.0}))
+    levels.update(rows, alpha, sigma, np.full(3, 150 * 10_000_000, dtype=np.int64))
+    levels.update(rows, alpha, sigma, np.full(3, 251 * 10_000_000, dtype=np.int64))
+    assert levels.torque.level.tolist() == [WARN, WARN, WARN]
+
+
+@pytest.mark.parametrize("k", [-0.1, 10.5, float("nan"), float("inf")])
+def test_the_effectiveness_confidence_k_is_validated(k):
+    with pytest.raises(ValueError, match="effectiveness_confidence_k"):
+        AlarmThresholds(effectiveness_confidence_k=k)
+    assert AlarmThresholds(effectiveness_confidence_k=0.0).effectiveness_confidence_k == 0.0
+    assert AlarmThresholds().effectiveness_confidence_k == 3.0
 
 
 def test_the_apis_alarm_is_the_stored_record_field_for_field_then_latched():
