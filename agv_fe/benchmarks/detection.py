@@ -47,7 +47,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -381,7 +381,8 @@ class RaiseCounter:
     went from OK to WARN or higher (``warn_raised``), or from below FAULT to FAULT (``fault_raised``); both
     (n, 2) per vehicle and channel [torque, steer]. ``level`` (n, 2) holds the levels after the last update.
     ``effectiveness``: the levels are the effectiveness rule's (:class:`EffectivenessLevels`), fed alpha_hat
-    (n, 2) [-]; as in the service they have no warm-up (the stage holds alpha_hat at 1 for its start delay).
+    and its posterior standard deviation (n, 2) each [-]; as in the service they have no warm-up (the stage holds
+    alpha_hat at 1, and its sigma at the prior, for its start delay).
     """
 
     def __init__(self, n_vehicles: int, alarms: AlarmThresholds, effectiveness: bool = False) -> None:
@@ -408,10 +409,15 @@ class RaiseCounter:
             self.levels.reset(self.rows)
 
     def update(
-        self, f_hat: FloatArray, t_ns: int, usable: NDArray[np.bool_] | None = None
+        self,
+        f_hat: FloatArray,
+        t_ns: int,
+        usable: NDArray[np.bool_] | None = None,
+        alpha_sigma: FloatArray | None = None,
     ) -> tuple[NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
         """Feed one sample's fault estimates f_hat (n, 2) [N m, rad] at ``t_ns`` [ns] (``usable``: finite rows);
-        alpha_hat (n, 2) [-] for the effectiveness rule (a non-finite alpha_hat raises nothing).
+        alpha_hat (n, 2) [-] and ``alpha_sigma`` (n, 2) [-] for the effectiveness rule (a non-finite alpha_hat
+        raises nothing).
 
         Returns the vehicles whose level changed (m,) and, for them, where WARN and FAULT were raised (m, 2).
         """
@@ -419,7 +425,8 @@ class RaiseCounter:
         if isinstance(self.levels, FaultLevels):
             changed = self.levels.update(self.rows, f_hat, self._t_ns, usable)
         else:
-            changed = self.levels.update(self.rows, f_hat, self._t_ns)
+            sigma = np.zeros_like(f_hat) if alpha_sigma is None else alpha_sigma
+            changed = self.levels.update(self.rows, f_hat, sigma, self._t_ns)
         if not changed.size:
             return changed, np.zeros((0, 2), dtype=bool), np.zeros((0, 2), dtype=bool)
         rows = np.unique(changed)
@@ -542,9 +549,11 @@ class Tally:
         warm: bool,
         near_gust: NDArray[np.bool_],
         context: Callable[[int], dict[str, Any]],
+        alpha_sigma: FloatArray | None = None,
     ) -> None:
         """One sample of the batch, n vehicles: f_hat (n, 2), in_domain (n,), near_gust (n,) a gust within
-        GUST_WINDOW_S; ``warm``: after the warm-up; ``context(vehicle)`` describes an alarm's vehicle."""
+        GUST_WINDOW_S; ``warm``: after the warm-up; ``context(vehicle)`` describes an alarm's vehicle;
+        ``alpha_sigma`` (n, 2): alpha_hat's standard deviation, for the effectiveness rule."""
         usable = usable_rows(f_hat)
         finite = slice(None) if usable is None else usable
         if usable is not None:
@@ -558,7 +567,7 @@ class Tally:
                 self.sum_squares += np.einsum("ij,ij->j", magnitude, magnitude)
                 self.samples_after_warmup += magnitude.shape[0]
         for i, counter in enumerate(self.counters):
-            rows, to_warn, to_fault = counter.update(f_hat, t_ns, usable)
+            rows, to_warn, to_fault = counter.update(f_hat, t_ns, usable, alpha_sigma)
             if not rows.size:
                 continue
             gust = near_gust[rows, None]
@@ -733,8 +742,8 @@ def run_fleet_job(job: FleetJob) -> dict[str, Any]:
 
             result = observer.step(sample.y, sample.u)
             tallies["observer"].update(result.faults, result.in_domain, t_ns, warm, near_gust, context)
-            alpha = stage.step(result, sample.y, sample.u).alpha
-            tallies[ALPHA].update(alpha, result.in_domain, t_ns, warm, near_gust, context)
+            second = stage.step(result, sample.y, sample.u)
+            tallies[ALPHA].update(second.alpha, result.in_domain, t_ns, warm, near_gust, context, second.alpha_sigma)
             if job.n_ekf:
                 out = estimators["EKF"].step(sample.y[: job.n_ekf], sample.u[: job.n_ekf])
                 tallies["EKF"].update(out.faults, out.in_domain, t_ns, warm, near_gust[: job.n_ekf], context)
@@ -897,6 +906,8 @@ class FaultJob:
     stage: EffectivenessOptions
     alpha_rules: tuple[Rule, ...]
     substeps: int = FLEET_SUBSTEPS
+    #: False: the EKF does not run (its figures are those of an estimate of zero), for the effectiveness part
+    with_ekf: bool = True
 
 
 def run_fault_job(job: FaultJob) -> dict[str, Any]:
@@ -922,23 +933,25 @@ def run_fault_job(job: FaultJob) -> dict[str, Any]:
     ekf: BatchEstimator | None = None
     for k in range(int(plant.n_samples.max())):
         sample = plant.step()
-        if observer is None or stage is None or ekf is None:
+        if observer is None or stage is None or (ekf is None and job.with_ekf):
             observer = FuzzyObserver(job.gains, sample.y, None, sample.u)
             stage = EffectivenessEstimator(job.gains, job.stage, n, sample.u)
-            ekf = ekf_factory(job.gains)(sample.y, None, sample.u)
+            ekf = ekf_factory(job.gains)(sample.y, None, sample.u) if job.with_ekf else None
             for rule_counters in counters.values():
                 for counter in rule_counters:
                     counter.restart(0)
         result = observer.step(sample.y, sample.u)
+        second = stage.step(result, sample.y, sample.u)
         outputs = {
             "observer": result.faults,
-            "EKF": ekf.step(sample.y, sample.u).faults,
-            ALPHA: stage.step(result, sample.y, sample.u).alpha,
+            "EKF": ekf.step(sample.y, sample.u).faults if ekf is not None else np.zeros_like(result.faults),
+            ALPHA: second.alpha,
         }
         for name, values in outputs.items():
             usable = usable_rows(values)
+            sigma = second.alpha_sigma if name == ALPHA else None
             for counter, tracker in zip(counters[name], trackers[name], strict=True):
-                counter.update(values, k * period_ns, usable)
+                counter.update(values, k * period_ns, usable, sigma)
                 tracker.update(sample.t, counter.level)
     results: dict[str, Any] = {"runs": [list(r) for r in job.runs], "onset_s": onset.tolist()}
     other = 1 - channel
@@ -1311,12 +1324,21 @@ def _threshold(alarms: AlarmThresholds, channel: str, effectiveness: bool = Fals
 # --------------------------------------------------------------------------- detection figures
 
 
-def fault_runs(calibrated: Calibrated, vehicles_per_case: int, duration_s: float, workers: int) -> dict[str, Any]:
-    """Every fault case's runs through both estimators and every rule, in ``workers`` processes."""
+def fault_runs(
+    calibrated: Calibrated,
+    vehicles_per_case: int,
+    duration_s: float,
+    workers: int,
+    kinds: Sequence[FaultKind] = FAULT_KINDS,
+    with_ekf: bool = True,
+) -> dict[str, Any]:
+    """The fault cases of ``kinds``: their runs through both estimators (the EKF only ``with_ekf``) and every
+    rule, in ``workers`` processes."""
     report = calibrated.report
     observer_rules = rules_for(report.profile.alarms)
     ekf_rules = rules_for(calibrated.ekf_alarms)
-    runs = [(i, v) for i in range(len(FAULT_CASES)) for v in range(vehicles_per_case)]
+    cases = [i for i, case in enumerate(FAULT_CASES) if case.kind in kinds]
+    runs = [(i, v) for i in cases for v in range(vehicles_per_case)]
     alpha = alpha_rules(report.profile.alarms)
     jobs = [
         FaultJob(
@@ -1328,6 +1350,7 @@ def fault_runs(calibrated: Calibrated, vehicles_per_case: int, duration_s: float
             duration_s,
             stage_options(calibrated),
             alpha,
+            with_ekf=with_ekf,
         )
         for share in _split(runs, workers)
     ]
@@ -1357,6 +1380,8 @@ def summarise_faults(
     cases = {}
     for i, case in enumerate(FAULT_CASES):
         runs = [per_run[key] for key in sorted(per_run) if key[0] == i]
+        if not runs:  # a case not run (the effectiveness part runs the losses only)
+            continue
         entry = {
             "channel": case.channel,
             "kind": case.kind,
@@ -1594,6 +1619,95 @@ def measure(plan: DetectionPlan) -> dict[str, Any]:
     return document
 
 
+#: The effectiveness part (:func:`run_effectiveness`): healthy vehicle-hours by default, each vehicle driving
+#: EFFECTIVENESS_DRIVE_S (two segments); the fault runs are the losses of effectiveness only, without the EKF.
+EFFECTIVENESS_HOURS = 100.0
+EFFECTIVENESS_DRIVE_S = 2 * SEGMENT_S
+
+
+def run_effectiveness(
+    out_dir: Path,
+    vehicle_hours: float = EFFECTIVENESS_HOURS,
+    vehicles_per_case: int = VEHICLES_PER_CASE,
+    workers: int = WORKERS,
+    confidence_k: float | None = None,
+) -> Path:
+    """Only what the effectiveness alarm rule needs, at a chosen scale: the calibration, ``vehicle_hours`` of the
+    healthy fleet (observer, stage and rules; no EKF) and ``vehicles_per_case`` runs of each loss of effectiveness;
+    writes detection_effectiveness.json and .md to ``out_dir`` (detection.md is left as it is).
+    ``confidence_k`` replaces the profile's ``effectiveness_confidence_k`` (0: the rule on alpha_hat itself)."""
+    if vehicle_hours <= 0 or vehicles_per_case < 1 or workers < 1:
+        raise ValueError(
+            f"vehicle_hours must be > 0, vehicles_per_case and workers >= 1, got {vehicle_hours}, "
+            f"{vehicles_per_case}, {workers}"
+        )
+    started = time.perf_counter()
+    print("  calibrating the car from its two-minute drive ...", flush=True)
+    calibrated = calibrate_car()
+    if confidence_k is not None:
+        calibrated = with_confidence_k(calibrated, confidence_k)
+    warmup_s = calibrated.report.profile.alarms.warmup_s
+    vehicles = max(1, math.ceil(vehicle_hours * 3600.0 / (EFFECTIVENESS_DRIVE_S - warmup_s)))
+    print(f"  healthy fleet: {vehicles} vehicles x {EFFECTIVENESS_DRIVE_S / 60:.1f} min, no EKF ...", flush=True)
+    healthy = healthy_fleet(calibrated, vehicles, EFFECTIVENESS_DRIVE_S, SEGMENT_S, 0.0, workers)
+    print(f"  losses of effectiveness: {vehicles_per_case} runs per case ...", flush=True)
+    faults = fault_runs(calibrated, vehicles_per_case, FAULT_RUN_S, workers, ("loss_of_effectiveness",), False)
+    plan = DetectionPlan((), False, workers, vehicles, EFFECTIVENESS_DRIVE_S, FAULT_RUN_S, SEGMENT_S,
+                         vehicles_per_case, 0, 0.0, 0.0)  # fmt: skip
+    document = {
+        "benchmark": "detection_effectiveness",
+        "plan": _plan_document(plan, calibrated, False),
+        "healthy": {"hours": healthy[ALPHA]["hours"], ALPHA: healthy[ALPHA], "wall_s": healthy["wall_s"]},
+        "faults": {k: {"label": c["label"], "runs": c["runs"], ALPHA: c[ALPHA]} for k, c in faults["cases"].items()},
+        "uncommitted_files": rv.uncommitted_files(),
+        "total_s": time.perf_counter() - started,
+    }
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "detection_effectiveness.json").write_text(json.dumps(rv._clean(document), indent=1) + "\n")
+    path = out_dir / "detection_effectiveness.md"
+    path.write_text(render_effectiveness(document))
+    return path
+
+
+def with_confidence_k(calibrated: Calibrated, k: float) -> Calibrated:
+    """The calibrated car with the profile's ``effectiveness_confidence_k`` set to ``k`` (validated)."""
+    profile = calibrated.report.profile
+    alarms = AlarmThresholds.model_validate(profile.alarms.model_dump() | {"effectiveness_confidence_k": k})
+    report = replace(calibrated.report, profile=profile.model_copy(update={"alarms": alarms}))
+    return replace(calibrated, report=report)
+
+
+def render_effectiveness(document: dict[str, Any]) -> str:
+    """The effectiveness part's report: the rule, its false alarms on the healthy fleet, its delays on the losses."""
+    figures = document["healthy"][ALPHA]["rules"]["default"]["channels"]
+    lines = [
+        report_header("Detection: the effectiveness alarm rule alone", "detection --detection-part effectiveness"),
+        f"Rule: {_alpha_rule_text(document)}; {document['plan']['healthy']['vehicles']} healthy vehicles "
+        f"x {document['plan']['healthy']['duration_s']:g} s ({_hours(document['healthy']['hours'])} vehicle-hours "
+        f"after the warm-up), {document['plan']['faults']['vehicles_per_case']} runs per loss; "
+        f"{document['total_s'] / 60:.1f} min.\n",
+        "| channel | false WARN | per 1,000 h (95 % bound) | false FAULT | per 1,000 h | WARN within "
+        f"{GUST_WINDOW_S:g} s of a gust | vehicles with a WARN |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for channel in CHANNELS:
+        c = figures[channel]
+        lines.append(
+            f"| {SYMBOLS[channel]} | {c['warn_raised']} | {c['warn_per_1000_h']:.3g} "
+            f"({c['warn_upper95_per_1000_h']:.3g}) | {c['fault_raised']} | {c['fault_per_1000_h']:.3g} | "
+            f"{c['warn_raised_near_gust']} | "
+            f"{c['vehicles_with_warn']} |"
+        )
+    lines += [
+        "",
+        "| fault | rule | WARN p50 / p95 / worst [s] | never | FAULT p50 / p95 / worst [s] | never | WARN before "
+        "onset | other channel WARN / FAULT (runs) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [_delay_row(case["label"], "alpha rule", case[ALPHA]["default"]) for case in document["faults"].values()]
+    return "\n".join(lines) + "\n"
+
+
 def _plan_document(plan: DetectionPlan, calibrated: Calibrated, cusum_rule: bool) -> dict[str, Any]:
     """The document's "plan": the run's sizes, the car, the noise, the fault cases, the rules."""
     return {
@@ -1635,6 +1749,7 @@ def _plan_document(plan: DetectionPlan, calibrated: Calibrated, cusum_rule: bool
             "warn_below": calibrated.report.profile.alarms.effectiveness_warn,
             "fault_below": calibrated.report.profile.alarms.effectiveness_fault,
             "after_s": calibrated.report.profile.alarms.effectiveness_after_s,
+            "confidence_k": calibrated.report.profile.alarms.effectiveness_confidence_k,
         },
     }
 
@@ -1833,8 +1948,10 @@ def _headline_section(document: dict[str, Any]) -> list[str]:
 
 def _alpha_rule_text(document: dict[str, Any]) -> str:
     rule = document["plan"]["effectiveness"]
+    k = rule.get("confidence_k", 0.0)  # absent: a run before the confidence bound (alpha_hat itself)
+    value = "alpha_hat" if not k else f"the upper bound alpha_hat + {k:g} sigma_alpha"
     return (
-        f"alpha_hat held below {rule['warn_below']:g} for {rule['after_s']:g} s raises WARN, below "
+        f"{value} held below {rule['warn_below']:g} for {rule['after_s']:g} s raises WARN, below "
         f"{rule['fault_below']:g} FAULT"
     )
 

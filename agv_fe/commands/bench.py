@@ -39,7 +39,52 @@ def register(sub: Any) -> None:
         metavar="M",
         help="how long the soak benchmark holds its fleet (default 10; run it alone for hours: --only soak)",
     )
+    parser.add_argument(
+        "--detection-part",
+        choices=("all", "effectiveness"),
+        default="all",
+        help="detection: 'effectiveness' runs only the effectiveness alarm rule (healthy fleet without the EKF, "
+        "the losses of effectiveness) and writes detection_effectiveness.md instead of detection.md",
+    )
+    parser.add_argument(
+        "--detection-hours",
+        type=float,
+        default=None,
+        metavar="H",
+        help="with --detection-part effectiveness: healthy vehicle-hours (default 100)",
+    )
+    parser.add_argument(
+        "--detection-runs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --detection-part effectiveness: runs per loss of effectiveness (default 120)",
+    )
+    parser.add_argument(
+        "--detection-confidence-k",
+        type=float,
+        default=None,
+        metavar="K",
+        help="with --detection-part effectiveness: the effectiveness rule's k instead of the profile's "
+        "(0: alpha_hat itself, the rule before the confidence bound)",
+    )
     parser.set_defaults(handler=run)
+
+
+def _options(name: str, args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
+    """The entry point of benchmark ``name`` and its options from the command line."""
+    if name == "soak" and args.soak_minutes is not None:
+        return "run", {"minutes": args.soak_minutes}
+    if name == "detection" and args.detection_part == "effectiveness":
+        options: dict[str, Any] = {}
+        if args.detection_hours is not None:
+            options["vehicle_hours"] = args.detection_hours
+        if args.detection_runs is not None:
+            options["vehicles_per_case"] = args.detection_runs
+        if args.detection_confidence_k is not None:
+            options["confidence_k"] = args.detection_confidence_k
+        return "run_effectiveness", options
+    return "run", {}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -52,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name in names:
         print(f"benchmark {name} ...", flush=True)
-        options = {"minutes": args.soak_minutes} if name == "soak" and args.soak_minutes is not None else {}
-        path = importlib.import_module(BENCHMARKS[name]).run(out, **options)
+        entry, options = _options(name, args)
+        path = getattr(importlib.import_module(BENCHMARKS[name]), entry)(out, **options)
         print(f"  written {path}")
     return 0

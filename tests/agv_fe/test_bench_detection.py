@@ -7,14 +7,16 @@ two runs per fault case and two short drives of multi-body set 1.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from agv_fe.benchmarks import detection as bench
-from agv_fe.commands.bench import BENCHMARKS
+from agv_fe.commands.bench import BENCHMARKS, register
 from service.fleet.alarms import FAULT, OK, WARN
 from service.profiles import AlarmThresholds
 from tests.agv_fe.markdown import assert_rows_match_headers
@@ -324,6 +326,39 @@ def test_the_alpha_rule_counts_raised_levels_of_a_known_sequence():
     assert counter.fault_raised.tolist() == [[0, 0], [0, 1], [0, 0], [0, 0]]
     assert tracker.warn_delay_s[:2] == pytest.approx([1.0, 1.0], abs=PERIOD_S + SAMPLE_GRID_ATOL_S)
     assert math.isnan(tracker.warn_delay_s[2]) and math.isnan(tracker.fault_delay_s[0])
+
+
+def test_the_alpha_rule_counts_only_what_its_confidence_bound_identifies():
+    """The same counter fed alpha_hat 0.8 for 2 s with the stage's sigma: the service's rule (k = 3 by default)
+    counts the vehicle whose bound 0.8 + 3 sigma is below 0.9 and not the one whose sigma leaves it above."""
+    alpha = np.ones((500, 2, 2))
+    alpha[_samples(1.0, 3.0)] = 0.8
+    sigma = np.zeros((2, 2))
+    sigma[0], sigma[1] = 0.01, 0.05  # bounds 0.83 and 0.95
+    counter = bench.RaiseCounter(2, ALARMS, effectiveness=True)
+    counter.restart(0)
+    for k in range(alpha.shape[0]):
+        counter.update(alpha[k], k * round(PERIOD_S * 1e9), None, sigma)
+    assert ALARMS.effectiveness_confidence_k == 3.0
+    assert counter.warn_raised.tolist() == [[1, 1], [0, 0]] and counter.fault_raised.sum() == 0
+
+
+def test_the_bench_command_runs_the_effectiveness_part_with_its_options():
+    from agv_fe.commands.bench import _options
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["bench", "--only", "detection"])
+    assert _options("detection", args) == ("run", {})
+    part = ["--detection-part", "effectiveness", "--detection-hours", "50", "--detection-runs", "60"]
+    args = parser.parse_args(["bench", *part, "--detection-confidence-k", "0"])
+    assert _options("detection", args) == (
+        "run_effectiveness",
+        {"vehicle_hours": 50.0, "vehicles_per_case": 60, "confidence_k": 0.0},
+    )
+    assert callable(bench.run_effectiveness)
+    with pytest.raises(ValueError, match="vehicle_hours must be > 0"):
+        bench.run_effectiveness(Path("unused"), vehicle_hours=0.0)
 
 
 def test_delay_statistics_rank_the_undetected_runs_last():
