@@ -49,12 +49,15 @@ from service.web.hub import DashboardHub
 
 if TYPE_CHECKING:  # psycopg is imported only by a replica that uses PostgreSQL
     from service.bucket_leases import BucketLeases, LeaseState, StaticBucketLocks
+    from service.vehicle_fanout import VehicleFanout
 
 log = logging.getLogger("agv_fe.service")
 
 
 #: A background task that ran this long without failing has its restart count reset [s].
 TASK_RESTART_RESET_S = 60.0
+#: How long the start waits for the vehicle estimate process's subscription to reach the fleet stream [s].
+VEHICLE_PROCESS_MATCH_S = 10.0
 #: Longest wait before a failed background task is restarted [s].
 TASK_RESTART_MAX_DELAY_S = 10.0
 
@@ -118,6 +121,8 @@ class Service:
         self.writer: StorageWriter | None = None
         self.history: EstimateHistory | None = None
         self.transport: Transport | None = None
+        #: the process that puts each vehicle's estimates on its keys (setting zenoh.vehicle_publisher='process')
+        self.vehicle_process: VehicleFanout | None = None
         #: the profiles, their designs and jobs
         self.policy = ProfilePolicy(settings, self.engine, self, self.metrics)
         self.token = ""
@@ -161,6 +166,8 @@ class Service:
             await asyncio.to_thread(self.history.start)
         self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id, self.settings.bucket_leases)
         await asyncio.to_thread(self.transport.open)
+        if self.settings.zenoh.vehicle_publisher == "process":
+            await self._start_vehicle_process(self.transport)
         self.metrics.vehicle_estimates = self.transport.vehicle_estimates  # its counters, read at each scrape
         self.transport_up = True
         if self.settings.bucket_leases and self.settings.database_url is not None:
@@ -192,6 +199,20 @@ class Service:
             self.settings.zenoh.mode,
             self.settings.zenoh.endpoint,
         )
+
+    async def _start_vehicle_process(self, transport: Transport) -> None:
+        """The process that puts each vehicle's estimates on its keys (service/vehicle_fanout.py), subscribed to
+        this replica's fleet stream before the first tick."""
+        from service.vehicle_fanout import VehicleFanout
+
+        self.vehicle_process = await asyncio.to_thread(VehicleFanout(self.settings.zenoh, self.replica_id).start)
+        transport.attach_vehicle_publisher(self.vehicle_process)
+        deadline = time.monotonic() + VEHICLE_PROCESS_MATCH_S
+        while not transport.fleet_stream_matched():
+            if time.monotonic() > deadline:
+                raise ServiceError(f"the vehicle estimate process's subscription did not reach the fleet stream "
+                                   f"within {VEHICLE_PROCESS_MATCH_S:g} s")  # fmt: skip
+            await asyncio.sleep(0.01)
 
     def _open_storage(self) -> Storage:
         """A connection to the database: PostgreSQL when a URL is set, else the SQLite file in the data directory."""
@@ -271,6 +292,8 @@ class Service:
             causes.append(f"no Zenoh router: the client session lost {self.settings.zenoh.endpoint}")
         if self.fatal is not None:
             causes.append(self.fatal)
+        if self.vehicle_process is not None and not self.vehicle_process.alive:
+            causes.append("the process that puts each vehicle's estimates on its keys has exited")
         for name, why in self.down_tasks.items():
             causes.append(f"background task {name!r} is not running: {why}")
         age_s = self.ingest_heartbeat_age_s()

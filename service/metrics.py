@@ -83,10 +83,17 @@ class Histogram:
 class VehicleEstimateCounters(Protocol):
     """What /metrics reads of the publisher of each vehicle's own estimates (service.transport.VehicleEstimates)."""
 
-    sent: dict[str, int]
-    dropped: int
-    errors: int
-    unmatched: int
+    @property
+    def sent(self) -> dict[str, int]: ...
+
+    @property
+    def dropped(self) -> int: ...
+
+    @property
+    def errors(self) -> int: ...
+
+    @property
+    def unmatched(self) -> int: ...
 
 
 class ServiceMetrics:

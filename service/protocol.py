@@ -492,6 +492,28 @@ class EstimateBatch:
             **values,
         )
 
+    @classmethod
+    def from_group(cls, group: dict[str, Any]) -> EstimateBatch:
+        """The batch a :class:`FleetEstimateGroup` mapping (:meth:`group`, read back with orjson) was made from:
+        the float columns in the group's order, so that :meth:`documents` writes the same documents. The group
+        comes from a replica (trusted): a column missing or of the wrong length raises KeyError or ValueError."""
+        ids = list(group["vehicle"])
+        float_names = set(ESTIMATE_COLUMNS)
+        columns = tuple(name for name in group if name in float_names)
+        values = np.array([group[name] for name in columns], dtype=np.float64).reshape(len(columns), len(ids)).T
+        gain_set = group.get("gain_set")
+        return cls(
+            ids,
+            np.asarray(group["seq"], dtype=np.int64),
+            np.asarray(group["t_ns"], dtype=np.int64),
+            np.ascontiguousarray(values),
+            np.asarray(group["in_domain"], dtype=np.bool_),
+            list(group["level"]),
+            group["gain_version"],
+            None if gain_set is None else np.array([s == "fast" for s in gain_set], dtype=np.bool_),
+            columns,
+        )
+
     def group(self) -> dict[str, Any]:
         """The batch as a :class:`FleetEstimateGroup` mapping, numpy columns left as they are for orjson."""
         values = np.ascontiguousarray(self.values.T)

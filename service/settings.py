@@ -84,6 +84,12 @@ class ZenohSettings(_Section):
         "matching listener per key, its changes applied before every tick's publication), so that the service "
         "neither encodes nor sends estimates nobody reads; 'always': every estimate goes to its vehicle's key",
     )
+    vehicle_publisher: Literal["thread", "process"] = Field(
+        "thread",
+        description="who puts each vehicle's estimates on its own keys: 'thread', a thread of the service; "
+        "'process', a process of its own fed by the replica's fleet stream (service/vehicle_fanout.py): one more "
+        "hop, but the puts no longer share the service's interpreter lock with the ingest loop (one more core)",
+    )
 
     @field_validator("endpoint")
     @classmethod

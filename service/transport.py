@@ -44,7 +44,7 @@ import time
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import zenoh
 
@@ -232,6 +232,27 @@ VEHICLE_ENCODINGS: dict[Kind, tuple[Callable[[EstimateBatch, Sequence[int] | Non
 ENCODING_NAMES: dict[Kind, str] = {"estimate": "json", BINARY_ESTIMATE_KIND: "binary"}
 
 
+class VehiclePublisher(Protocol):
+    """What the transport hands each tick's estimates to for the vehicles' own keys, and what /metrics reads of it:
+    :class:`VehicleEstimates` (a thread of the service) or service.vehicle_fanout.VehicleFanout (a process)."""
+
+    @property
+    def sent(self) -> dict[str, int]: ...
+
+    @property
+    def dropped(self) -> int: ...
+
+    @property
+    def errors(self) -> int: ...
+
+    @property
+    def unmatched(self) -> int: ...
+
+    def submit(self, batches: Sequence[EstimateBatch]) -> None: ...
+
+    def close(self, timeout_s: float = 5.0) -> None: ...
+
+
 class VehicleEstimates:
     """Each vehicle's estimates on its own keys, JSON and binary, put by a thread of their own.
 
@@ -405,7 +426,7 @@ class Transport:
         self._ownership_pub: Any = None
         self._ownership_sub: Any = None
         self._token: Any = None
-        self._vehicle: VehicleEstimates | None = None  # each vehicle's own estimate keys, from open() on
+        self._vehicle: VehiclePublisher | None = None  # each vehicle's own estimate keys, from open() on
         self._fleet_pub: Any = None
         self._alarm_pubs: dict[str, Any] = {}
         self._truth: dict[str, Any] = {}
@@ -505,9 +526,10 @@ class Transport:
                 congestion_control=self._estimate_cc,
                 encoding=zenoh.Encoding.APPLICATION_JSON,
             )
-            self._vehicle = VehicleEstimates(
-                session, self.prefix, self._estimate_cc, self.settings.vehicle_estimates == "subscribed"
-            )
+            if self.settings.vehicle_publisher == "thread":  # else the service attaches its process
+                self._vehicle = VehicleEstimates(
+                    session, self.prefix, self._estimate_cc, self.settings.vehicle_estimates == "subscribed"
+                )
         except zenoh.ZError as exc:
             self.close()
             raise TransportError(f"zenoh: cannot declare the service's subscriptions: {exc}") from exc
@@ -571,11 +593,21 @@ class Transport:
         return 0
 
     @property
-    def vehicle_estimates(self) -> VehicleEstimates:
+    def vehicle_estimates(self) -> VehiclePublisher:
         """The publisher of each vehicle's own estimates (its counters: sent, dropped, errors, unmatched)."""
         return self._require_vehicle()
 
-    def _require_vehicle(self) -> VehicleEstimates:
+    def attach_vehicle_publisher(self, publisher: VehiclePublisher) -> None:
+        """Hand each vehicle's estimates to ``publisher`` (setting ``zenoh.vehicle_publisher='process'``)."""
+        if self._vehicle is not None:
+            self._vehicle.close()
+        self._vehicle = publisher
+
+    def fleet_stream_matched(self) -> bool:
+        """Whether a subscriber matches the replica's fleet stream now."""
+        return self._fleet_pub is not None and bool(self._fleet_pub.matching_status.matching)
+
+    def _require_vehicle(self) -> VehiclePublisher:
         if self._vehicle is None:
             raise TransportError("the transport is not open")
         return self._vehicle
