@@ -73,6 +73,8 @@ class Configuration:
     tls: bool = False
     acl: bool = True
     leases: bool = False
+    #: what the receiver takes: the fleet stream, or every vehicle's own binary key ("vehicle-bin") or JSON key
+    stream: str = "fleet"
 
 
 _HISTORY_OFF = {"AGV_FE_HISTORY__ENABLED": "false"}
@@ -89,6 +91,16 @@ CONFIGURATIONS = {
     "tls-history": Configuration("TLS + ACL, history on", tls=True),
     "tls-history-noacl": Configuration("TLS without ACL, history on", tls=True, acl=False),
     "tls-history-leases": Configuration("TLS + ACL, history on, PostgreSQL leases", tls=True, leases=True),
+    "vehicle-bin-thread": Configuration("every vehicle's binary key, put by a thread (default)", stream="vehicle-bin"),
+    "vehicle-bin-process": Configuration(
+        "every vehicle's binary key, put by a process",
+        {"AGV_FE_ZENOH__VEHICLE_PUBLISHER": "process"},
+        stream="vehicle-bin",
+    ),
+    "vehicle-json-thread": Configuration("every vehicle's JSON key, put by a thread (default)", stream="vehicle"),
+    "vehicle-json-process": Configuration(
+        "every vehicle's JSON key, put by a process", {"AGV_FE_ZENOH__VEHICLE_PUBLISHER": "process"}, stream="vehicle"
+    ),
 }
 #: Capacity with everything on (issue 28): today's plain service beside TLS, TLS with history, and all three.
 EVERYTHING_ON = ("plain", "tls", "tls-history", "tls-history-leases")
@@ -153,8 +165,8 @@ def measure_one(
                     lambda: _buckets(http) == N_BUCKETS, LEASES_S, what=f"the service to lease {N_BUCKETS} buckets"
                 )
             clients = link.clients if link is not None else None
-            warm = _step(endpoint, http, proc.pid, vehicles, 1, stream="fleet", arrival="spread", clients=clients)
-            hold = _step(endpoint, http, proc.pid, vehicles, 1, hold_s, "fleet", "spread", clients)
+            warm = _step(endpoint, http, proc.pid, vehicles, 1, stream=config.stream, arrival="spread", clients=clients)
+            hold = _step(endpoint, http, proc.pid, vehicles, 1, hold_s, config.stream, "spread", clients)
             metrics = http.get("/metrics").text
             buckets = _buckets(http)
             # the link is TLS only: a plain TCP client gets no session (after the steps, which it cannot disturb)
@@ -230,8 +242,10 @@ def render(
             "`agv-fe bench --only service_config` this one", f"`{command}` this one"
         ),
         f"{vehicles:,} vehicles at 100 Hz, each at its own phase of the 10 ms period, an estimate for every sample "
-        "taken from the fleet stream, congestion control BLOCK; generator, receiver and service share the machine's "
-        f"two cores. Each configuration's service ran {_times(len(runs) // max(1, len(configs)))}, alternating with "
+        f"taken from {_streams(configs)}, congestion control BLOCK; generator, receiver and service (with the "
+        "process that puts the vehicles' estimates, where a configuration has one: its CPU is counted in the "
+        "service's) share the machine's two cores. "
+        f"Each configuration's service ran {_times(len(runs) // max(1, len(configs)))}, alternating with "
         f"the others (one round runs each once, in the order below): a {STEP_S:.0f} s step that registers the "
         f"fleet, then a {TARGET_HOLD_S:.0f} s hold whose p99 latency is taken per {STEP_S:.0f} s window "
         "(agv_fe/benchmarks/service_config.py, the steps of service_load.py).\n",
@@ -264,6 +278,16 @@ def render(
         )
     lines += ["", "```json", json.dumps(runs, indent=1), "```", ""]
     return "\n".join(lines)
+
+
+def _streams(configs: tuple[Configuration, ...]) -> str:
+    """What the receiver took, in words."""
+    names = {
+        "fleet": "the fleet stream",
+        "vehicle-bin": "every vehicle's own binary key (`.../estimate.bin`, one subscription to all of them)",
+        "vehicle": "every vehicle's own JSON key (`.../estimate`, one subscription to all of them)",
+    }
+    return " or ".join(dict.fromkeys(names[c.stream] for c in configs))
 
 
 def _times(n: int) -> str:
