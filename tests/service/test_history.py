@@ -86,9 +86,11 @@ def test_the_writer_keeps_converted_tables_not_batches_and_reads_and_writes_them
     try:
         for seq in range(50):
             history.append([_batch(["a", "b"], seq), _batch(["staged"], seq, with_stage=True)])
-        wait_for(lambda: history.read("a", T0_NS, T0_NS + 50 * PERIOD_NS).num_rows == 50, what="pending rows read")
+        assert history.read("a", T0_NS, T0_NS + 50 * PERIOD_NS).num_rows == 50  # read, taken by the writer or not
+        wait_for(lambda: history._chunk is not None and history._chunk.rows == 150, what="every tick taken")
+        wait_for(lambda: not history._chunk.batches, what="the batches converted")  # type: ignore[union-attr]
         chunk = history._chunk
-        assert chunk is not None and chunk.rows == 150 and not chunk.batches and len(chunk.tables) >= 2
+        assert chunk is not None and len(chunk.tables) >= 2
         rows = list(table_rows(history.read("staged", T0_NS, T0_NS + 50 * PERIOD_NS)))
         assert [r["seq"] for r in rows] == list(range(50)) and rows[3]["steer_alpha"] == pytest.approx(3 + 0.25 * 8)
     finally:
@@ -182,6 +184,7 @@ def test_old_files_go_after_the_retention_and_a_failed_write_is_counted(tmp_path
         assert not first.exists()
         # the directory gone, a file in its place (a volume unmounted, say): the write fails, is counted with its
         # rows, and the writer goes on to write the next interval once the directory is back
+        wait_for(lambda: history._chunk is None, what="every interval before written")
         moved = tmp_path / "moved"
         root.rename(moved)
         root.write_text("not a directory")
