@@ -97,6 +97,9 @@ CONFIGURATIONS = {
         {"AGV_FE_ZENOH__VEHICLE_PUBLISHER": "process"},
         stream="vehicle-bin",
     ),
+    "vehicle-bin-thread-history-off": Configuration(
+        "every vehicle's binary key, put by a thread, history off", _HISTORY_OFF, stream="vehicle-bin"
+    ),
     "vehicle-json-thread": Configuration("every vehicle's JSON key, put by a thread (default)", stream="vehicle"),
     "vehicle-json-process": Configuration(
         "every vehicle's JSON key, put by a process", {"AGV_FE_ZENOH__VEHICLE_PUBLISHER": "process"}, stream="vehicle"
