@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Literal
 
 import numpy as np
@@ -336,30 +336,17 @@ class AlarmRecord:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "vehicle": self.vehicle,
-            "profile": self.profile,
-            "kind": self.kind,
-            "level": self.level,
-            "peak_level": self.peak_level,
-            "state": self.state,
-            "acknowledged": self.acknowledged,
-            "raised_t_ns": self.raised_t_ns,
-            "cleared_t_ns": self.cleared_t_ns,
-            "acknowledged_t_ns": self.acknowledged_t_ns,
-            "acknowledged_by": self.acknowledged_by,
-            "value": self.value,
-            "threshold": self.threshold,
-            "message": self.message,
-            "occurrences": self.occurrences,
-            "updated_t_ns": self.updated_t_ns,
-        }
+        """Every field but ``extra``, in the order they are declared (the REST schema AlarmInfo is derived alike)."""
+        return {name: getattr(self, name) for name in _RECORD_FIELDS}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> AlarmRecord:
         keys = cls.__dataclass_fields__.keys() - {"extra"}
         return cls(**{k: data[k] for k in keys if k in data})
+
+
+#: AlarmRecord's fields as stored and served (to_dict), in declaration order: all but ``extra``.
+_RECORD_FIELDS = tuple(f.name for f in fields(AlarmRecord) if f.name != "extra")
 
 
 @dataclass(frozen=True)
