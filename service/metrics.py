@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from service.ownership import OwnershipWatch
     from service.settings import Settings
     from service.storage_writer import StorageState
+    from service.transport import VehiclePublisher
 
 #: The exposition format /metrics answers in: Prometheus' text format 0.0.4.
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
@@ -80,22 +81,6 @@ class Histogram:
         return HistogramMetricFamily(name, documentation, buckets=buckets, sum_value=self.sum)
 
 
-class VehicleEstimateCounters(Protocol):
-    """What /metrics reads of the publisher of each vehicle's own estimates (service.transport.VehicleEstimates)."""
-
-    @property
-    def sent(self) -> dict[str, int]: ...
-
-    @property
-    def dropped(self) -> int: ...
-
-    @property
-    def errors(self) -> int: ...
-
-    @property
-    def unmatched(self) -> int: ...
-
-
 class ServiceMetrics:
     """The histograms and counters kept outside the fleet engine."""
 
@@ -107,7 +92,7 @@ class ServiceMetrics:
         self.fleet_estimates_out = 0
         #: the publisher of each vehicle's own estimates (service.transport.VehicleEstimates), from the transport's
         #: start: its counters are read at each scrape
-        self.vehicle_estimates: VehicleEstimateCounters | None = None
+        self.vehicle_estimates: VehiclePublisher | None = None
         self.alarms_out = 0
         self.last_batch = 0
         self.full_batches = 0
