@@ -198,6 +198,20 @@ def zenoh_config(
     return session_config(values, config_file, credentials_file)
 
 
+def estimate_congestion(name: str) -> Any:
+    """Zenoh's congestion control of the setting ``zenoh.estimate_congestion`` ('block' or 'drop')."""
+    return zenoh.CongestionControl.BLOCK if name == "block" else zenoh.CongestionControl.DROP
+
+
+def subscribe_payloads(session: zenoh.Session, key: str, callback: Callable[[bytes], None]) -> Any:
+    """A subscriber that hands each sample's payload to ``callback`` on Zenoh's receiving thread (no Python thread
+    of its own: keep the callback short). Undeclare it with ``.undeclare()``."""
+    handler: zenoh.handlers.Callback[Any] = zenoh.handlers.Callback(
+        lambda sample: callback(sample.payload.to_bytes()), indirect=False
+    )
+    return session.declare_subscriber(key, handler)
+
+
 def open_session(
     mode: str,
     endpoint: str,
@@ -430,9 +444,7 @@ class Transport:
         self._fleet_pub: Any = None
         self._alarm_pubs: dict[str, Any] = {}
         self._truth: dict[str, Any] = {}
-        self._estimate_cc = (
-            zenoh.CongestionControl.BLOCK if settings.estimate_congestion == "block" else zenoh.CongestionControl.DROP
-        )
+        self._estimate_cc = estimate_congestion(settings.estimate_congestion)
 
     @property
     def session(self) -> zenoh.Session:

@@ -23,11 +23,17 @@ import time
 from typing import Any
 
 import orjson
-import zenoh
 
 from service.protocol import EstimateBatch, ProtocolError, fleet_estimates_key
 from service.settings import ZenohSettings
-from service.transport import ENCODING_NAMES, TransportError, VehicleEstimates, open_session
+from service.transport import (
+    ENCODING_NAMES,
+    TransportError,
+    VehicleEstimates,
+    estimate_congestion,
+    open_session,
+    subscribe_payloads,
+)
 
 log = logging.getLogger("agv_fe.service.vehicle_fanout")
 
@@ -63,15 +69,13 @@ def fanout_main(zenoh_settings: dict[str, Any], replica_id: str, counters: Any) 
         config_file=settings.config_file,
         credentials_file=settings.credentials_file,
     )
-    congestion = zenoh.CongestionControl.BLOCK
-    if settings.estimate_congestion == "drop":
-        congestion = zenoh.CongestionControl.DROP
+    congestion = estimate_congestion(settings.estimate_congestion)
     vehicles = VehicleEstimates(session, settings.prefix, congestion, settings.vehicle_estimates == "subscribed")
     unreadable = [0]
 
-    def arrived(sample: zenoh.Sample) -> None:
+    def arrived(payload: bytes) -> None:
         try:
-            vehicles.submit(fleet_batches(sample.payload.to_bytes()))
+            vehicles.submit(fleet_batches(payload))
         except ProtocolError as exc:
             unreadable[0] += 1
             log.error("vehicle estimates: %s", exc)
@@ -80,16 +84,15 @@ def fanout_main(zenoh_settings: dict[str, Any], replica_id: str, counters: Any) 
         counts = [*(vehicles.sent[name] for name in ENCODING_NAMES.values()), vehicles.dropped]
         counters[: len(_COUNTERS)] = [*counts, vehicles.errors + unreadable[0], vehicles.unmatched]
 
-    # indirect=False: the callback runs on Zenoh's receiving thread and only queues the tick
-    handler: zenoh.handlers.Callback[Any] = zenoh.handlers.Callback(arrived, indirect=False)
-    sub = session.declare_subscriber(fleet_estimates_key(replica_id, settings.prefix), handler)
+    # the callback runs on Zenoh's receiving thread and only queues the tick
+    sub = subscribe_payloads(session, fleet_estimates_key(replica_id, settings.prefix), arrived)
     counters[_READY] = 1
     try:
         while not counters[_STOP] and os.getppid() == parent:
             time.sleep(COUNTERS_EVERY_S)
             publish_counters()
     finally:
-        sub.undeclare()  # type: ignore[no-untyped-call]
+        sub.undeclare()
         vehicles.close()
         publish_counters()
         session.close()  # type: ignore[no-untyped-call]
