@@ -93,6 +93,10 @@ class TransportError(Exception):
     """The Zenoh session could not be opened or used; the text names the endpoint."""
 
 
+#: A Zenoh session, for the modules that hold one without importing Zenoh (the layering test keeps it here).
+Session = zenoh.Session
+
+
 @dataclass(frozen=True)
 class ConfigValue:
     """A value the project sets in a session's Zenoh configuration.

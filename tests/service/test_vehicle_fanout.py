@@ -12,6 +12,7 @@ import orjson
 import pytest
 import zenoh
 
+from service.fleet_child import fleet_batches
 from service.protocol import (
     BINARY_ESTIMATE_KIND,
     EFFECTIVENESS_COLUMNS,
@@ -25,7 +26,6 @@ from service.protocol import (
     vehicle_key,
 )
 from service.transport import open_session
-from service.vehicle_fanout import fleet_batches
 from tests.service.helpers import make_settings, parse_metrics, plant_measurements, running, wait_for
 
 
