@@ -36,6 +36,7 @@ from service import logs
 from service.databases import open_storage
 from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine
 from service.history import EstimateHistory
+from service.history_process import HistoryProcess
 from service.jobs import SynthesisJobs
 from service.metrics import ServiceMetrics, service_registry
 from service.ownership import OwnershipWatch
@@ -56,8 +57,9 @@ log = logging.getLogger("agv_fe.service")
 
 #: A background task that ran this long without failing has its restart count reset [s].
 TASK_RESTART_RESET_S = 60.0
-#: How long the start waits for the vehicle estimate process's subscription to reach the fleet stream [s].
-VEHICLE_PROCESS_MATCH_S = 10.0
+#: How long the start waits for a child process's subscription (vehicle estimates, history) to reach the fleet
+#: stream [s].
+CHILD_MATCH_S = 10.0
 #: Longest wait before a failed background task is restarted [s].
 TASK_RESTART_MAX_DELAY_S = 10.0
 
@@ -119,7 +121,8 @@ class Service:
         self.ownership = OwnershipWatch(self.engine, settings.shard.unserved_after_s)
         self.storage: Storage | None = None
         self.writer: StorageWriter | None = None
-        self.history: EstimateHistory | None = None
+        #: the estimate history: a thread of this process, or a process of its own (setting history.writer)
+        self.history: EstimateHistory | HistoryProcess | None = None
         self.transport: Transport | None = None
         #: the process that puts each vehicle's estimates on its keys (setting zenoh.vehicle_publisher='process')
         self.vehicle_process: VehicleFanout | None = None
@@ -159,7 +162,7 @@ class Service:
             await self.policy.open_shared(self.settings.database_url)
         await self._load_state()
         h = self.settings.history
-        if h.enabled:
+        if h.enabled and h.writer == "thread":
             self.history = EstimateHistory(
                 self.settings.history_directory, self.replica_id, h.retention_h * 3600.0, h.chunk_s, h.precision
             )
@@ -168,6 +171,8 @@ class Service:
         await asyncio.to_thread(self.transport.open)
         if self.settings.zenoh.vehicle_publisher == "process":
             await self._start_vehicle_process(self.transport)
+        if h.enabled and h.writer == "process":
+            await self._start_history_process(self.transport)
         self.metrics.vehicle_estimates = self.transport.vehicle_estimates  # its counters, read at each scrape
         self.transport_up = True
         if self.settings.bucket_leases and self.settings.database_url is not None:
@@ -207,11 +212,32 @@ class Service:
 
         self.vehicle_process = await asyncio.to_thread(VehicleFanout(self.settings.zenoh, self.replica_id).start)
         transport.attach_vehicle_publisher(self.vehicle_process)
-        deadline = time.monotonic() + VEHICLE_PROCESS_MATCH_S
+        await self._fleet_stream_matched(transport, "vehicle estimate")
+
+    async def _start_history_process(self, transport: Transport) -> None:
+        """The process that keeps the estimate history (service/history_process.py), subscribed to this replica's
+        fleet stream before the first tick."""
+        h = self.settings.history
+        self.history = HistoryProcess(
+            self.settings.zenoh,
+            self.settings.history_directory,
+            self.replica_id,
+            h.retention_h * 3600.0,
+            h.chunk_s,
+            h.precision,
+        )
+        await asyncio.to_thread(self.history.start)
+        await self._fleet_stream_matched(transport, "history")
+
+    @staticmethod
+    async def _fleet_stream_matched(transport: Transport, what: str) -> None:
+        """Wait until a subscriber matches the fleet stream (the child process ``what`` just subscribed)."""
+        deadline = time.monotonic() + CHILD_MATCH_S
         while not transport.fleet_stream_matched():
             if time.monotonic() > deadline:
-                raise ServiceError(f"the vehicle estimate process's subscription did not reach the fleet stream "
-                                   f"within {VEHICLE_PROCESS_MATCH_S:g} s")  # fmt: skip
+                raise ServiceError(
+                    f"the {what} process's subscription did not reach the fleet stream within {CHILD_MATCH_S:g} s"
+                )
             await asyncio.sleep(0.01)
 
     def _open_storage(self) -> Storage:
@@ -233,13 +259,13 @@ class Service:
         self._tasks = {}
         await self.dashboard.stop()
         await self.policy.jobs.close()
+        if self.history is not None:  # the estimates not yet written are written now
+            await asyncio.to_thread(self.history.close)
+            self.history = None
         if self.transport is not None:
             await asyncio.to_thread(self.transport.close)
             self.transport = None
             self.transport_up = False
-        if self.history is not None:  # the estimates not yet written are written now
-            await asyncio.to_thread(self.history.close)
-            self.history = None
         if self.writer is not None:
             # the writes still queued get storage.shutdown_flush_s to land (off the loop), then are given up
             await asyncio.to_thread(self.writer.close)
@@ -294,6 +320,8 @@ class Service:
             causes.append(self.fatal)
         if self.vehicle_process is not None and not self.vehicle_process.alive:
             causes.append("the process that puts each vehicle's estimates on its keys has exited")
+        if isinstance(self.history, HistoryProcess) and not self.history.alive:
+            causes.append("the process that keeps the estimate history has exited")
         for name, why in self.down_tasks.items():
             causes.append(f"background task {name!r} is not running: {why}")
         age_s = self.ingest_heartbeat_age_s()

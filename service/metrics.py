@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from service.bucket_leases import LeaseState
     from service.fleet import FleetEngine
     from service.history import EstimateHistory
+    from service.history_process import HistoryProcess
     from service.jobs import SynthesisJobs
     from service.ownership import OwnershipWatch
     from service.settings import Settings
@@ -116,7 +117,7 @@ class MetricsSource(Protocol):
     engine: FleetEngine
     metrics: ServiceMetrics
     task_failures: dict[str, int]
-    history: EstimateHistory | None
+    history: EstimateHistory | HistoryProcess | None
     buckets: list[str]
     ownership: OwnershipWatch
 

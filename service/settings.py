@@ -275,6 +275,12 @@ class HistorySettings(_Section):
         "vehicle-hour), float32 halves the disk (5.8 MB) at 7 significant digits",
     )
     directory: Path | None = Field(None, description="where the files go (default: DATA_DIR/history)")
+    writer: Literal["thread", "process"] = Field(
+        "thread",
+        description="who keeps the history: 'thread', a thread of the service; 'process', a process of its own "
+        "fed by the replica's fleet stream (service/history_process.py): its conversions, its garbage and its "
+        "once-a-chunk sort and write leave the service's interpreter",
+    )
 
 
 class Settings(BaseSettings):

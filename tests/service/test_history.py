@@ -15,6 +15,7 @@ import pytest
 
 import service.history
 from service.history import SCHEMA, EstimateHistory, batch_table, table_rows
+from service.history_process import HistoryProcess
 from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS, Estimate, EstimateBatch
 from tests.service.helpers import PERIOD_NS, T0_NS, make_settings, plant_measurements, probe, running, wait_for
 
@@ -204,8 +205,10 @@ def test_old_files_go_after_the_retention_and_a_failed_write_is_counted(tmp_path
         history.close()
 
 
-def test_the_service_answers_a_time_range_of_estimates_as_json_csv_and_parquet(tmp_path):
-    settings = make_settings(tmp_path, history={"chunk_s": 1.0})
+@pytest.mark.parametrize("writer", ["thread", "process"])
+def test_the_service_answers_a_time_range_of_estimates_as_json_csv_and_parquet(tmp_path, writer):
+    """The same answers whether the history is a thread of the service or its own process (history.writer)."""
+    settings = make_settings(tmp_path, history={"chunk_s": 1.0, "writer": writer})
     samples = plant_measurements(["hist-1", "hist-2"], 9000)  # 90 s of two vehicles
     with running(settings) as srv, probe(settings.zenoh.endpoint) as p:
         for row in samples:
@@ -274,3 +277,24 @@ def test_a_replica_without_history_says_so(tmp_path):
         r = srv.http.get("/vehicles/quiet-1/estimates", params={"start": 0})
         assert r.status_code == 409 and "history" in r.text
     assert not Path(srv.settings.data_dir / "history").exists()
+
+
+def test_a_history_process_that_dies_makes_the_replica_unready_and_reads_fail_clearly(tmp_path):
+    settings = make_settings(tmp_path, history={"writer": "process"})
+    with running(settings) as srv, probe(settings.zenoh.endpoint) as p:
+        for row in plant_measurements(["gone-1"], 50):
+            p.put(row[0])
+        wait_for(lambda: len(p.estimates_of("gone-1")) >= 50, what="the estimates")
+        whole = {"start": T0_NS / 1e9, "end": (T0_NS + 50 * PERIOD_NS) / 1e9}
+        wait_for(
+            lambda: len(srv.get("/vehicles/gone-1/estimates", params=whole).json()["estimates"]) == 50,
+            what="the child holding every estimate",
+        )
+        history = srv.service.history
+        assert isinstance(history, HistoryProcess) and history.alive
+        history._process.kill()
+        wait_for(lambda: not history.alive, what="the child gone")
+        ready = srv.get("/ready").json()
+        assert not ready["ready"] and "keeps the estimate history has exited" in ready["detail"]
+        r = srv.http.get("/vehicles/gone-1/estimates", params=whole)
+        assert r.status_code == 503 and "history process has exited" in r.json()["detail"]

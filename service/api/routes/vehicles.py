@@ -23,6 +23,7 @@ from service.app import Service
 from service.fleet import UnknownProfile, UnknownVehicle, Vehicle
 from service.fleet.listing import vehicle_page
 from service.history import rows_table, table_rows
+from service.history_process import HistoryUnavailable
 from service.protocol import VEHICLE_ID_PATTERN, EstimateRow, Level
 from service.storage import Storage
 
@@ -127,6 +128,7 @@ HISTORY_JSON_MAX = 100_000
             "content": {CSV_TYPE: {"schema": {"type": "string"}}, PARQUET_TYPE: {"schema": {"type": "string"}}},
         },
         409: {"description": "start/end asked but this replica keeps no estimate history (setting history.enabled)"},
+        503: {"description": "the estimate history's own process (setting history.writer) cannot answer"},
     },
     summary="a vehicle's estimates: the newest in memory, or every one in a time range from the history",
 )
@@ -166,9 +168,12 @@ async def get_estimates(
     if end_ns <= start_ns:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, detail="end must be after start")
     wanted = None if (CSV_TYPE in accept or PARQUET_TYPE in accept) else (limit or HISTORY_JSON_MAX)
-    table = await asyncio.to_thread(
-        service.history.read, vehicle.id, start_ns, end_ns, None if wanted is None else wanted + 1
-    )
+    try:
+        table = await asyncio.to_thread(
+            service.history.read, vehicle.id, start_ns, end_ns, None if wanted is None else wanted + 1
+        )
+    except HistoryUnavailable as exc:  # the history's own process (history.writer='process') cannot answer
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, detail=str(exc)) from exc
     if wanted is None:
         answer = _export(table, accept)
         if output is not None:
