@@ -78,6 +78,7 @@ class Configuration:
 
 
 _HISTORY_OFF = {"AGV_FE_HISTORY__ENABLED": "false"}
+_HISTORY_PROCESS = {"AGV_FE_HISTORY__WRITER": "process"}
 #: The configurations of the default run: the estimate history on (the default) and off.
 HISTORY = (
     Configuration("history on (default)"),
@@ -89,6 +90,8 @@ CONFIGURATIONS = {
     "history-off": Configuration("plain TCP, history off", _HISTORY_OFF),
     "tls": Configuration("TLS + ACL, history off", _HISTORY_OFF, tls=True),
     "tls-history": Configuration("TLS + ACL, history on", tls=True),
+    "tls-history-process": Configuration("TLS + ACL, history in its own process", _HISTORY_PROCESS, tls=True),
+    "plain-history-process": Configuration("plain TCP, history in its own process", _HISTORY_PROCESS),
     "tls-history-noacl": Configuration("TLS without ACL, history on", tls=True, acl=False),
     "tls-history-leases": Configuration("TLS + ACL, history on, PostgreSQL leases", tls=True, leases=True),
     "vehicle-bin-thread": Configuration("every vehicle's binary key, put by a thread (default)", stream="vehicle-bin"),
@@ -99,6 +102,11 @@ CONFIGURATIONS = {
     ),
     "vehicle-bin-thread-history-off": Configuration(
         "every vehicle's binary key, put by a thread, history off", _HISTORY_OFF, stream="vehicle-bin"
+    ),
+    "vehicle-bin-history-process": Configuration(
+        "every vehicle's binary key, put by a thread, history in its own process",
+        _HISTORY_PROCESS,
+        stream="vehicle-bin",
     ),
     "vehicle-json-thread": Configuration("every vehicle's JSON key, put by a thread (default)", stream="vehicle"),
     "vehicle-json-process": Configuration(
