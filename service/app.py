@@ -217,15 +217,8 @@ class Service:
     async def _start_history_process(self, transport: Transport) -> None:
         """The process that keeps the estimate history (service/history_process.py), subscribed to this replica's
         fleet stream before the first tick."""
-        h = self.settings.history
-        self.history = HistoryProcess(
-            self.settings.zenoh,
-            self.settings.history_directory,
-            self.replica_id,
-            h.retention_h * 3600.0,
-            h.chunk_s,
-            h.precision,
-        )
+        settings = self.settings
+        self.history = HistoryProcess(settings.zenoh, settings.history, settings.history_directory, self.replica_id)
         await asyncio.to_thread(self.history.start)
         await self._fleet_stream_matched(transport, "history")
 

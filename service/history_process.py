@@ -23,14 +23,14 @@ import multiprocessing
 import threading
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import pyarrow as pa
 
 from service.fleet_child import POLL_S, FleetStreamChild, child_session, fleet_key, serve_fleet_stream
 from service.history import EstimateHistory, HistoryStats
 from service.protocol import EstimateBatch
-from service.settings import ZenohSettings
+from service.settings import HistorySettings, ZenohSettings
 
 log = logging.getLogger("agv_fe.service.history_process")
 
@@ -92,19 +92,16 @@ class HistoryProcess(FleetStreamChild):
 
     :meth:`append` does nothing: the tick's estimates reach the child in the fleet stream."""
 
-    def __init__(
-        self,
-        settings: ZenohSettings,
-        directory: Path,
-        replica_id: str,
-        retention_s: float,
-        chunk_s: float,
-        precision: Literal["float64", "float32"] = "float64",
-    ) -> None:
+    def __init__(self, zenoh: ZenohSettings, history: HistorySettings, directory: Path, replica_id: str) -> None:
         self._conn, child_end = _pipe()
-        options = {"directory": str(directory), "retention_s": retention_s, "chunk_s": chunk_s, "precision": precision}
+        options = {
+            "directory": str(directory),
+            "retention_s": history.retention_h * 3600.0,
+            "chunk_s": history.chunk_s,
+            "precision": history.precision,
+        }
         super().__init__(
-            history_main, (settings.model_dump(mode="json"), replica_id, options, child_end), len(_COUNTERS), "history"
+            history_main, (zenoh.model_dump(mode="json"), replica_id, options, child_end), len(_COUNTERS), "history"
         )
         self._lock = threading.Lock()
         self._ids = itertools.count()
