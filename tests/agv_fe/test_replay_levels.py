@@ -169,7 +169,8 @@ def test_torque_bias_raises_warn_then_fault_after_the_onset_with_the_profiles_th
 def first_cusum_crossing(rows: list[dict[str, str]], column: str, threshold: float, sigma: float) -> float | None:
     """The CUSUM rule written out (service.fleet.cusum): 10-sample block means after the 3 s warm-up,
     g+- = max(0, g+- +- m / sigma - k), k = threshold / (2 sigma), the first block end with max(g+, g-) > h."""
-    from service.fleet.cusum import blocks_per_false_alarm, cusum_threshold
+    from service.fleet.cusum import blocks_per_false_alarm
+    from synth.cusum import cusum_threshold
 
     k = threshold / (2.0 * sigma)
     h = cusum_threshold(round(k, 9), blocks_per_false_alarm(1.0, 0.1))

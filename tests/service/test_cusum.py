@@ -7,8 +7,9 @@ import pytest
 from pydantic import ValidationError
 
 from service.fleet.alarms import FAULT, OK, WARN, FaultLevels, LevelDetector
-from service.fleet.cusum import CusumDetector, blocks_per_false_alarm, cusum_threshold, one_sided_arl
+from service.fleet.cusum import CusumDetector, blocks_per_false_alarm
 from service.profiles import AlarmThresholds
+from synth.cusum import cusum_threshold, one_sided_arl
 
 PERIOD_NS = 10_000_000
 
