@@ -11,6 +11,7 @@ RUN /opt/agv-fe/bin/pip install -r /tmp/requirements.lock
 WORKDIR /src
 COPY pyproject.toml README.md LICENSE ./
 COPY synth ./synth
+COPY agv_protocol ./agv_protocol
 COPY service ./service
 COPY edge_client ./edge_client
 COPY agv_fe ./agv_fe

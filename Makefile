@@ -41,7 +41,7 @@ bench: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/mypy synth service edge_client agv_fe
+	$(BIN)/mypy synth agv_protocol service edge_client agv_fe
 
 format: $(STAMP)
 	$(BIN)/ruff format .

@@ -142,7 +142,7 @@ def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
 def check_bridge_arguments(args: argparse.Namespace) -> Any:
     """The transport options of a live bridge's flags (:func:`add_bridge_arguments`), or a CommandError naming the
     flag at fault."""
-    from service.protocol import ProtocolError, check_vehicle_id
+    from agv_protocol.wire import ProtocolError, check_vehicle_id
 
     try:
         check_vehicle_id(args.vehicle)

@@ -1,7 +1,7 @@
 """A terminal dashboard of the fleet: every vehicle's level, speed, estimated faults and alarms.
 
 It needs nothing but a zenoh router: it subscribes to all estimates and alarms
-(:func:`service.protocol.fleet_selector`) and to the vehicles' liveliness
+(:func:`agv_protocol.wire.fleet_selector`) and to the vehicles' liveliness
 tokens, and redraws a rich table a few times a second. :class:`DashboardModel`
 is the table's state, fed by decoded messages; it renders to text for tests
 and for non-terminal output. Only the newest estimate of each vehicle is
@@ -24,9 +24,9 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from agv_protocol.wire import Alarm, Estimate, ProtocolError, fleet_selector, parse_vehicle_key
 from edge_client.pacing import DeadlinePacer
 from edge_client.transport import ChannelSubscription, Received
-from service.protocol import Alarm, Estimate, ProtocolError, fleet_selector, parse_vehicle_key
 
 if TYPE_CHECKING:
     import zenoh

@@ -39,11 +39,7 @@ from typing import TYPE_CHECKING, Literal, TextIO
 
 import numpy as np
 
-from edge_client.pacing import DeadlinePacer, PacingStats
-from edge_client.sources import SampleSource
-from edge_client.stats import LatencyHistogram
-from edge_client.transport import Received, Subscription, VehicleLinks, connected_nodes
-from service.protocol import (
+from agv_protocol.wire import (
     BINARY_ESTIMATE_KIND,
     DEFAULT_PREFIX,
     FLAG_SEQUENCE_RESTART,
@@ -56,6 +52,10 @@ from service.protocol import (
     fleet_selector,
     parse_vehicle_key,
 )
+from edge_client.pacing import DeadlinePacer, PacingStats
+from edge_client.sources import SampleSource
+from edge_client.stats import LatencyHistogram
+from edge_client.transport import Received, Subscription, VehicleLinks, connected_nodes
 
 if TYPE_CHECKING:
     import zenoh

@@ -188,8 +188,8 @@ class StatusRepublisher:
         prefix: str,
         entity_id: int = 1,
     ) -> None:
+        from agv_protocol.wire import vehicle_key
         from edge_client.transport import Publication
-        from service.protocol import vehicle_key
 
         self.store = store
         self.vehicle_id = vehicle_id
@@ -216,7 +216,7 @@ class StatusRepublisher:
         """Set up what :meth:`status` keeps between messages (a subclass's; nothing here)."""
 
     def status(self, payload: bytes) -> Any:
-        """The DiagnosticStatus of one message of the stream; :class:`~service.protocol.ProtocolError` if it does
+        """The DiagnosticStatus of one message of the stream; :class:`~agv_protocol.wire.ProtocolError` if it does
         not decode."""
         raise NotImplementedError
 
@@ -232,7 +232,7 @@ class StatusRepublisher:
 
     def _on_message(self, rx: Received) -> None:
         # zenoh's thread: decode, convert, put; never raise
-        from service.protocol import ProtocolError
+        from agv_protocol.wire import ProtocolError
 
         try:
             status = self.status(rx.payload)
@@ -265,7 +265,7 @@ class EstimateRepublisher(StatusRepublisher):
     kind = "estimate"
 
     def status(self, payload: bytes) -> Any:
-        from service.protocol import Estimate
+        from agv_protocol.wire import Estimate
 
         estimate = Estimate.decode(payload)
         values = {
@@ -305,7 +305,7 @@ class AlarmRepublisher(StatusRepublisher):
         self._cleared = set()
 
     def status(self, payload: bytes) -> Any:
-        from service.protocol import Alarm
+        from agv_protocol.wire import Alarm
 
         alarm = Alarm.decode(payload)
         if alarm.state == "raised":

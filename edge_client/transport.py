@@ -39,7 +39,7 @@ from typing import Any, Literal, TypeVar
 import numpy as np
 import zenoh
 
-from service.protocol import DEFAULT_PREFIX, ProtocolError, vehicle_key
+from agv_protocol.wire import DEFAULT_PREFIX, ProtocolError, vehicle_key
 from service.transport import ConfigValue, session_config
 from service.transport import TransportError as _ConfigError
 

@@ -32,6 +32,7 @@ from contextlib import suppress
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
+from agv_protocol.wire import OwnershipChange, all_buckets, bucket_of, shard_buckets
 from service import logs
 from service.databases import open_storage
 from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine
@@ -41,7 +42,6 @@ from service.jobs import SynthesisJobs
 from service.metrics import ServiceMetrics, service_registry
 from service.ownership import OwnershipWatch
 from service.profile_policy import ProfilePolicy
-from service.protocol import OwnershipChange, all_buckets, bucket_of, shard_buckets
 from service.settings import Settings
 from service.storage import Storage
 from service.storage_writer import StorageState, StorageUnavailable, StorageWriter, Write
@@ -552,7 +552,7 @@ class Service:
         self._announce_ownership([], buckets, len(ids), 0)
 
     def _announce_ownership(self, gained: list[str], lost: list[str], vehicles: int, alarms: int) -> None:
-        """An ownership change: logged, counted (/metrics) and published on Zenoh (protocol.ownership_key)."""
+        """An ownership change: logged, counted (/metrics) and published on Zenoh (agv_protocol.wire.ownership_key)."""
         verb, which = ("took", gained) if gained else ("handed over", lost)
         log.warning(
             "replica %s %s buckets %s (%d vehicles, %d latched alarms); it serves %s now",

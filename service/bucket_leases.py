@@ -37,8 +37,8 @@ from typing import Any
 
 import psycopg
 
+from agv_protocol.wire import all_buckets
 from service.pg_session import SessionThread
-from service.protocol import all_buckets
 from service.storage_postgres import CONNECT_TIMEOUT_S
 
 log = logging.getLogger("agv_fe.service.leases")

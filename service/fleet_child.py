@@ -2,7 +2,7 @@
 (service/vehicle_fanout.py) and the estimate-history process (service/history_process.py) share.
 
 The child is a Zenoh client of the service's endpoint that subscribes to the replica's fleet stream
-(:func:`~service.protocol.fleet_estimates_key`, one message per tick, which the service publishes while a
+(:func:`~agv_protocol.wire.fleet_estimates_key`, one message per tick, which the service publishes while a
 subscriber matches). Its counters and two flags (it subscribed; the service asks it to stop) are plain shared
 integers without a lock: a child killed while holding a lock (of a multiprocessing Event) would hang the
 service's close. The child stops when the service closes it, and on its own when the service process is gone.
@@ -19,7 +19,7 @@ from typing import Any
 
 import orjson
 
-from service.protocol import EstimateBatch, ProtocolError, fleet_estimates_key
+from agv_protocol.wire import EstimateBatch, ProtocolError, fleet_estimates_key
 from service.settings import ZenohSettings
 from service.transport import Session, TransportError, open_session, subscribe_payloads
 
@@ -32,7 +32,7 @@ POLL_S = 0.2
 
 
 def fleet_batches(payload: bytes) -> list[EstimateBatch]:
-    """The batches of a fleet-stream message (:class:`~service.protocol.FleetEstimates`) of this service."""
+    """The batches of a fleet-stream message (:class:`~agv_protocol.wire.FleetEstimates`) of this service."""
     try:
         message = orjson.loads(payload)
         if message.get("v") != 1:

@@ -1,10 +1,10 @@
 """Every estimate the service publishes, kept on disk for a retention time as Parquet files, and read back.
 
-The ingest loop hands each tick's :class:`~service.protocol.EstimateBatch` list to :meth:`EstimateHistory.append`
+The ingest loop hands each tick's :class:`~agv_protocol.wire.EstimateBatch` list to :meth:`EstimateHistory.append`
 (one queue put); a writer thread gathers them and writes one Parquet file per ``chunk_s`` of service time,
 ``DIR/YYYY-MM-DD/<start_ns>-<replica>.parquet``, rows sorted by vehicle and time, so that a query for one
 vehicle reads only the row groups that hold it. The columns are the estimate record's
-(service.protocol.Estimate): the float channels as float64 (the published values exactly; 34 bytes per
+(agv_protocol.wire.Estimate): the float channels as float64 (the published values exactly; 34 bytes per
 estimate, 12 MB per vehicle-hour at 100 Hz) or float32 (setting history.precision: 16 bytes, 5.8 MB), with
 byte-stream-split encoding and zstd (docs/operations.md), the rest as they are. Files older than the
 retention are deleted by the writer. A write that fails (disk full, directory gone) is counted, logged and
@@ -38,11 +38,11 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from service.protocol import ESTIMATE_COLUMNS, Estimate, EstimateBatch, EstimateRow
+from agv_protocol.wire import ESTIMATE_COLUMNS, Estimate, EstimateBatch, EstimateRow
 
 log = logging.getLogger("agv_fe.service.history")
 
-#: The Arrow schema of a history file: the estimate record's fields (service.protocol.Estimate) but ``v`` and ``rev``
+#: The Arrow schema of a history file: the estimate record's fields (agv_protocol.wire.Estimate) but ``v`` and ``rev``
 #: (a file's columns say which revision's fields it holds).
 _FLOAT_COLUMNS = ESTIMATE_COLUMNS
 _TYPES: dict[str, pa.DataType] = {

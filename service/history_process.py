@@ -27,9 +27,9 @@ from typing import Any
 
 import pyarrow as pa
 
+from agv_protocol.wire import EstimateBatch
 from service.fleet_child import POLL_S, FleetStreamChild, child_session, fleet_key, serve_fleet_stream
 from service.history import EstimateHistory, HistoryStats
-from service.protocol import EstimateBatch
 from service.settings import HistorySettings, ZenohSettings
 
 log = logging.getLogger("agv_fe.service.history_process")

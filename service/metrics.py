@@ -23,8 +23,8 @@ from prometheus_client import CollectorRegistry, GCCollector, PlatformCollector,
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from agv_protocol.wire import all_buckets
 from service.fleet.vehicle import REJECT_REASONS
-from service.protocol import all_buckets
 
 if TYPE_CHECKING:
     from service.bucket_leases import LeaseState

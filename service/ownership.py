@@ -31,8 +31,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from agv_protocol.wire import bucket_of
 from service.fleet import AlarmChange, AlarmRecord, FleetEngine, FleetEvent
-from service.protocol import bucket_of
 from service.storage import Storage, StorageError
 
 if TYPE_CHECKING:

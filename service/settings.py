@@ -15,7 +15,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service.protocol import DEFAULT_PREFIX, N_BUCKETS, check_vehicle_id
+from agv_protocol.wire import DEFAULT_PREFIX, N_BUCKETS, check_vehicle_id
 
 _ENDPOINT = re.compile(r"^(tcp|udp|quic|tls)/[^:/\s]+:\d{1,5}$")
 

@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import zenoh
 
-from service.protocol import (
+from agv_protocol.wire import (
     BINARY_ESTIMATE_KIND,
     N_BUCKETS,
     Kind,
@@ -68,7 +68,7 @@ from service.protocol import (
 from service.settings import ZenohSettings
 
 if TYPE_CHECKING:
-    from service.protocol import EstimateBatch
+    from agv_protocol.wire import EstimateBatch
 
 #: Ground-truth samples kept per followed vehicle between two drains (newest kept).
 TRUTH_RING_CAPACITY = 1024
@@ -600,7 +600,7 @@ class Transport:
         Each vehicle's estimate goes to its own keys, JSON and binary, from the :class:`VehicleEstimates` thread
         (this call only queues them); with ``zenoh.vehicle_estimates='subscribed'``, only in the encodings a
         subscriber matches (a document nobody reads is not even made). The whole tick goes as one
-        :class:`~service.protocol.FleetEstimates` message, here, when a subscriber matches the replica's fleet key.
+        :class:`~agv_protocol.wire.FleetEstimates` message, here, when a subscriber matches the replica's fleet key.
         """
         self._require_vehicle().submit(batches)
         if self._fleet_pub is not None and batches and self._fleet_pub.matching_status.matching:

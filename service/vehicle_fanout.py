@@ -6,7 +6,7 @@ Python-level ``put`` each. On a thread of the service (:class:`~service.transpor
 default) those puts share the interpreter lock with the ingest loop: the service cannot use more than one core,
 and both wait on each other. In a process of its own the fan-out runs beside the service on another core: the
 child is a Zenoh client of the same router that subscribes to the replica's fleet stream
-(:func:`~service.protocol.fleet_estimates_key`, one message per tick, which the service publishes anyway) and
+(:func:`~agv_protocol.wire.fleet_estimates_key`, one message per tick, which the service publishes anyway) and
 puts each estimate on its vehicle's keys, JSON and binary, with the same :class:`VehicleEstimates` (the same
 documents, the same matching listeners with ``zenoh.vehicle_estimates = 'subscribed'``). An estimate takes one
 more hop through the router. The child's counters reach the service's /metrics through shared memory, and it
@@ -19,8 +19,8 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+from agv_protocol.wire import EstimateBatch
 from service.fleet_child import POLL_S, FleetStreamChild, child_session, fleet_key, serve_fleet_stream
-from service.protocol import EstimateBatch
 from service.settings import ZenohSettings
 from service.transport import ENCODING_NAMES, VehicleEstimates, estimate_congestion
 

@@ -31,7 +31,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from service.protocol import (
+from agv_protocol.wire import (
     BINARY_ESTIMATE_KIND,
     ProtocolError,
     check_vehicle_id,

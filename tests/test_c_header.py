@@ -1,4 +1,4 @@
-"""include/agv_fe/measurement.h against service/protocol.py, byte for byte: the C example (examples/c/) compiled with
+"""include/agv_fe/measurement.h against agv_protocol/wire.py, byte for byte: the C example (examples/c/) compiled with
 the system's C compiler encodes samples exactly as Measurement.encode() and gives the same key expressions and
 buckets, and decodes Python's payloads to the same numbers, refusing what the service refuses."""
 
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.protocol import Measurement, bucket_of, vehicle_key
+from agv_protocol.wire import Measurement, bucket_of, vehicle_key
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPILER = shutil.which("cc") or shutil.which("gcc")
@@ -114,9 +114,9 @@ def test_the_example_of_docs_integration_md_runs_as_printed(tmp_path):
 
 
 def test_the_c_estimate_decoder_reads_python_binary_estimates_and_refuses_what_python_refuses(example):
-    """include/agv_fe/estimate.h: every field of service/protocol.py's binary estimate, bit for bit, NaN for the
+    """include/agv_fe/estimate.h: every field of agv_protocol/wire.py's binary estimate, bit for bit, NaN for the
     columns a record does not carry; the C column list is the Python one."""
-    from service.protocol import (
+    from agv_protocol.wire import (
         ESTIMATE_COLUMNS,
         ESTIMATE_REVISION,
         STATE_COLUMNS,

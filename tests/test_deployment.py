@@ -273,6 +273,18 @@ def test_the_image_builds_from_the_files_the_package_needs_and_runs_as_a_numeric
     assert "--uid 10001" in DOCKERFILE
 
 
+def test_the_image_copies_every_package_pyproject_ships():
+    """The build stage installs from the copied tree: a package pyproject ships but the Dockerfile does not copy
+    (agv_protocol, say) would leave an image whose every command fails at import."""
+    import tomllib
+
+    include = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]["include"]
+    packages = [pattern.removesuffix("*") for pattern in include]
+    assert "agv_protocol" in packages
+    copies = {tuple(line.split()[1:]) for line in DOCKERFILE.splitlines() if line.startswith("COPY ")}
+    assert [p for p in packages if (p, f"./{p}") not in copies] == []
+
+
 # ---------------------------------------------------------------- docker-compose.secure.yml (Zenoh's security)
 
 SECURE_COMPOSE = yaml.safe_load((ROOT / "docker-compose.secure.yml").read_text())

@@ -9,7 +9,7 @@ import textwrap
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("synth", "service", "edge_client", "agv_fe")
+PACKAGES = ("synth", "agv_protocol", "service", "edge_client", "agv_fe")
 MAX_FUNCTION_LINES = 80
 
 

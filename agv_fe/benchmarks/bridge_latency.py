@@ -60,14 +60,14 @@ class MeasurementReceipts:
     clock), appended by Zenoh's thread."""
 
     def __init__(self, session: Any, vehicle: str) -> None:
-        from service.protocol import vehicle_key
+        from agv_protocol.wire import vehicle_key
 
         self.received: list[tuple[int, int, int]] = []
         self._lock = threading.Lock()
         self._subscriber = session.declare_subscriber(vehicle_key(vehicle, "meas"), self._arrived)
 
     def _arrived(self, sample: Any) -> None:
-        from service.protocol import Measurement
+        from agv_protocol.wire import Measurement
 
         now = time.time_ns()
         m = Measurement.decode(sample.payload.to_bytes())

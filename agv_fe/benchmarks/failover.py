@@ -31,7 +31,7 @@ import zenoh
 from agv_fe.benchmarks import report_header
 from agv_fe.benchmarks.harness import SteadyFleet
 from agv_fe.pg_cluster import PostgresServer, free_port
-from service.protocol import N_BUCKETS, bucket_of
+from agv_protocol.wire import N_BUCKETS, bucket_of
 from service.transport import open_session
 
 KILLS = 5

@@ -22,7 +22,7 @@ from typing import Any
 import httpx
 import zenoh
 
-from service.protocol import Estimate, Measurement, fleet_selector, vehicle_key
+from agv_protocol.wire import Estimate, Measurement, fleet_selector, vehicle_key
 from service.settings import Settings
 
 #: Upper bound of a wait for the service [s]; a wait polls for its condition and fails after it.

@@ -78,7 +78,7 @@ def sink_main(port: int) -> None:
     """A router on 127.0.0.1:port with a subscriber to every measurement (kept in Rust: a 1-slot ring)."""
     import zenoh
 
-    from service.protocol import fleet_selector
+    from agv_protocol.wire import fleet_selector
 
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("router"))
@@ -95,11 +95,11 @@ def sink_main(port: int) -> None:
 
 
 def measure(vehicles: int, endpoint: str, run_s: float = RUN_S) -> SizeResult:
+    from agv_protocol.wire import vehicle_key
     from edge_client.fleet_mix import DEFAULT_MIX, build_fleet
     from edge_client.publisher import FleetPublisher, PublisherOptions
     from edge_client.sources import SimulatedSource
     from edge_client.transport import Subscription, TransportOptions, close_session, open_session
-    from service.protocol import vehicle_key
 
     members = build_fleet(DEFAULT_MIX, vehicles, run_s + 1.0, seed=vehicles)
     source = SimulatedSource([m.vehicle_id for m in members], [m.scenario for m in members])

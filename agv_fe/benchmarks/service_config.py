@@ -53,7 +53,7 @@ from agv_fe.benchmarks.service_load import (
     serving,
 )
 from agv_fe.pg_cluster import PostgresServer
-from service.protocol import N_BUCKETS
+from agv_protocol.wire import N_BUCKETS
 
 #: How many times each configuration's service runs, alternating with the others.
 ROUNDS = 2

@@ -123,7 +123,7 @@ def serving(
 def _templates(ids: list[str]) -> list[bytearray]:
     """One encoded measurement per vehicle, flagged as a sequence restart (each step starts new
     sequences); the caller writes seq and t_ns in place (bytes 8-23) and clears the flag after tick 0."""
-    from service.protocol import FLAG_SEQUENCE_RESTART, Measurement
+    from agv_protocol.wire import FLAG_SEQUENCE_RESTART, Measurement
 
     templates = [bytearray(Measurement(v, 0, 0, 12.0, 0.02, 90.0, 0.01).encode()) for v in ids]
     for t in templates:
@@ -141,7 +141,7 @@ def _generator(
     files: the session's (configuration, credentials) on a TLS link (:class:`SecureClients`)."""
     import zenoh
 
-    from service.protocol import vehicle_key
+    from agv_protocol.wire import vehicle_key
     from service.transport import open_session
 
     config_file, credentials_file = files or (None, None)
@@ -201,7 +201,7 @@ def _receiver(
     import orjson
     import zenoh
 
-    from service.protocol import BINARY_ESTIMATE_KIND, fleet_estimates_selector, fleet_selector
+    from agv_protocol.wire import BINARY_ESTIMATE_KIND, fleet_estimates_selector, fleet_selector
     from service.transport import open_session
 
     config_file, credentials_file = files or (None, None)
@@ -412,9 +412,9 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: in
     vehicle. This is the service's own cost, apart from the transport and the processes it shares
     the machine with.
     """
+    from agv_protocol.wire import vehicle_key
     from service.fleet.engine import EngineConfig, FleetEngine
     from service.profiles import ProfileSpec
-    from service.protocol import vehicle_key
     from synth.gains import ObserverGains
 
     gains = ObserverGains.from_dict(gains_doc, reverify=False)

@@ -76,7 +76,7 @@ def _receiver(
     import orjson
     import zenoh
 
-    from service.protocol import fleet_estimates_selector
+    from agv_protocol.wire import fleet_estimates_selector
     from service.transport import open_session
 
     session = open_session("client", endpoint)

@@ -4,7 +4,7 @@
  * A vehicle that closes its loop on its own estimates subscribes to agv_fe_vehicle_key(..., "estimate.bin") and
  * decodes each payload with agv_fe_decode_estimate(): a 40-byte header and N little-endian doubles, the record's
  * float columns in the order of AGV_FE_COLUMN_* (docs/protocol.md, "Estimate (binary, per vehicle)";
- * service/protocol.py, encode_binary_estimates). A column the record does not carry is NaN. Header only, no allocation; the decoder
+ * agv_protocol/wire.py, encode_binary_estimates). A column the record does not carry is NaN. Header only, no allocation; the decoder
  * reads every field byte by byte, so it is right on any host's endianness.
  */
 #ifndef AGV_FE_ESTIMATE_H

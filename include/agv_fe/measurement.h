@@ -1,7 +1,7 @@
 /*
  * agv_fe/measurement.h - the vehicle side of the AGV fault estimator's wire protocol, version 1, in C99.
  *
- * What docs/protocol.md specifies and service/protocol.py implements, for a vehicle written in C: the 64-byte
+ * What docs/protocol.md specifies and agv_protocol/wire.py implements, for a vehicle written in C: the 64-byte
  * measurement header followed by the vehicle id (all fields little-endian), the CRC-32 shard bucket of a vehicle
  * id, and the key expressions. Header only, no allocation, no dependency beyond the C standard library; any Zenoh
  * binding (zenoh-c, zenoh-pico) puts the encoded bytes on agv_fe_vehicle_key(..., "meas") with congestion control

@@ -7,10 +7,10 @@ from typing import TYPE_CHECKING, Any, Literal, get_type_hints
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, create_model
 
+from agv_protocol.wire import Estimate, EstimateRow, Level
 from service.calibration import GUST_N
 from service.fleet.alarms import AlarmRecord
 from service.profiles import ProfileSpec
-from service.protocol import Estimate, EstimateRow, Level
 
 _COUNTERS_EXAMPLE: dict[str, JsonValue] = {
     "accepted": 12000,

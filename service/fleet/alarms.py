@@ -7,7 +7,7 @@ the warm-up after an observer (re)start; the service's observer banks and
 `agv-fe replay` both run it, so a replayed recording gets the service's levels.
 :class:`AlarmBook` keeps the alarm records: raised when a condition starts,
 latched until it is both cleared and acknowledged, each change an
-:class:`service.protocol.Alarm` event.
+:class:`agv_protocol.wire.Alarm` event.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from agv_protocol.wire import Alarm, AlarmKind, AlarmState, Level
 from service.fleet.cusum import CusumDetector
 from service.profiles import AlarmThresholds
-from service.protocol import Alarm, AlarmKind, AlarmState, Level
 
 OK, WARN, FAULT = 0, 1, 2
 LEVEL_NAMES: tuple[Level, Level, Level] = ("OK", "WARN", "FAULT")

@@ -15,15 +15,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agv_protocol.wire import EFFECTIVENESS_COLUMNS, ESTIMATE_COLUMNS, STATE_COLUMNS
 from service.fleet.alarms import Detector, EffectivenessLevels, FaultLevels, LevelDetector, seconds_to_ns
 from service.profiles import ProfileSpec
-from service.protocol import EFFECTIVENESS_COLUMNS, ESTIMATE_COLUMNS, STATE_COLUMNS
 from synth.effectiveness import EffectivenessEstimator
 from synth.gains import ObserverGains
 from synth.model import FloatArray
 from synth.observer import RuntimeGains, initial_observer_state, observer_step, switched_step
 
-#: The estimate rows kept per sample have the record's float columns (service.protocol.ESTIMATE_COLUMNS);
+#: The estimate rows kept per sample have the record's float columns (agv_protocol.wire.ESTIMATE_COLUMNS);
 #: the first _N_STATE are the observer's state and total faults, v_x, v_y, r, T_f, delta_f.
 _N_EST = len(ESTIMATE_COLUMNS)
 _N_STATE = len(STATE_COLUMNS)

@@ -48,23 +48,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from service.fleet.alarms import (
-    FAULT,
-    LEVEL_NAMES,
-    OK,
-    WARN,
-    AlarmBook,
-    AlarmChange,
-    AlarmRecord,
-    LevelDetector,
-    seconds_to_ns,
-)
-from service.fleet.bank import ALPHAS, FAULTS, ProfileBank, StepOutput
-from service.fleet.events import EventBus, FleetEvent
-from service.fleet.tick import Checked, Rows, TickResult
-from service.fleet.vehicle import BURST_REASONS, REJECT_REASONS, SEQUENCE_REASONS, RejectReason, Vehicle
-from service.profiles import ProfileSpec
-from service.protocol import (
+from agv_protocol.wire import (
     FLAG_SEQUENCE_RESTART,
     KNOWN_FLAGS,
     MAGIC,
@@ -82,6 +66,22 @@ from service.protocol import (
     parse_vehicle_key,
     unpack_measurement_sequence,
 )
+from service.fleet.alarms import (
+    FAULT,
+    LEVEL_NAMES,
+    OK,
+    WARN,
+    AlarmBook,
+    AlarmChange,
+    AlarmRecord,
+    LevelDetector,
+    seconds_to_ns,
+)
+from service.fleet.bank import ALPHAS, FAULTS, ProfileBank, StepOutput
+from service.fleet.events import EventBus, FleetEvent
+from service.fleet.tick import Checked, Rows, TickResult
+from service.fleet.vehicle import BURST_REASONS, REJECT_REASONS, SEQUENCE_REASONS, RejectReason, Vehicle
+from service.profiles import ProfileSpec
 from synth.gains import ObserverGains
 from synth.model import FloatArray
 from synth.observer import RuntimeGains

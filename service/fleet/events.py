@@ -18,7 +18,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
 
-from service.protocol import Alarm, Estimate
+from agv_protocol.wire import Alarm, Estimate
 
 EventKind = Literal["estimate", "alarm", "vehicle"]
 EVENT_KINDS: tuple[EventKind, ...] = get_args(EventKind)

@@ -6,9 +6,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from agv_protocol.wire import EstimateBatch
 from service.fleet.alarms import AlarmChange
 from service.fleet.vehicle import Vehicle
-from service.protocol import EstimateBatch
 from synth.model import FloatArray
 
 

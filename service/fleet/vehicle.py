@@ -5,8 +5,8 @@ from __future__ import annotations
 from collections import deque
 from typing import Literal, get_args
 
+from agv_protocol.wire import MEASUREMENT_HEADER_SIZE, vehicle_key
 from service.fleet.bank import ProfileBank
-from service.protocol import MEASUREMENT_HEADER_SIZE, vehicle_key
 
 RejectReason = Literal[
     "malformed",

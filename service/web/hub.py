@@ -23,7 +23,7 @@ recently viewed; at most ``follow_max``), so the engine builds no event for
 the rest of the fleet. Fleet rows are read from the engine's arrays at
 ``fleet_hz``: no per-sample work for the fleet view, whatever the fleet size.
 Ownership changes are the replicas' announcements on Zenoh
-(:class:`~service.protocol.OwnershipChange`, this replica's included), so a
+(:class:`~agv_protocol.wire.OwnershipChange`, this replica's included), so a
 page shows the whole fleet's whichever replica it is connected to.
 A browser that does not keep up (its queue of frames fills) is disconnected
 and reconnects to a fresh snapshot.
@@ -41,8 +41,7 @@ from collections import deque
 from collections.abc import AsyncIterator, Collection, Iterable
 from typing import Any, Literal, Protocol
 
-from service.fleet import FleetEngine, Subscription, UnknownVehicle, Vehicle
-from service.protocol import (
+from agv_protocol.wire import (
     COLUMN_UNITS,
     ESTIMATE_COLUMNS,
     STATE_COLUMNS,
@@ -53,6 +52,7 @@ from service.protocol import (
     OwnershipChange,
     ProtocolError,
 )
+from service.fleet import FleetEngine, Subscription, UnknownVehicle, Vehicle
 from service.settings import DashboardSettings
 
 log = logging.getLogger("agv_fe.service.web")
@@ -64,7 +64,7 @@ VIEWS: tuple[View, ...] = ("fleet", "vehicle", "profiles")
 #: torque_fault [N m]; steer_fault [rad]; alive: liveliness token present (null: the vehicle declares none).
 FLEET_COLUMNS = ("id", "profile", "level", "last_seen_s", "vx", "torque_fault", "steer_fault", "alive")
 #: Columns of a plot point: t [s, vehicle clock], measured v_x [m/s] and r [rad/s] (null when not known),
-#: then the estimate's float columns (service.protocol.ESTIMATE_COLUMNS; null when the profile has none).
+#: then the estimate's float columns (agv_protocol.wire.ESTIMATE_COLUMNS; null when the profile has none).
 POINT_COLUMNS = ("t", "vx_meas", "r_meas", *ESTIMATE_COLUMNS)
 #: Columns of a ground-truth point: t [s, simulator clock], then the state columns (v_x, v_y, r, T_f, delta_f).
 TRUTH_COLUMNS = ("t", *STATE_COLUMNS)

@@ -19,13 +19,13 @@ import numpy as np
 import pytest
 
 from agv_fe.cli import main
+from agv_protocol.wire import Estimate, Measurement, vehicle_key
 from edge_client.faults import BiasFault
 from edge_client.recording import write_recording
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario
 from edge_client.simulation import simulate_plant
 from service.fleet import EngineConfig, FleetEngine
 from service.profiles import AlarmThresholds, ProfileSpec
-from service.protocol import Estimate, Measurement, vehicle_key
 from synth.design import synthesize
 from synth.options import DesignOptions
 from synth.params import VehicleParams

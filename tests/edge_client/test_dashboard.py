@@ -9,9 +9,9 @@ import uuid
 
 import pytest
 
+from agv_protocol.wire import Alarm, Estimate, vehicle_key
 from edge_client.dashboard import DashboardModel
 from edge_client.transport import Received
-from service.protocol import Alarm, Estimate, vehicle_key
 
 WIDTH = 80
 

@@ -4,13 +4,13 @@ import math
 
 import numpy as np
 
+from agv_protocol.wire import Alarm
 from edge_client.faults import BiasFault
 from edge_client.fleet import FleetSummary, summarize
 from edge_client.fleet_mix import FleetMember
 from edge_client.pacing import PacingStats
 from edge_client.publisher import AlarmEvent, Progress, PublishReport, VehicleRecord
 from edge_client.scenario import Scenario
-from service.protocol import Alarm
 
 PERIOD_NS = 10_000_000
 START_NS = 5_000_000_000

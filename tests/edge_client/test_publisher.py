@@ -7,11 +7,11 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
+from agv_protocol.wire import FLAG_SEQUENCE_RESTART, GroundTruth, Measurement, fleet_selector, parse_vehicle_key
 from edge_client.fleet_mix import DEFAULT_MIX, build_fleet
 from edge_client.publisher import FleetPublisher, PublisherOptions
 from edge_client.sources import SimulatedSource
 from edge_client.transport import ChannelSubscription, Subscription, TransportOptions, close_session, open_session
-from service.protocol import FLAG_SEQUENCE_RESTART, GroundTruth, Measurement, fleet_selector, parse_vehicle_key
 from tests.edge_client.conftest import free_port
 
 pytestmark = pytest.mark.network

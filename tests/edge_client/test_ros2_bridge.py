@@ -204,11 +204,11 @@ MAX_ROUNDS = 6_000
 
 
 def test_alarm_events_become_diagnostic_statuses_on_their_rmw_zenoh_key(router):
-    """The service's alarm events (service.protocol's encoder, on the vehicle's alarm key) republished by the
+    """The service's alarm events (agv_protocol.wire's encoder, on the vehicle's alarm key) republished by the
     bridge's AlarmRepublisher beside its EstimateRepublisher, decoded by a ROS 2 node's side from CDR on the topic's
     rmw_zenoh key; the graph sees one node and its two publishers."""
+    from agv_protocol.wire import Alarm, vehicle_key
     from edge_client.ros2_bridge import AlarmRepublisher, EstimateRepublisher
-    from service.protocol import Alarm, vehicle_key
 
     ts = store(RosMapping.model_validate(yaml.safe_load(MAPPING)))
     alarms_key = topic_key(0, "/agv_fe/alarms", STATUS, ts.hash_rihs01(STATUS))

@@ -16,8 +16,8 @@ import psycopg
 import pytest
 
 from agv_fe.benchmarks.harness import SteadyFleet
+from agv_protocol.wire import N_BUCKETS, bucket_of
 from service.bucket_leases import BUCKET_LOCKS
-from service.protocol import N_BUCKETS, bucket_of
 from service.transport import open_session
 from tests.faults.helpers import RouterProcess
 from tests.service.helpers import (

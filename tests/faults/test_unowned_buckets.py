@@ -22,8 +22,8 @@ import pytest
 import zenoh
 
 from agv_fe.benchmarks.harness import SteadyFleet
+from agv_protocol.wire import Alarm, bucket_of, fleet_selector
 from service.bucket_leases import MEMBER_LOCKS
-from service.protocol import Alarm, bucket_of, fleet_selector
 from service.transport import open_session
 from tests.faults.helpers import RouterProcess
 from tests.service.helpers import (

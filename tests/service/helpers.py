@@ -24,11 +24,11 @@ from agv_fe.benchmarks.harness import free_port as free_port
 from agv_fe.benchmarks.harness import service_process as service_process
 from agv_fe.benchmarks.harness import settings_env as settings_env
 from agv_fe.benchmarks.harness import wait_for as wait_for
+from agv_protocol.wire import Alarm, Estimate, Measurement, fleet_selector, vehicle_key
 from edge_client.library import paper_1
 from edge_client.plant import PlantSimulator
 from service.app import Service
 from service.main import create_app
-from service.protocol import Alarm, Estimate, Measurement, fleet_selector, vehicle_key
 from service.settings import Settings
 from service.transport import open_session
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from service.protocol import (
+from agv_protocol.wire import (
     BINARY_ESTIMATE_KIND,
     ESTIMATE_BINARY_HEADER_SIZE,
     Estimate,
@@ -111,7 +111,7 @@ def test_a_malformed_binary_estimate_is_refused_with_its_reason(change, message)
 @pytest.mark.parametrize("columns", ["state", "state+effectiveness"])
 @pytest.mark.parametrize("switched", [False, True])
 def test_a_binary_estimate_reads_as_the_json_document_of_the_same_row(columns, switched):
-    from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS
+    from agv_protocol.wire import ESTIMATE_COLUMNS, STATE_COLUMNS
 
     cols = STATE_COLUMNS if columns == "state" else ESTIMATE_COLUMNS
     n = 6
@@ -133,7 +133,7 @@ def test_a_binary_estimate_reads_as_the_json_document_of_the_same_row(columns, s
 
 
 def test_a_later_revision_is_read_for_the_columns_this_side_knows():
-    from service.protocol import ESTIMATE_COLUMNS, ESTIMATE_REVISION
+    from agv_protocol.wire import ESTIMATE_COLUMNS, ESTIMATE_REVISION
 
     payload = bytearray(encode_binary_estimates(_batch(1))[0])
     original = decode_binary_estimate(bytes(payload), "v0")

@@ -11,10 +11,10 @@ from pathlib import Path
 from hypothesis import given
 from hypothesis import strategies as st
 
+from agv_protocol.wire import N_BUCKETS, bucket_of
 from service.bucket_leases import LeaseState, fair_share
 from service.fleet import AlarmChange, AlarmRecord
 from service.ownership import OwnershipWatch
-from service.protocol import N_BUCKETS, bucket_of
 from service.storage import SqliteStorage
 from tests.service.helpers import constant_measurement
 from tests.service.test_fleet_engine import FakeClock, make_engine, pairs

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from service.protocol import EFFECTIVENESS_COLUMNS, FleetEstimates, fleet_estimates_selector
+from agv_protocol.wire import EFFECTIVENESS_COLUMNS, FleetEstimates, fleet_estimates_selector
 from synth.effectiveness import EffectivenessObserver
 from synth.gains import ObserverGains
 from tests.service.helpers import make_settings, plant_measurements, probe, running, wait_for

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import asyncio
 
+from agv_protocol.wire import Measurement, vehicle_key
 from service.fleet import EngineConfig, EventBus, FleetEngine
 from service.profiles import ProfileSpec
-from service.protocol import Measurement, vehicle_key
 from tests.service.helpers import FAST_DESIGN, constant_measurement
 
 

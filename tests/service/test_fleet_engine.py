@@ -9,11 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from edge_client.library import paper_1
-from service.fleet import EngineConfig, FleetEngine
-from service.fleet.vehicle import REJECT_REASONS
-from service.profiles import ProfileSpec
-from service.protocol import (
+from agv_protocol.wire import (
     FLAG_SEQUENCE_RESTART,
     MEASUREMENT_HEADER_SIZE,
     Estimate,
@@ -23,6 +19,10 @@ from service.protocol import (
     encode_fleet_estimates,
     vehicle_key,
 )
+from edge_client.library import paper_1
+from service.fleet import EngineConfig, FleetEngine
+from service.fleet.vehicle import REJECT_REASONS
+from service.profiles import ProfileSpec
 from synth.observer import FuzzyObserver
 from tests.service.helpers import FAST_DESIGN, PERIOD_NS, T0_NS, as_array, constant_measurement, plant_measurements
 from tests.tolerances import AMPLIFIED_ROUNDING_ATOL, AMPLIFIED_ROUNDING_RTOL, BATCH_EQUALITY_ATOL

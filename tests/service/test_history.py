@@ -14,9 +14,9 @@ import pyarrow.parquet as pq
 import pytest
 
 import service.history
+from agv_protocol.wire import ESTIMATE_COLUMNS, STATE_COLUMNS, Estimate, EstimateBatch
 from service.history import SCHEMA, EstimateHistory, batch_table, table_rows
 from service.history_process import HistoryProcess
-from service.protocol import ESTIMATE_COLUMNS, STATE_COLUMNS, Estimate, EstimateBatch
 from tests.service.helpers import PERIOD_NS, T0_NS, make_settings, plant_measurements, probe, running, wait_for
 
 #: history.precision float32 against the float64 estimates: relative agreement (7 significant digits)

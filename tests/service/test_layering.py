@@ -30,7 +30,7 @@ def test_only_the_transport_module_imports_zenoh():
 
 def test_the_protocol_and_the_fleet_import_neither_web_nor_transport_nor_storage():
     code = (
-        "import sys, service.protocol, service.fleet\n"
+        "import sys, agv_protocol.wire, service.fleet\n"
         "heavy = {'fastapi', 'zenoh', 'uvicorn', 'starlette', 'sqlite3'}\n"
         "bad = sorted(n for n in sys.modules if n.split('.')[0] in heavy)\n"
         "print(','.join(bad))\n"

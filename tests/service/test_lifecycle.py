@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from service.protocol import service_liveliness_selector
+from agv_protocol.wire import service_liveliness_selector
 from service.transport import open_session
 from tests.service.helpers import (
     FAST_DESIGN,

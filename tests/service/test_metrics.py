@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from prometheus_client import CollectorRegistry
 
+from agv_protocol.wire import Alarm, Measurement, all_buckets, shard_buckets
 from edge_client.library import paper_1
 from service.app import Service
 from service.fleet import EngineConfig, FleetEngine, FleetEvent
@@ -16,7 +17,6 @@ from service.history import EstimateHistory
 from service.jobs import SynthesisJobs
 from service.metrics import END_TO_END_BUCKETS_S, Histogram, ServiceCollector, ServiceMetrics, exposition
 from service.ownership import OwnershipWatch
-from service.protocol import Alarm, Measurement, all_buckets, shard_buckets
 from service.settings import Settings
 from service.storage_writer import StorageState
 from tests.service.helpers import (

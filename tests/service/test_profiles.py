@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from pydantic import TypeAdapter
 
+from agv_protocol.wire import Measurement
 from service.api.models import VehicleStatus
-from service.protocol import Measurement
 from service.storage import SqliteStorage
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver

@@ -12,10 +12,10 @@ import time
 import numpy as np
 import pytest
 
+from agv_protocol.wire import FLAG_SEQUENCE_RESTART, Measurement, vehicle_key
 from edge_client.library import paper_1
 from service.main import create_app
 from service.profiles import ProfileSpec
-from service.protocol import FLAG_SEQUENCE_RESTART, Measurement, vehicle_key
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver
 from tests.service.helpers import (
@@ -338,7 +338,7 @@ def test_the_fleet_stream_carries_every_estimate_once_and_vehicle_keys_follow_th
 def _fleet_stream_case(server, skips: bool) -> None:
     import zenoh
 
-    from service.protocol import FleetEstimates, fleet_estimates_selector
+    from agv_protocol.wire import FleetEstimates, fleet_estimates_selector
     from service.transport import MATCH_SETTLE_S, open_session
     from tests.service.helpers import parse_metrics
 

@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from service.protocol import all_buckets, vehicle_key
+from agv_protocol.wire import all_buckets, vehicle_key
 from service.settings import ZenohSettings
 from service.transport import Transport, open_session
 from tests.service.helpers import free_port, wait_for

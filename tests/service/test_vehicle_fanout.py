@@ -12,8 +12,7 @@ import orjson
 import pytest
 import zenoh
 
-from service.fleet_child import fleet_batches
-from service.protocol import (
+from agv_protocol.wire import (
     BINARY_ESTIMATE_KIND,
     EFFECTIVENESS_COLUMNS,
     ESTIMATE_COLUMNS,
@@ -25,6 +24,7 @@ from service.protocol import (
     encode_fleet_estimates,
     vehicle_key,
 )
+from service.fleet_child import fleet_batches
 from service.transport import open_session
 from tests.service.helpers import make_settings, parse_metrics, plant_measurements, running, wait_for
 

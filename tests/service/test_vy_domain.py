@@ -12,10 +12,10 @@ from typing import cast
 
 import numpy as np
 
+from agv_protocol.wire import Estimate, Measurement, vehicle_key
 from service.fleet import EngineConfig, FleetEngine
 from service.fleet.alarms import AlarmChange
 from service.profiles import ProfileSpec
-from service.protocol import Estimate, Measurement, vehicle_key
 from synth.gains import ObserverGains
 from synth.model import continuous_dynamics
 from synth.params import OperatingBounds, VehicleParams

@@ -30,8 +30,8 @@ from typing import Any
 import pytest
 import zenoh
 
+from agv_protocol.wire import Estimate, ownership_key, ownership_selector, vehicle_key
 from edge_client.transport import TransportError, TransportOptions, close_session, open_session
-from service.protocol import Estimate, ownership_key, ownership_selector, vehicle_key
 from service.zenoh_acl import read_vehicle_list, render_json5, router_config
 from tests.service.helpers import ServiceProcess, free_port, make_settings, plant_measurements, wait_for
 

@@ -14,10 +14,10 @@ from typing import Any
 import uvicorn
 import zenoh
 
+from agv_protocol.wire import GroundTruth, Measurement, vehicle_key
 from edge_client.faults import BiasFault
 from edge_client.plant import PlantSimulator
 from edge_client.scenario import Manoeuvre, Scenario, SpeedPoint
-from service.protocol import GroundTruth, Measurement, vehicle_key
 from service.settings import Settings
 from service.transport import open_session
 from tests.service.helpers import WAIT_S, RunningService

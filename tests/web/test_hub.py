@@ -9,10 +9,10 @@ import threading
 
 import pytest
 
+from agv_protocol.wire import EstimateRow, Measurement, OwnershipChange, all_buckets, vehicle_key
 from edge_client.library import paper_1
 from service.fleet import EngineConfig, FleetEngine, FleetEvent, UnknownVehicle
 from service.profiles import ProfileSpec
-from service.protocol import EstimateRow, Measurement, OwnershipChange, all_buckets, vehicle_key
 from service.settings import DashboardSettings
 from service.web.hub import CLIENT_QUEUE_FRAMES, FLEET_COLUMNS, OWNERSHIP_KEPT, POINT_COLUMNS, Client, DashboardHub
 from tests.service.helpers import FAST_DESIGN, constant_measurement, plant_measurements

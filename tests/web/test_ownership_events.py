@@ -21,7 +21,7 @@ import pytest
 import zenoh
 from playwright.sync_api import expect
 
-from service.protocol import OwnershipChange, all_buckets, bucket_of, ownership_selector
+from agv_protocol.wire import OwnershipChange, all_buckets, bucket_of, ownership_selector
 from service.settings import Settings
 from service.transport import open_session
 from tests.service.helpers import FAST_DESIGN, ServiceProcess, make_settings, wait_for

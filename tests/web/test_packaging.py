@@ -39,7 +39,8 @@ def test_every_static_file_is_in_the_wheel(wheel: zipfile.ZipFile) -> None:
 def test_the_wheel_carries_the_licence_and_the_type_markers(wheel: zipfile.ZipFile) -> None:
     """pyproject declares Apache-2.0 and typed packages: the wheel ships the licence text and py.typed files."""
     shipped = set(wheel.namelist())
-    assert {f"{package}/py.typed" for package in ("synth", "service", "edge_client", "agv_fe")} <= shipped
+    packages = ("synth", "agv_protocol", "service", "edge_client", "agv_fe")
+    assert {f"{package}/py.typed" for package in packages} <= shipped
     licences = [name for name in shipped if name.endswith("/LICENSE") and ".dist-info/" in name]
     assert licences, sorted(n for n in shipped if "dist-info" in n)
     text = wheel.read(licences[0]).decode()

@@ -17,10 +17,10 @@ from fastapi.responses import FileResponse, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 
+from agv_protocol.wire import VEHICLE_ID_PATTERN
 from service.api.deps import ServiceDep, require_read
 from service.api.routes.profiles import ProfileName
 from service.fleet import UnknownVehicle
-from service.protocol import VEHICLE_ID_PATTERN
 from service.web.hub import View
 from synth.params import OperatingBounds, VehicleParams
 

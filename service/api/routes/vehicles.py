@@ -17,6 +17,7 @@ import pyarrow.parquet as pq
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 
+from agv_protocol.wire import VEHICLE_ID_PATTERN, EstimateRow, Level
 from service.api.deps import STORAGE_UNAVAILABLE, Operator, ServiceDep, profile_bank
 from service.api.models import AlarmInfo, EstimateHistory, VehicleAssignment, VehicleDetail, VehicleStatus
 from service.app import Service
@@ -24,7 +25,6 @@ from service.fleet import UnknownProfile, UnknownVehicle, Vehicle
 from service.fleet.listing import vehicle_page
 from service.history import rows_table, table_rows
 from service.history_process import HistoryUnavailable
-from service.protocol import VEHICLE_ID_PATTERN, EstimateRow, Level
 from service.storage import Storage
 
 router = APIRouter(prefix="/vehicles", tags=["vehicles"])

@@ -5,7 +5,7 @@ import orjson
 import pytest
 from pydantic import BaseModel
 
-from service.protocol import (
+from agv_protocol.wire import (
     FLAG_SEQUENCE_RESTART,
     MAGIC,
     MEASUREMENT_HEADER_DTYPE,
@@ -119,7 +119,7 @@ def test_the_fast_estimate_encoder_writes_the_estimate_model_exactly():
     """EstimateBatch.documents skips pydantic; each document must decode to the same Estimate, float for float."""
     import json
 
-    from service.protocol import encode_estimate
+    from agv_protocol.wire import encode_estimate
 
     values = EXTREME_FLOATS
     states = [[values[(k + j) % len(values)] for j in range(5)] for k in range(len(values))]
@@ -176,7 +176,7 @@ def test_the_bucket_is_zlibs_crc32_of_the_utf8_id_as_documented():
 
 
 def test_a_fleet_message_holds_each_batch_as_columns_that_read_as_the_per_vehicle_documents():
-    from service.protocol import (
+    from agv_protocol.wire import (
         FleetEstimates,
         encode_fleet_estimates,
         fleet_estimates_key,
@@ -223,9 +223,9 @@ def zenoh_intersects(selector: str, key: str) -> bool:
 
 def test_every_encoding_of_the_estimate_takes_its_fields_from_the_one_record():
     """The per-vehicle document, the fleet stream's group, the REST row, the ground truth and the dashboard's plot
-    columns all carry exactly the fields of the record (service.protocol's Estimate and its bases): a field added
+    columns all carry exactly the fields of the record (agv_protocol.wire's Estimate and its bases): a field added
     there reaches every encoding, and none of them can spell out a field of its own."""
-    from service.protocol import (
+    from agv_protocol.wire import (
         EFFECTIVENESS_COLUMNS,
         ESTIMATE_COLUMNS,
         STATE_COLUMNS,
@@ -276,7 +276,7 @@ def _reader_1_0() -> type[BaseModel]:
 
 
 def _effectiveness_batch() -> EstimateBatch:
-    from service.protocol import ESTIMATE_COLUMNS
+    from agv_protocol.wire import ESTIMATE_COLUMNS
 
     batch = _batch([[1.0, 2.0, 3.0, 4.0, 5.0]] * 2)
     batch.values = np.tile(np.arange(1.0, len(ESTIMATE_COLUMNS) + 1.0), (2, 1))
@@ -318,7 +318,7 @@ def test_a_reader_drops_the_fields_of_a_newer_revision_and_refuses_unknown_field
     """Estimate.decode and FleetEstimates.decode read a document (group) of a revision newer than they know for
     the fields they know; at a revision they know, an unknown field is still an error (a typo is not an
     addition)."""
-    from service.protocol import ESTIMATE_REVISION
+    from agv_protocol.wire import ESTIMATE_REVISION
 
     payload = _effectiveness_batch().documents()[0]
     newer = payload.replace(b'"rev":1', f'"rev":{ESTIMATE_REVISION + 1},"torque_jerk":1.5'.encode())
