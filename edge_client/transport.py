@@ -9,7 +9,7 @@ Choices (see /work/shared/NOTES-zenoh.md for the measurements behind them):
 * explicit endpoints, multicast scouting off, client mode by default;
 * security: ``TransportOptions.config_file`` names a Zenoh JSON5 file with
   TLS, mutual TLS and user/password (deploy/zenoh/secure/vehicle.json5), read
-  and merged as the service does (:func:`service.transport.session_config`):
+  and merged as the service does (:func:`agv_protocol.zenoh_session.session_config`):
   mode and endpoints stay these options, user and password come from a file;
 * ``connect/timeout_ms``: how long ``open`` waits for the first router (-1 =
   for ever); once open, a client reconnects by itself after a router restart,
@@ -40,14 +40,9 @@ import numpy as np
 import zenoh
 
 from agv_protocol.wire import DEFAULT_PREFIX, ProtocolError, vehicle_key
-from service.transport import ConfigValue, session_config
-from service.transport import TransportError as _ConfigError
+from agv_protocol.zenoh_session import ConfigValue, TransportError, session_config
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
-
-
-class TransportError(Exception):
-    """Zenoh could not be configured or reached; the message names the endpoints."""
 
 
 @dataclass(frozen=True)
@@ -79,31 +74,28 @@ class TransportOptions:
             parts.append(f"config {self.config_file}")
         return "; ".join(parts)
 
-
-def zenoh_config(options: TransportOptions) -> zenoh.Config:
-    """A zenoh Config for ``options``; raise TransportError on a malformed endpoint or option."""
-    if options.mode == "client" and not options.connect:
-        raise TransportError("client mode needs at least one connect endpoint, e.g. tcp/127.0.0.1:7447")
-    if options.mode == "peer" and not (options.connect or options.listen):
-        raise TransportError("peer mode needs a connect or a listen endpoint (multicast scouting is off)")
-    timeout_ms = -1 if options.connect_timeout_s < 0 else round(options.connect_timeout_s * 1000)
-    values = [
-        ConfigValue("mode", options.mode, required=True),
-        ConfigValue("connect/endpoints", list(options.connect), required=True),
-        ConfigValue("listen/endpoints", list(options.listen), required=True),
-        ConfigValue("scouting/multicast/enabled", False),
-        ConfigValue("connect/timeout_ms", timeout_ms),
-        ConfigValue("connect/retry", {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}),
-    ]
-    try:
-        return session_config(values, options.config_file, options.credentials_file)
-    except _ConfigError as exc:
-        raise TransportError(str(exc)) from exc
+    def config_values(self) -> list[ConfigValue]:
+        """The vehicle side's values of a session's Zenoh configuration, for :func:`session_config` to lay on
+        Zenoh's defaults or ``config_file``; raise TransportError on a missing endpoint."""
+        if self.mode == "client" and not self.connect:
+            raise TransportError("client mode needs at least one connect endpoint, e.g. tcp/127.0.0.1:7447")
+        if self.mode == "peer" and not (self.connect or self.listen):
+            raise TransportError("peer mode needs a connect or a listen endpoint (multicast scouting is off)")
+        timeout_ms = -1 if self.connect_timeout_s < 0 else round(self.connect_timeout_s * 1000)
+        return [
+            ConfigValue("mode", self.mode, required=True),
+            ConfigValue("connect/endpoints", list(self.connect), required=True),
+            ConfigValue("listen/endpoints", list(self.listen), required=True),
+            ConfigValue("scouting/multicast/enabled", False),
+            ConfigValue("connect/timeout_ms", timeout_ms),
+            ConfigValue("connect/retry", {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}),
+        ]
 
 
 def open_session(options: TransportOptions) -> zenoh.Session:
-    """Open a session; a router that cannot be reached in time is a TransportError naming it."""
-    config = zenoh_config(options)
+    """Open a session; a router that cannot be reached in time, or a malformed endpoint, option or configuration
+    file, is a TransportError naming it."""
+    config = session_config(options.config_values(), options.config_file, options.credentials_file)
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:

@@ -20,8 +20,9 @@ from typing import Any
 import orjson
 
 from agv_protocol.wire import EstimateBatch, ProtocolError, fleet_estimates_key
+from agv_protocol.zenoh_session import TransportError
 from service.settings import ZenohSettings
-from service.transport import Session, TransportError, open_session, subscribe_payloads
+from service.transport import Session, open_session, subscribe_payloads
 
 log = logging.getLogger("agv_fe.service.fleet_child")
 

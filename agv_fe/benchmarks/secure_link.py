@@ -18,7 +18,8 @@ from pathlib import Path
 
 from agv_fe.benchmarks.harness import free_port
 from agv_fe.benchmarks.service_load import SecureClients, vehicle_ids
-from service.transport import TransportError, open_session
+from agv_protocol.zenoh_session import TransportError
+from service.transport import open_session
 from service.zenoh_acl import MONITOR_IDENTITY, VehicleGrant, render_json5, router_config
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -70,8 +70,9 @@ def open_bus(args: argparse.Namespace) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
+    from agv_protocol.zenoh_session import TransportError
     from edge_client.can_bridge import CanSource
-    from edge_client.transport import TransportError, open_session
+    from edge_client.transport import open_session
 
     try:
         mapping, database, transport = _check(args)

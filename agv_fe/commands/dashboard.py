@@ -28,8 +28,9 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from agv_protocol.zenoh_session import TransportError
     from edge_client.dashboard import run_dashboard
-    from edge_client.transport import TransportError, close_session, open_session
+    from edge_client.transport import close_session, open_session
 
     try:
         if not (math.isfinite(args.refresh) and 0.5 <= args.refresh <= 50):

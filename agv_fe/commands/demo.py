@@ -234,8 +234,9 @@ def _set_when_done(process: subprocess.Popen[bytes], stop: threading.Event) -> N
 
 def _dashboard(endpoint: str, stop: threading.Event) -> None:
     """The live terminal table in the foreground until ``stop``."""
+    from agv_protocol.zenoh_session import TransportError
     from edge_client.dashboard import run_dashboard
-    from edge_client.transport import TransportError, TransportOptions, close_session, open_session
+    from edge_client.transport import TransportOptions, close_session, open_session
 
     try:
         session = open_session(TransportOptions(mode="client", connect=(endpoint,)))

@@ -81,11 +81,11 @@ def _check(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from agv_fe.commands.simulate import parse_noise
+    from agv_protocol.zenoh_session import TransportError
     from edge_client.fleet import FleetConfig, run_fleet, write_summary_json
     from edge_client.fleet_mix import MixError
     from edge_client.publisher import PublisherOptions
     from edge_client.scenario import ScenarioError
-    from edge_client.transport import TransportError
 
     try:
         _check(args)

@@ -45,9 +45,10 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from agv_protocol.wire import ProtocolError, check_vehicle_id
+    from agv_protocol.zenoh_session import TransportError
     from edge_client.publisher import FleetPublisher, PublisherOptions
     from edge_client.sources import RecordingSource
-    from edge_client.transport import TransportError, close_session, open_session
+    from edge_client.transport import close_session, open_session
 
     try:
         try:

@@ -64,8 +64,9 @@ def _check(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from agv_protocol.zenoh_session import TransportError
     from edge_client.ros2_bridge import AlarmRepublisher, EstimateRepublisher, Ros2Source, describe_keys
-    from edge_client.transport import TransportError, open_session
+    from edge_client.transport import open_session
 
     try:
         mapping, transport = _check(args)

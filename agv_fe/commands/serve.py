@@ -120,7 +120,8 @@ def check_zenoh_config(settings: Any) -> None:
     """Read the Zenoh configuration file (if any) before starting, so that a wrong key, a missing file or a
     conflict with the mode or endpoint is a one-line error instead of a failed start-up."""
     from agv_fe.common import CommandError
-    from service.transport import TransportError, zenoh_config
+    from agv_protocol.zenoh_session import TransportError
+    from service.transport import zenoh_config
 
     z = settings.zenoh
     if z.config_file is None and z.credentials_file is None:

@@ -7,7 +7,8 @@ from agv_fe.benchmarks import secure_link, service_load
 from agv_fe.benchmarks import service_config as bench
 from agv_fe.benchmarks.harness import free_port, wait_for
 from agv_protocol.wire import N_BUCKETS, fleet_selector, vehicle_key
-from service.transport import TransportError, open_session
+from agv_protocol.zenoh_session import TransportError
+from service.transport import open_session
 from service.zenoh_acl import VehicleGrant, access_control
 
 pytestmark = pytest.mark.network

@@ -31,7 +31,8 @@ import pytest
 import zenoh
 
 from agv_protocol.wire import Estimate, ownership_key, ownership_selector, vehicle_key
-from edge_client.transport import TransportError, TransportOptions, close_session, open_session
+from agv_protocol.zenoh_session import TransportError
+from edge_client.transport import TransportOptions, close_session, open_session
 from service.zenoh_acl import read_vehicle_list, render_json5, router_config
 from tests.service.helpers import ServiceProcess, free_port, make_settings, plant_measurements, wait_for
 
@@ -415,17 +416,16 @@ def test_an_authorised_vehicle_and_fleet_work_end_to_end(secure_router: Router, 
 
 
 def test_the_config_file_must_agree_with_the_settings_and_credentials_are_user_and_password(tmp_path: Path):
-    from service.transport import TransportError as ServiceTransportError
     from service.transport import zenoh_config
 
     config = tmp_path / "client.json5"
     config.write_text(json.dumps({"mode": "client", "connect": {"endpoints": ["tls/elsewhere:7447"]}}))
-    with pytest.raises(ServiceTransportError, match="connect/endpoints"):
+    with pytest.raises(TransportError, match="connect/endpoints"):
         zenoh_config("client", "tls/router:7447", config_file=config)
     zenoh_config("client", "tls/elsewhere:7447", config_file=config)  # the same value twice is fine
     credentials = tmp_path / "credentials"
     credentials.write_text("just-a-password\n")
-    with pytest.raises(ServiceTransportError, match="USER:PASSWORD") as refused:
+    with pytest.raises(TransportError, match="USER:PASSWORD") as refused:
         zenoh_config("client", "tls/elsewhere:7447", config_file=config, credentials_file=credentials)
     assert "just-a-password" not in str(refused.value)
     credentials.write_text("truck-7:secret:with:colons\n")
