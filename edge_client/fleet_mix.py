@@ -72,7 +72,7 @@ class AlarmAssumption:
 
 
 #: The service's default WARN thresholds and persistence (service.profiles.AlarmThresholds; the vehicle side
-#: imports nothing of the service but the wire protocol, and tests/edge_client/test_fleet_mix.py keeps them equal).
+#: imports nothing of the service, and tests/edge_client/test_fleet_mix.py keeps them equal).
 ASSUMED_ALARM = AlarmAssumption(torque_threshold_nm=40.0, steer_threshold_rad=0.01, persistence_s=0.5)
 
 
