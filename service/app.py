@@ -4,7 +4,9 @@
 loop drains the Zenoh channels, steps the fleet and publishes; REST handlers
 read and change the fleet between two ticks, so a gain activation is atomic
 for every vehicle of a profile without locks. Which profiles run, their
-designs and jobs are the :class:`~service.profile_policy.ProfilePolicy`'s; the
+designs and jobs are the :class:`~service.profile_policy.ProfilePolicy`'s; which
+buckets the replica serves, and their hand-over between replicas, the
+:class:`~service.bucket_handover.BucketHandover`'s; the
 FastAPI application and its lifespan are service/main.py's. Heavy work stays off the loop:
 LMI designs in worker processes, gain re-verification in a thread, database
 writes on the storage writer's thread (queued in order, retried while the
@@ -32,15 +34,15 @@ from contextlib import suppress
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
-from agv_protocol.wire import OwnershipChange, all_buckets, bucket_of, shard_buckets
+from agv_protocol.wire import bucket_of
 from service import logs
+from service.bucket_handover import BucketHandover
 from service.databases import open_storage
 from service.fleet import AlarmChange, AlarmRecord, EngineConfig, EventBus, FleetEngine
 from service.history import EstimateHistory
 from service.history_process import HistoryProcess
 from service.jobs import SynthesisJobs
 from service.metrics import ServiceMetrics, service_registry
-from service.ownership import OwnershipWatch
 from service.profile_policy import ProfilePolicy
 from service.settings import Settings
 from service.storage import Storage
@@ -49,7 +51,7 @@ from service.transport import Transport
 from service.web.hub import DashboardHub
 
 if TYPE_CHECKING:  # psycopg is imported only by a replica that uses PostgreSQL
-    from service.bucket_leases import BucketLeases, LeaseState, StaticBucketLocks
+    from service.bucket_leases import LeaseState
     from service.vehicle_fanout import VehicleFanout
 
 log = logging.getLogger("agv_fe.service")
@@ -90,17 +92,6 @@ class Service:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.replica_id = replica_name(settings)
-        #: the buckets this replica serves now: static (--shard), or those its leases hold (none before start)
-        self.buckets: list[str] = (
-            []
-            if settings.bucket_leases
-            else all_buckets()
-            if settings.shard.replicas == 1
-            else shard_buckets(settings.shard.index, settings.shard.replicas)
-        )
-        self.leases: BucketLeases | None = None
-        #: a static shard on a shared database: its buckets' locks, for the other replicas to see them owned
-        self.static_locks: StaticBucketLocks | None = None
         ingest = settings.ingest
         self.events = EventBus()
         self.engine = FleetEngine(
@@ -117,8 +108,10 @@ class Service:
         )
         self.metrics = ServiceMetrics()
         self.dashboard = DashboardHub(self.engine, settings.dashboard, self.replica_id)
+        #: the buckets served, their locks in a shared database and their hand-over between replicas
+        self.handover = BucketHandover(settings, self.replica_id, self.engine)
         #: with a shared database: the buckets without an owner, their vehicles and (as warden) their alarms
-        self.ownership = OwnershipWatch(self.engine, settings.shard.unserved_after_s)
+        self.ownership = self.handover.ownership
         self.storage: Storage | None = None
         self.writer: StorageWriter | None = None
         #: the estimate history: a thread of this process, or a process of its own (setting history.writer)
@@ -175,18 +168,7 @@ class Service:
             await self._start_history_process(self.transport)
         self.metrics.vehicle_estimates = self.transport.vehicle_estimates  # its counters, read at each scrape
         self.transport_up = True
-        if self.settings.bucket_leases and self.settings.database_url is not None:
-            from service.bucket_leases import BucketLeases
-
-            loop = asyncio.get_running_loop()
-            self.leases = BucketLeases(
-                self.settings.database_url,
-                self.settings.shard.lease_interval_s,
-                on_gain=lambda buckets: asyncio.run_coroutine_threadsafe(self._gain_buckets(buckets), loop),
-                on_lose=lambda buckets: asyncio.run_coroutine_threadsafe(self._lose_buckets(buckets), loop),
-            )
-            await asyncio.to_thread(self.leases.start)
-        await self._watch_ownership()
+        await self.handover.start(self.transport, self)
         self._running = True
         self.ingest_heartbeat = time.monotonic()
         for name in self._loops:
@@ -200,7 +182,7 @@ class Service:
         log.info(
             "replica %s serving buckets %s on zenoh %s %s",
             self.replica_id,
-            "by leases in the shared database" if self.leases is not None else ",".join(self.buckets),
+            self.handover.serving(),
             self.settings.zenoh.mode,
             self.settings.zenoh.endpoint,
         )
@@ -240,8 +222,7 @@ class Service:
 
     async def stop(self) -> None:
         self._running = False
-        if self.leases is not None:  # no more buckets taken or given; the locks stay until the writes are stored
-            await asyncio.to_thread(self.leases.halt)
+        await self.handover.halt()  # no more buckets taken or given; the locks stay until the writes are stored
         await self.policy.close_shared()  # its claims go: another replica designs what this one leaves unfinished
         tasks = list(self._tasks.values())
         for task in tasks:
@@ -266,13 +247,7 @@ class Service:
         if self.storage is not None:
             self.storage.close()
             self.storage = None
-        if self.leases is not None:  # the session ends: every bucket lock is released for the other replicas
-            self.leases.close()
-            self.leases = None
-        if self.static_locks is not None:
-            self.static_locks.close()
-            self.static_locks = None
-        self.ownership.close()
+        self.handover.close()  # the lock sessions end: every bucket lock is released for the other replicas
 
     async def _load_state(self) -> None:
         """Profiles, gains, vehicles and latched alarms from the database; seed profiles on first start."""
@@ -506,76 +481,14 @@ class Service:
             "uptime_s": round(time.monotonic() - self.started_mono, 3),
         }
 
-    # ------------------------------------------------------------------ bucket leases
-
-    async def _watch_ownership(self) -> None:
-        """With a shared database: a static shard holds its buckets' locks, and every replica watches the lock
-        table for buckets without an owner (service/ownership.py)."""
-        url = self.settings.database_url
-        if url is None:
-            return
-        if self.leases is None:
-            from service.bucket_leases import StaticBucketLocks
-
-            self.static_locks = StaticBucketLocks(url, self.buckets, self.settings.shard.lease_interval_s)
-            await asyncio.to_thread(self.static_locks.start)
-        locks = self.leases or self.static_locks
-        if locks is not None:
-            self.ownership.attach(locks.snapshot, await asyncio.to_thread(self._open_storage))
+    @property
+    def buckets(self) -> list[str]:
+        """The buckets this replica serves now (the hand-over's)."""
+        return self.handover.buckets
 
     def lease_state(self) -> LeaseState | None:
         """The leases' view (owned buckets, live replicas, hand-overs), None with a static shard."""
-        return None if self.leases is None else self.leases.snapshot()
-
-    async def _gain_buckets(self, buckets: list[str]) -> None:
-        """Serve ``buckets``, whose locks this replica holds now: their vehicles' registry and latched alarms from
-        the shared database, then their subscriptions; each observer starts at the vehicle's next measurement."""
-        wanted = set(buckets)
-        rows = [row for row in self.db.vehicles() if bucket_of(row[0]) in wanted]
-        latched = [AlarmRecord.from_dict(r) for r in self.db.latched_alarms() if bucket_of(r["vehicle"]) in wanted]
-        adopted = self.engine.adopt(rows, latched)
-        transport = self._require_transport()
-        transport.add_buckets(buckets)
-        self.buckets = list(transport.buckets)
-        self._announce_ownership(buckets, [], len(adopted), len(latched))
-
-    async def _lose_buckets(self, buckets: list[str]) -> None:
-        """Stop serving ``buckets`` and store what is queued, before their locks go to another replica."""
-        gone = set(buckets)
-        if self.transport is not None:
-            self.transport.remove_buckets(buckets)
-            self.buckets = list(self.transport.buckets)
-        ids = [v for v in [*self.engine.vehicles, *self.engine.held] if bucket_of(v) in gone]
-        self.engine.forget(ids)
-        if self.writer is not None:
-            await self.stored(f"the hand-over of buckets {', '.join(buckets)}")
-        self._announce_ownership([], buckets, len(ids), 0)
-
-    def _announce_ownership(self, gained: list[str], lost: list[str], vehicles: int, alarms: int) -> None:
-        """An ownership change: logged, counted (/metrics) and published on Zenoh (agv_protocol.wire.ownership_key)."""
-        verb, which = ("took", gained) if gained else ("handed over", lost)
-        log.warning(
-            "replica %s %s buckets %s (%d vehicles, %d latched alarms); it serves %s now",
-            self.replica_id,
-            verb,
-            ",".join(which),
-            vehicles,
-            alarms,
-            ",".join(self.buckets) or "no bucket",
-        )
-        change = OwnershipChange(
-            replica=self.replica_id,
-            gained=gained,
-            lost=lost,
-            buckets=self.buckets,
-            vehicles=vehicles,
-            t_ns=time.time_ns(),
-        )
-        if self.transport is not None:
-            try:
-                self.transport.publish_ownership(change.encode())
-            except Exception:  # the change stands; only its announcement failed
-                log.exception("the ownership change could not be published on Zenoh")
+        return self.handover.lease_state()
 
 
 def replica_name(settings: Settings) -> str:

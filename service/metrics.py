@@ -118,8 +118,10 @@ class MetricsSource(Protocol):
     metrics: ServiceMetrics
     task_failures: dict[str, int]
     history: EstimateHistory | HistoryProcess | None
-    buckets: list[str]
     ownership: OwnershipWatch
+
+    @property
+    def buckets(self) -> list[str]: ...
 
     @property
     def jobs(self) -> SynthesisJobs: ...
