@@ -26,12 +26,15 @@ import logging
 import os
 import re
 import secrets
+import shutil
 import socket
+import tempfile
 import time
 from collections.abc import Callable, Coroutine
 from concurrent.futures import Future
 from contextlib import suppress
 from functools import partial
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from agv_protocol.wire import bucket_of
@@ -117,6 +120,8 @@ class Service:
         #: the estimate history: a thread of this process, or a process of its own (setting history.writer)
         self.history: EstimateHistory | HistoryProcess | None = None
         self.transport: Transport | None = None
+        #: the directory of the Unix socket of the service's child processes (an embedded router's), while running
+        self._children_dir: Path | None = None
         #: the process that puts each vehicle's estimates on its keys (setting zenoh.vehicle_publisher='process')
         self.vehicle_process: VehicleFanout | None = None
         #: the profiles, their designs and jobs
@@ -160,7 +165,9 @@ class Service:
                 self.settings.history_directory, self.replica_id, h.retention_h * 3600.0, h.chunk_s, h.precision
             )
             await asyncio.to_thread(self.history.start)
-        self.transport = Transport(self.settings.zenoh, self.buckets, self.replica_id, self.settings.bucket_leases)
+        self.transport = Transport(
+            self.settings.zenoh, self.buckets, self.replica_id, self.settings.bucket_leases, self._child_dir()
+        )
         await asyncio.to_thread(self.transport.open)
         if self.settings.zenoh.vehicle_publisher == "process":
             await self._start_vehicle_process(self.transport)
@@ -192,7 +199,8 @@ class Service:
         this replica's fleet stream before the first tick."""
         from service.vehicle_fanout import VehicleFanout
 
-        self.vehicle_process = await asyncio.to_thread(VehicleFanout(self.settings.zenoh, self.replica_id).start)
+        fanout = VehicleFanout(self.settings.zenoh, self.replica_id, self._child_link())
+        self.vehicle_process = await asyncio.to_thread(fanout.start)
         transport.attach_vehicle_publisher(self.vehicle_process)
         await self._fleet_stream_matched(transport, "vehicle estimate")
 
@@ -200,9 +208,27 @@ class Service:
         """The process that keeps the estimate history (service/history_process.py), subscribed to this replica's
         fleet stream before the first tick."""
         settings = self.settings
-        self.history = HistoryProcess(settings.zenoh, settings.history, settings.history_directory, self.replica_id)
+        self.history = HistoryProcess(
+            settings.zenoh, settings.history, settings.history_directory, self.replica_id, self._child_link()
+        )
         await asyncio.to_thread(self.history.start)
         await self._fleet_stream_matched(transport, "history")
+
+    def _child_dir(self) -> Path | None:
+        """The directory of the Unix socket on which an embedded router takes this service's child processes
+        (transport.zenoh_config), made for this run, only this user can enter it; None without children or router."""
+        z, h = self.settings.zenoh, self.settings.history
+        children = z.vehicle_publisher == "process" or (h.enabled and h.writer == "process")
+        if not children or z.mode != "router":
+            return None
+        if self._children_dir is None:
+            self._children_dir = Path(tempfile.mkdtemp(prefix="agv-fe-children-"))
+        return self._children_dir
+
+    def _child_link(self) -> str | None:
+        """What a child process is told of where to connect (fleet_child.child_session)."""
+        path = self._child_dir()
+        return None if path is None else str(path)
 
     @staticmethod
     async def _fleet_stream_matched(transport: Transport, what: str) -> None:
@@ -240,6 +266,9 @@ class Service:
             await asyncio.to_thread(self.transport.close)
             self.transport = None
             self.transport_up = False
+        if self._children_dir is not None:
+            shutil.rmtree(self._children_dir, ignore_errors=True)
+            self._children_dir = None
         if self.writer is not None:
             # the writes still queued get storage.shutdown_flush_s to land (off the loop), then are given up
             await asyncio.to_thread(self.writer.close)

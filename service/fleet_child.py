@@ -1,7 +1,8 @@
 """A process of the service's own fed by the replica's fleet stream: what the vehicle-estimate process
 (service/vehicle_fanout.py) and the estimate-history process (service/history_process.py) share.
 
-The child is a Zenoh client of the service's endpoint that subscribes to the replica's fleet stream
+The child is a Zenoh client of the service's router (a Unix socket of its own when the service embeds the router,
+transport.child_endpoint) that subscribes to the replica's fleet stream
 (:func:`~agv_protocol.wire.fleet_estimates_key`, one message per tick, which the service publishes while a
 subscriber matches). Its counters and two flags (it subscribed; the service asks it to stop) are plain shared
 integers without a lock: a child killed while holding a lock (of a multiprocessing Event) would hang the
@@ -15,6 +16,7 @@ import multiprocessing
 import os
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import orjson
@@ -22,7 +24,7 @@ import orjson
 from agv_protocol.wire import EstimateBatch, ProtocolError, fleet_estimates_key
 from agv_protocol.zenoh_session import TransportError
 from service.settings import ZenohSettings
-from service.transport import Session, open_session, subscribe_payloads
+from service.transport import Session, child_endpoint, child_files, open_session, subscribe_payloads
 
 log = logging.getLogger("agv_fe.service.fleet_child")
 
@@ -43,9 +45,22 @@ def fleet_batches(payload: bytes) -> list[EstimateBatch]:
         raise ProtocolError(f"not a fleet estimates message: {exc}") from exc
 
 
-def child_session(zenoh_settings: dict[str, Any]) -> tuple[ZenohSettings, Session]:
-    """The child's client session on the service's endpoint, with the service's Zenoh settings."""
+def child_session(zenoh_settings: dict[str, Any], child_dir: str | None) -> tuple[ZenohSettings, Session]:
+    """The child's client session: with ``child_dir``, on the Unix socket of the service's embedded router there
+    (transport.child_endpoint), without TLS, with the children's own user and password if the router asks for
+    them; without, on the service's endpoint with the service's Zenoh settings (a service that is itself a client
+    of a router)."""
     settings = ZenohSettings.model_validate(zenoh_settings)
+    if child_dir is not None:
+        config, credentials = child_files(Path(child_dir))
+        session = open_session(
+            "client",
+            child_endpoint(Path(child_dir)),
+            settings.connect_timeout_ms,
+            config_file=config,
+            credentials_file=credentials,
+        )
+        return settings, session
     session = open_session(
         "client",
         settings.endpoint,

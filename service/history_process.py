@@ -46,11 +46,16 @@ class HistoryUnavailable(RuntimeError):
 
 
 def history_main(
-    zenoh_settings: dict[str, Any], replica_id: str, options: dict[str, Any], conn: Connection, counters: Any
+    zenoh_settings: dict[str, Any],
+    replica_id: str,
+    child_dir: str | None,
+    options: dict[str, Any],
+    conn: Connection,
+    counters: Any,
 ) -> None:
-    """The child: a client session on the service's endpoint, the fleet stream into an EstimateHistory, reads
-    answered from the pipe."""
-    settings, session = child_session(zenoh_settings)
+    """The child: a client session of the service's router (fleet_child.child_session), the fleet stream into an
+    EstimateHistory, reads answered from the pipe."""
+    settings, session = child_session(zenoh_settings, child_dir)
     history = EstimateHistory(Path(options.pop("directory")), replica_id, **options)
     history.start()
     unreadable = [0]
@@ -92,7 +97,10 @@ class HistoryProcess(FleetStreamChild):
 
     :meth:`append` does nothing: the tick's estimates reach the child in the fleet stream."""
 
-    def __init__(self, zenoh: ZenohSettings, history: HistorySettings, directory: Path, replica_id: str) -> None:
+    def __init__(
+        self, zenoh: ZenohSettings, history: HistorySettings, directory: Path, replica_id: str, child_dir: str | None
+    ) -> None:
+        """``child_dir``: where the child connects (fleet_child.child_session)."""
         self._conn, child_end = _pipe()
         options = {
             "directory": str(directory),
@@ -101,7 +109,10 @@ class HistoryProcess(FleetStreamChild):
             "precision": history.precision,
         }
         super().__init__(
-            history_main, (zenoh.model_dump(mode="json"), replica_id, options, child_end), len(_COUNTERS), "history"
+            history_main,
+            (zenoh.model_dump(mode="json"), replica_id, child_dir, options, child_end),
+            len(_COUNTERS),
+            "history",
         )
         self._lock = threading.Lock()
         self._ids = itertools.count()

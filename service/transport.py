@@ -37,7 +37,10 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import json
 import logging
+import os
+import secrets
 import threading
 import time
 from collections.abc import Callable, Collection, Sequence
@@ -99,11 +102,14 @@ def zenoh_config(
     *,
     config_file: str | Path | None = None,
     credentials_file: str | Path | None = None,
+    child_dir: Path | None = None,
 ) -> zenoh.Config:
     """A session config on one explicit endpoint: routers listen on it, clients and peers connect to it.
 
     Without ``config_file`` this is Zenoh's default configuration with only these values set; with one, see
-    :func:`session_config`.
+    :func:`session_config`. ``child_dir`` (a router only): also listen on a Unix socket there for the service's
+    own child processes (:func:`child_endpoint`), which the router's user dictionary and access-control list, if
+    it has them, let in.
     """
     router = mode == "router"
     values = [
@@ -117,7 +123,69 @@ def zenoh_config(
             ConfigValue("connect/endpoints", [endpoint], required=True),
             ConfigValue("connect/timeout_ms", connect_timeout_ms),
         ]
-    return session_config(values, config_file, credentials_file)
+    config = session_config(values, config_file, credentials_file)
+    if router and child_dir is not None:
+        _let_children_in(config, child_dir)
+    return config
+
+
+def child_endpoint(child_dir: Path) -> str:
+    """The endpoint of the Unix socket on which an embedded router takes the service's own child processes (the
+    vehicle-estimate and history processes, service/fleet_child.py), in ``child_dir``, a directory only the
+    service's user can enter: the children connect as clients without TLS, whatever TLS the router's
+    configuration file sets for the network."""
+    return f"unixsock-stream/{child_dir / 'zenoh.sock'}"
+
+
+def child_files(child_dir: Path) -> tuple[Path, Path | None]:
+    """The children's configuration file in ``child_dir`` (their link: the Unix socket only), and their user and
+    password file if the router asks for one (:func:`zenoh_config` writes both)."""
+    credentials = child_dir / "credentials"
+    return child_dir / "client.json5", credentials if credentials.exists() else None
+
+
+#: The user name, access-control subject, rule and policy id of the service's children on their Unix socket.
+CHILDREN_ID = "agv-fe-children"
+_CHILD_MESSAGES = ["put", "delete", "declare_subscriber", "liveliness_token", "declare_liveliness_subscriber"]
+
+
+def _let_children_in(config: zenoh.Config, child_dir: Path) -> None:
+    """Listen on the children's socket too (:func:`child_endpoint`), with its link protocol where the file allows
+    only some (the secure router's: TLS); where the router asks a user and password (a dictionary file), give the
+    children a fresh one of their own in ``child_dir``; where access control is on (``default_permission:
+    deny``, service/zenoh_acl.py), allow what arrives on a Unix-socket link (only the service's children can reach
+    its socket) everything on every key: the children subscribe to the fleet stream and put the vehicles'
+    estimates."""
+    listen = json.loads(config.get_json("listen/endpoints"))
+    config.insert_json5("listen/endpoints", json.dumps([*listen, child_endpoint(child_dir)]))
+    _write_private(child_dir / "client.json5", json.dumps({"transport": {"link": {"protocols": ["unixsock-stream"]}}}))
+    protocols = json.loads(config.get_json("transport/link/protocols"))
+    if protocols is not None and "unixsock-stream" not in protocols:
+        config.insert_json5("transport/link/protocols", json.dumps([*protocols, "unixsock-stream"]))
+    dictionary = json.loads(config.get_json("transport/auth/usrpwd")).get("dictionary_file")
+    if dictionary:
+        line = f"{CHILDREN_ID}:{secrets.token_urlsafe(24)}\n"
+        try:
+            users = Path(dictionary).read_text()
+        except OSError as exc:
+            raise TransportError(f"zenoh user dictionary {dictionary}: cannot read: {exc.strerror}") from exc
+        _write_private(child_dir / "users.txt", users.rstrip("\n") + "\n" + line)
+        _write_private(child_dir / "credentials", line)
+        config.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(child_dir / "users.txt")))
+    acl = json.loads(config.get_json("access_control"))
+    if acl.get("enabled"):
+        rule = {"id": CHILDREN_ID, "messages": _CHILD_MESSAGES, "flows": ["ingress", "egress"], "permission": "allow",
+                "key_exprs": ["**"]}  # fmt: skip
+        subject = {"id": CHILDREN_ID, "link_protocols": ["unixsock-stream"]}
+        policy = {"id": CHILDREN_ID, "rules": [CHILDREN_ID], "subjects": [CHILDREN_ID]}
+        for key, item in (("rules", rule), ("subjects", subject), ("policies", policy)):
+            config.insert_json5(f"access_control/{key}", json.dumps([*(acl.get(key) or []), item]))
+
+
+def _write_private(path: Path, text: str) -> None:
+    """``text`` into a new file only its owner can read."""
+    with os.fdopen(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as f:
+        f.write(text)
 
 
 def estimate_congestion(name: str) -> Any:
@@ -141,10 +209,16 @@ def open_session(
     *,
     config_file: str | Path | None = None,
     credentials_file: str | Path | None = None,
+    child_dir: Path | None = None,
 ) -> zenoh.Session:
     """Open a session (see :func:`zenoh_config`); raise :class:`TransportError` naming the endpoint."""
     config = zenoh_config(
-        mode, endpoint, connect_timeout_ms, config_file=config_file, credentials_file=credentials_file
+        mode,
+        endpoint,
+        connect_timeout_ms,
+        config_file=config_file,
+        credentials_file=credentials_file,
+        child_dir=child_dir,
     )
     try:
         return zenoh.open(config)
@@ -347,10 +421,19 @@ class VehicleEstimates:
 class Transport:
     """The service's Zenoh session: measurement and liveliness subscriptions, estimate and alarm publication."""
 
-    def __init__(self, settings: ZenohSettings, buckets: list[str], replica_id: str, dynamic: bool = False) -> None:
+    def __init__(
+        self,
+        settings: ZenohSettings,
+        buckets: list[str],
+        replica_id: str,
+        dynamic: bool = False,
+        child_dir: Path | None = None,
+    ) -> None:
         """``dynamic``: the buckets change while the service runs (bucket leases): one subscription per bucket,
-        each declared and undeclared on its own (:meth:`add_buckets`, :meth:`remove_buckets`)."""
+        each declared and undeclared on its own (:meth:`add_buckets`, :meth:`remove_buckets`). ``child_dir``:
+        an embedded router also takes the service's child processes on a Unix socket there (:func:`zenoh_config`)."""
         self.settings = settings
+        self.child_dir = child_dir
         self.prefix = settings.prefix
         self.buckets = list(buckets)
         self.replica_id = replica_id
@@ -446,7 +529,12 @@ class Transport:
     def open(self) -> None:
         s = self.settings
         self._session = open_session(
-            s.mode, s.endpoint, s.connect_timeout_ms, config_file=s.config_file, credentials_file=s.credentials_file
+            s.mode,
+            s.endpoint,
+            s.connect_timeout_ms,
+            config_file=s.config_file,
+            credentials_file=s.credentials_file,
+            child_dir=self.child_dir,
         )
         try:
             session = self._session

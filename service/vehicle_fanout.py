@@ -28,9 +28,10 @@ from service.transport import ENCODING_NAMES, VehicleEstimates, estimate_congest
 _COUNTERS = (*ENCODING_NAMES.values(), "dropped", "errors", "unmatched")
 
 
-def fanout_main(zenoh_settings: dict[str, Any], replica_id: str, counters: Any) -> None:
-    """The child: a client session on the service's endpoint, the fleet stream in, the vehicle keys out."""
-    settings, session = child_session(zenoh_settings)
+def fanout_main(zenoh_settings: dict[str, Any], replica_id: str, child_dir: str | None, counters: Any) -> None:
+    """The child: a client session of the service's router (fleet_child.child_session), the fleet stream in, the
+    vehicle keys out."""
+    settings, session = child_session(zenoh_settings, child_dir)
     congestion = estimate_congestion(settings.estimate_congestion)
     vehicles = VehicleEstimates(session, settings.prefix, congestion, settings.vehicle_estimates == "subscribed")
     unreadable = [0]
@@ -57,10 +58,10 @@ class VehicleFanout(FleetStreamChild):
 
     :meth:`submit` does nothing: the tick's estimates reach the child in the fleet stream."""
 
-    def __init__(self, settings: ZenohSettings, replica_id: str) -> None:
-        super().__init__(
-            fanout_main, (settings.model_dump(mode="json"), replica_id), len(_COUNTERS), "vehicle estimate"
-        )
+    def __init__(self, settings: ZenohSettings, replica_id: str, child_dir: str | None = None) -> None:
+        """``child_dir``: where the child connects (fleet_child.child_session)."""
+        args = (settings.model_dump(mode="json"), replica_id, child_dir)
+        super().__init__(fanout_main, args, len(_COUNTERS), "vehicle estimate")
 
     def start(self) -> VehicleFanout:
         """Start the child and wait until it subscribes; raise TransportError if it cannot."""

@@ -9,7 +9,8 @@ of its own, naming its keys exactly (bucket included), bound to the identity tha
   subscribers on the fleet's estimate and alarm keys (the edge client does), but the router forwards it only
   its own estimates and alarms;
 * the service (identity :data:`SERVICE_IDENTITY`, every replica) may subscribe to every measurement, truth
-  stream and liveliness token and to the replicas' ownership announcements, and is the only one that may put
+  stream and liveliness token, to the replicas' ownership announcements and to the fleet stream (its own
+  processes read it, service/fleet_child.py), and is the only one that may put
   estimates, alarms, the fleet stream and ownership announcements;
 * a monitor (identity :data:`MONITOR_IDENTITY`: the terminal dashboard) may read estimates, alarms, the fleet
   stream, ownership announcements and liveliness, and publish nothing;
@@ -123,9 +124,10 @@ def access_control(
     fleet_stream = fleet_estimates_selector(prefix)
     ownership = ownership_selector(prefix)  # replicas announce the buckets they take and give up (bucket leases)
     rules = [
-        # the service: reads measurements, truth and liveliness; the only publisher of answers
-        _rule("service-subscribe", ["declare_subscriber"], "ingress", [measurements, truth, ownership]),
-        _rule("service-receive", ["put"], "egress", [measurements, truth, ownership]),
+        # the service: reads measurements, truth and liveliness; the only publisher of answers; its own processes
+        # (the vehicle-estimate and history processes, service/fleet_child.py) read its fleet stream
+        _rule("service-subscribe", ["declare_subscriber"], "ingress", [measurements, truth, ownership, fleet_stream]),
+        _rule("service-receive", ["put"], "egress", [measurements, truth, ownership, fleet_stream]),
         _rule("service-follow-liveliness", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [alive]),
         _rule("service-receive-liveliness", ["liveliness_token"], "egress", [alive]),
         _rule("service-publish", ["put"], "ingress", [estimates, binary_estimates, alarms, fleet_stream, ownership]),

@@ -56,14 +56,16 @@ def test_a_setting_that_is_not_the_services_is_refused(tmp_path, capsys):
 
 
 def test_the_secure_configurations_carry_every_estimate_over_tls_only(monkeypatch):
-    """TLS with the history off, with it on, and with PostgreSQL bucket leases too, one round each against real
+    """TLS with the history off, with it on, with PostgreSQL bucket leases too, and with the history in its own
+    process (a child of the embedded router on its Unix socket, let in by the router's user dictionary and
+    ACL), one round each against real
     `agv-fe serve` processes (the service the TLS router, generator and receiver its clients with their
     certificates), 10 vehicles, short steps: every sample accepted and every estimate received over TLS, a plain TCP
     client refused at each service's endpoint, the ACL generated for the fleet in force, and the history and the
     leases running exactly where told. Latencies are the machine's figures, not asserted."""
     monkeypatch.setattr(service_load, "STEP_S", 2.0)
     monkeypatch.setattr(service_load, "WARMUP_S", 0.5)
-    names = ("tls", "tls-history", "tls-history-leases")
+    names = ("tls", "tls-history", "tls-history-leases", "tls-history-process")
     configs = tuple(bench.CONFIGURATIONS[n] for n in names)
     runs = bench.measure(configs, rounds=1, vehicles=10, hold_s=3.0)
     assert [r["configuration"] for r in runs] == [c.label for c in configs]
@@ -72,11 +74,11 @@ def test_the_secure_configurations_carry_every_estimate_over_tls_only(monkeypatc
             assert step["zero_loss"] and step["estimates_received"] == step["sent"] > 0
         assert r["endpoint"].startswith("tls/127.0.0.1:") and r["plain_tcp_refused"]
         assert r["acl_rules"] == len(access_control([])["rules"]) + 3 * 10  # three rules of its own per vehicle
-    assert [r["history"] for r in runs] == [False, True, True]
-    assert [r["leases"] for r in runs] == [False, False, True]
+    assert [r["history"] for r in runs] == [False, True, True, True]
+    assert [r["leases"] for r in runs] == [False, False, True, False]
     assert runs[2]["buckets"] == N_BUCKETS
     text = bench.render("t", configs, runs, 10, "cmd")
-    assert text.count(f"| TLS (plain TCP refused), ACL of {runs[0]['acl_rules']} rules |") == 3
+    assert text.count(f"| TLS (plain TCP refused), ACL of {runs[0]['acl_rules']} rules |") == 4
     assert f"| PostgreSQL, leases, {N_BUCKETS} buckets |" in text and secure_link.FLEET_IDENTITY in text
 
 

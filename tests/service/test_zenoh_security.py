@@ -34,7 +34,15 @@ from agv_protocol.wire import Estimate, ownership_key, ownership_selector, vehic
 from agv_protocol.zenoh_session import TransportError
 from edge_client.transport import TransportOptions, close_session, open_session
 from service.zenoh_acl import read_vehicle_list, render_json5, router_config
-from tests.service.helpers import ServiceProcess, free_port, make_settings, plant_measurements, wait_for
+from tests.service.helpers import (
+    PERIOD_NS,
+    T0_NS,
+    ServiceProcess,
+    free_port,
+    make_settings,
+    plant_measurements,
+    wait_for,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 SECURE = ROOT / "deploy" / "zenoh" / "secure"
@@ -339,22 +347,25 @@ def test_replicas_hear_each_others_ownership_announcements_and_a_vehicle_cannot_
             close_session(s)
 
 
+def serve_securely(router: Router, workdir: Path, **sections: Any) -> ServiceProcess:
+    """`agv-fe serve` as a client of the secure router, with the committed service configuration (not started)."""
+    certs = router.certs
+    assert certs is not None
+    config = localised(CLIENT, certs / "agv-service", workdir / "service.json5")
+    zenoh_section = {
+        "mode": "client",
+        "endpoint": router.endpoint,
+        "config_file": str(config),
+        "credentials_file": str(certs / "agv-service" / "credentials"),
+        **sections.pop("zenoh", {}),
+    }
+    return ServiceProcess(make_settings(workdir, zenoh=zenoh_section, **sections), workdir / "service.log")
+
+
 @pytest.fixture(scope="module")
 def secure_service(secure_router: Router, tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
     """`agv-fe serve` as a client of the secure router, with the committed service configuration."""
-    certs, workdir = secure_router.certs, tmp_path_factory.mktemp("secure-service")
-    assert certs is not None
-    config = localised(CLIENT, certs / "agv-service", workdir / "service.json5")
-    settings = make_settings(
-        workdir,
-        zenoh={
-            "mode": "client",
-            "endpoint": secure_router.endpoint,
-            "config_file": str(config),
-            "credentials_file": str(certs / "agv-service" / "credentials"),
-        },
-    )
-    server = ServiceProcess(settings, workdir / "service.log")
+    server = serve_securely(secure_router, tmp_path_factory.mktemp("secure-service"))
     try:
         server.start().wait_ready()
         yield server
@@ -413,6 +424,46 @@ def test_an_authorised_vehicle_and_fleet_work_end_to_end(secure_router: Router, 
         for entity in reversed(entities):
             entity.undeclare()
         close_session(session)
+
+
+def test_the_services_own_processes_read_its_fleet_stream_through_the_secure_router(
+    secure_router: Router, tmp_path: Path
+):
+    """With the vehicle estimates and the history each in a process of its own (service/fleet_child.py), both
+    clients of the secure router with the service's identity, which the ACL lets read the fleet stream: truck-7
+    receives every estimate on its key from the one process, and the other keeps them for the REST history."""
+    server = serve_securely(
+        secure_router, tmp_path, zenoh={"vehicle_publisher": "process"}, history={"writer": "process"}
+    )
+    session = secure_router.session(VEHICLE)
+    received: list[Estimate] = []
+    entities: list[Any] = []
+    try:
+        server.start().wait_ready()
+        entities.append(
+            session.declare_subscriber(
+                vehicle_key(VEHICLE, "estimate"), lambda s: received.append(Estimate.decode(s.payload.to_bytes()))
+            )
+        )
+        publisher = session.declare_publisher(
+            vehicle_key(VEHICLE, "meas"), congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        entities.append(publisher)
+        wait_for(lambda: publisher.matching_status.matching, what="the service's subscriber")
+        for row in plant_measurements([VEHICLE], 50):
+            publisher.put(row[0].encode())
+        wait_for(lambda: len(received) >= 50, what="truck-7's estimates from the vehicle-estimate process")
+        assert [e.seq for e in received] == list(range(50))
+        whole = {"start": T0_NS / 1e9, "end": (T0_NS + 50 * PERIOD_NS) / 1e9}
+        wait_for(
+            lambda: len(server.get(f"/vehicles/{VEHICLE}/estimates", params=whole).json()["estimates"]) == 50,
+            what="the history process holding every estimate",
+        )
+    finally:
+        for entity in reversed(entities):
+            entity.undeclare()
+        close_session(session)
+        server.close()
 
 
 def test_the_config_file_must_agree_with_the_settings_and_credentials_are_user_and_password(tmp_path: Path):
