@@ -64,3 +64,45 @@ def cusum_threshold(k: float, arl_blocks: float) -> float:
         if high > 1e4:
             raise ValueError(f"no CUSUM threshold gives a run length of {arl_blocks:g} blocks at drift {k:g}")
     return float(scipy.optimize.brentq(gap, 0.0, high, xtol=1e-5))
+
+
+class PageTest:
+    """Two-sided Page CUSUM on standard normal samples, one pair of statistics per (row, channel) of a batch.
+
+    g+ = max(0, g+ + z - k), g- = max(0, g- - z - k), a detection when max(g+, g-) > h, with h from
+    :func:`cusum_threshold` so that on white N(0, 1) samples the mean time between detections is ``arl_samples``;
+    the pair restarts from zero after a detection (its detections are the renewals the run length counts).
+
+    rows, channels : the batch's shape; drift : k [standard deviations]; arl_samples : the design's mean run
+    length on white noise [samples].
+    """
+
+    def __init__(self, rows: int, channels: int, drift: float, arl_samples: float) -> None:
+        self.drift = drift
+        self.h = cusum_threshold(drift, arl_samples)
+        #: (rows, channels, 2): g+ and g-
+        self.g = np.zeros((rows, channels, 2))
+
+    def grow(self, rows: int) -> None:
+        """Room for ``rows`` rows; the new ones at rest."""
+        extra = rows - self.g.shape[0]
+        if extra > 0:
+            self.g = np.concatenate([self.g, np.zeros((extra, *self.g.shape[1:]))])
+
+    def reset(self, rows: np.ndarray) -> None:
+        self.g[rows] = 0.0
+
+    def update(self, rows: np.ndarray, z: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One sample z (k, channels) per row of ``rows`` (distinct); where not ``active`` (k, channels) the
+        statistics rest at zero. Returns where the evidence began this sample (both statistics were zero and one is
+        not now) and where a change was detected, (k, channels) bool each."""
+        g = self.g[rows]
+        resting = np.maximum(g[:, :, 0], g[:, :, 1]) == 0.0
+        # g+ = max(0, g+ + z - k), g- = max(0, g- - z - k)
+        g[:, :, 0] = np.where(active, np.maximum(0.0, g[:, :, 0] + z - self.drift), 0.0)
+        g[:, :, 1] = np.where(active, np.maximum(0.0, g[:, :, 1] - z - self.drift), 0.0)
+        peak = np.maximum(g[:, :, 0], g[:, :, 1])
+        detected = peak > self.h
+        g[detected] = 0.0
+        self.g[rows] = g
+        return resting & (peak > 0.0), detected

@@ -31,17 +31,42 @@ additive design:
    estimate's RMS sigma as its noise. theta is told apart from b only by
    changes of the demand (with a constant demand the two are one number), so
    alpha_hat holds where the demand does not vary.
-3. **Reported**: alpha_hat = 1 + theta_hat (clipped to ``alpha_bounds``), the
+3. **Steps of the bias.** A lateral gust steps the steering fault estimate;
+   the random walk of 2 says the bias moves slowly, so a step that meets a
+   change of the demand is taken for a change of theta. Per channel with a
+   jump size J > 0 (``torque_jump_nm``, ``steer_jump_rad``), a two-sided
+   CUSUM (Page) on the filter's normalised innovation z = nu / sqrt(S),
+
+       g+ = max(0, g+ + z - k),  g- = max(0, g- - z - k),  a step if max > h,
+
+   k = :data:`JUMP_DRIFT`, h from the run length on white z
+   (``jump_false_alarm_interval_s``; Brook and Evans, :mod:`synth.cusum`).
+   After a detection the bias follows the estimate for ``jump_window_s``
+   (process noise J^2 a sample: b takes the step while the observer delivers
+   it). Then the step d = s_e - (b_0 + theta_0 H) of the fitted fault
+   s_e = b + theta H is measured against the state one window before the
+   test's evidence began (b_0, theta_0; its covariance P_0 aged by the random
+   walks: the filter may have taken the step's start for a change of theta
+   before the innovations showed it), and attributed by the likelihoods of two
+   explanations: a bias step, d ~ N(0, J^2 + V_d), whose state is the Kalman
+   update of P_0 + J^2 on b with s_e; or a loss, theta = theta_0 + d / H
+   uniform within ``alpha_bounds`` (density 1 / ((theta_high - theta_low)
+   |H|)), b = b_0, with prior probability ``jump_loss_prior``. An explanation
+   with less than :data:`JUMP_PRUNE` of the posterior weight is dropped; the
+   two are otherwise merged by their weights (the mixture's mean and
+   covariance), so sigma_alpha carries the doubt between them. With no
+   detection the filter is exactly that of 2.
+4. **Reported**: alpha_hat = 1 + theta_hat (clipped to ``alpha_bounds``), the
    total fault f_hat + theta_hat (u - H[u]) (the observer's estimate with the
    lag of its demand-proportional part taken out: a bias still comes through
    at the observer's speed), and the bias b_hat = f_hat - theta_hat H[u].
-4. **Certificate**: the recursion of 1 is the stage's only dynamics of its
+5. **Certificate**: the recursion of 1 is the stage's only dynamics of its
    own. It is verified like every design (synth.certificate.verify) on the
    stage's own N_i of every gain set it holds, with the design's P(h) and R at
    rho = 0 (a point of the DMVT box, so within what the design certified):
    every vertex LMI of eq. (33) and the spectral radius of N(h) over the
    premise grid; any switching between the sets decays at the certified rate,
-   as they share P(h). The filter of 2 is not part of it: its theta_hat is
+   as they share P(h). The filter of 2 and 3 is not part of it: its theta_hat is
    bounded by the clip to ``alpha_bounds``, not by a Lyapunov function.
 
 The torque demand is T_d; the steering demand is the road-wheel angle the
@@ -59,6 +84,7 @@ from numpy.typing import ArrayLike
 
 from synth.augmented import N_FAULTS, N_STATES
 from synth.certificate import Certificate, build_certificate, content_hash, merged, verify
+from synth.cusum import PageTest
 from synth.errors import BadParameters
 from synth.gains import ObserverGains
 from synth.model import FloatArray
@@ -67,6 +93,15 @@ from synth.options import EffectivenessOptions
 from synth.solver import SolveInfo
 
 FAULTS = slice(N_STATES, N_STATES + N_FAULTS)
+#: The estimator's per-row state of the bias-jump test.
+JUMP_STATE = ("window", "history_par", "history_P", "rest_par", "rest_P", "rest_sample", "jumps")
+#: Page's drift of the bias-jump test (module docstring, 3) [standard deviations of the normalised innovation]:
+#: tuned for a shift of one.
+JUMP_DRIFT = 0.5
+#: An explanation of a detected step (bias or loss) with less than this posterior weight is dropped, as a Gaussian-sum
+#: filter prunes its negligible components: a merged mixture with a distant, improbable mode has a wide alpha that
+#: lets the next change of the demand move alpha_hat far.
+JUMP_PRUNE = 0.05
 
 
 @dataclass(slots=True)
@@ -128,6 +163,12 @@ class EffectivenessEstimator:
         )
         self.start_samples = round(options.start_after_s / s)
         self.theta_low, self.theta_high = options.alpha_bounds[0] - 1.0, options.alpha_bounds[1] - 1.0
+        #: the bias-jump test (module docstring, 3): per channel the jump variance J^2, on where J > 0
+        self.jump_var = np.array([options.torque_jump_nm, options.steer_jump_rad]) ** 2
+        self.jump_on = self.jump_var > 0.0
+        self.jump_test = PageTest(nv, 2, JUMP_DRIFT, options.jump_false_alarm_interval_s / s)
+        self.window_samples = max(1, round(options.jump_window_s / s))
+        self.loss_log_odds = float(np.log(options.jump_loss_prior / (1.0 - options.jump_loss_prior)))
         self.steer_state = np.zeros(nv)
         self.eps = np.zeros((nv, n, 2))
         #: each row's previous transition and regressor; primed: the row has a previous sample
@@ -138,12 +179,22 @@ class EffectivenessEstimator:
         self.par = np.zeros((nv, 2, 2))
         self.P = np.zeros((nv, 2, 2, 2))
         self.samples = np.zeros(nv, dtype=np.int64)
+        #: per vehicle and channel: the samples left of the window in which the bias follows a detected step, the
+        #: states of the last window_samples updates (a ring), the state a step is measured from (one window before
+        #: the jump test's evidence began) and its update, and the steps detected since the row started
+        self.window = np.zeros((nv, 2), dtype=np.int64)
+        self.history_par = np.zeros((nv, self.window_samples, 2, 2))
+        self.history_P = np.zeros((nv, self.window_samples, 2, 2, 2))
+        self.rest_par = np.zeros((nv, 2, 2))
+        self.rest_P = np.zeros((nv, 2, 2, 2))
+        self.rest_sample = np.zeros((nv, 2), dtype=np.int64)
+        self.jumps = np.zeros((nv, 2), dtype=np.int64)
         self.reset(np.arange(nv), u0)
-        #: the stage's own recursion, verified (module docstring, 4); VerificationFailed here otherwise
+        #: the stage's own recursion, verified (module docstring, 5); VerificationFailed here otherwise
         self.certificate = self.verify()
 
     def verify(self) -> Certificate:
-        """Verify the stage's recursion eps_{k+1} = N(h_k) eps_k on its own N_i (module docstring, 4).
+        """Verify the stage's recursion eps_{k+1} = N(h_k) eps_k on its own N_i (module docstring, 5).
 
         Returns
         -------
@@ -202,6 +253,14 @@ class EffectivenessEstimator:
         self.P[rows, :, 0, 0] = (10.0 * self.sigma) ** 2
         self.P[rows, :, 1, 1] = self.options.initial_alpha_sigma**2
         self.samples[rows] = 0
+        self.jump_test.reset(rows)
+        self.window[rows] = 0
+        self.history_par[rows] = 0.0
+        self.history_P[rows] = 0.0
+        self.rest_par[rows] = 0.0
+        self.rest_P[rows] = 0.0
+        self.rest_sample[rows] = 0
+        self.jumps[rows] = 0
 
     def grow(self, nv: int) -> None:
         """Room for ``nv`` rows; the new ones start afresh."""
@@ -209,9 +268,10 @@ class EffectivenessEstimator:
         if extra <= 0:
             return
         old = self.n_rows
-        for name in ("steer_state", "eps", "N_prev", "u_prev", "primed", "par", "P", "samples"):
+        for name in (*("steer_state", "eps", "N_prev", "u_prev", "primed", "par", "P", "samples"), *JUMP_STATE):
             a = getattr(self, name)
             setattr(self, name, np.concatenate([a, np.zeros((extra, *a.shape[1:]), dtype=a.dtype)]))
+        self.jump_test.grow(nv)
         self.reset(np.arange(old, nv))
 
     def regressor(self, rows: np.ndarray, u: FloatArray) -> FloatArray:
@@ -278,19 +338,148 @@ class EffectivenessEstimator:
         return np.sqrt(self.P[rows, :, 1, 1])
 
     def _update(self, rows: np.ndarray, f_hat: FloatArray, H: FloatArray) -> None:
-        """One Kalman step per channel of [b, theta] with the measurement f_hat = b + theta H."""
+        """One Kalman step per channel of [b, theta] with the measurement f_hat = b + theta H, and the bias-jump
+        test on its innovation (module docstring, 3)."""
         phi = np.stack([np.ones_like(H), H], axis=2)  # (k, 2 channels, 2)
         P = self.P[rows] + self.Q[None]
         P_phi = np.einsum("vcij,vcj->vci", P, phi)
         S = np.einsum("vci,vci->vc", phi, P_phi) + self.R[None]
-        G = P_phi / S[:, :, None]
         par = self.par[rows]
         innovation = f_hat - np.einsum("vci,vci->vc", phi, par)
+        following = None
+        if self.jump_on.any():
+            following = self._test(rows, innovation / np.sqrt(S))
+            slot = self.samples[rows] % self.window_samples
+            self.history_par[rows, slot], self.history_P[rows, slot] = par, self.P[rows]
+        if following is not None and following.any():
+            # in a window the bias follows the estimate: its process noise J^2 a sample (P phi and S with it)
+            free = np.where(following, self.jump_var[None], 0.0)
+            P[:, :, 0, 0] += free
+            P_phi[:, :, 0] += free
+            S = S + free
+        G = P_phi / S[:, :, None]
         par = par + G * innovation[:, :, None]
         P = P - G[:, :, :, None] * P_phi[:, :, None, :]
         self.P[rows] = 0.5 * (P + np.swapaxes(P, 2, 3))
         par[:, :, 1] = np.clip(par[:, :, 1], self.theta_low, self.theta_high)
         self.par[rows] = par
+        if following is not None and following.any():
+            self._close_windows(rows, following, H)
+
+    def _test(self, rows: np.ndarray, z: FloatArray) -> np.ndarray:
+        """The jump test on the normalised innovations z (k, 2) of ``rows`` outside a window, before their update:
+        where its evidence begins, the state one window before is kept as the one a step is measured from; a
+        detection opens a window. Returns where the bias follows the estimate this sample, (k, 2) bool."""
+        window = self.window[rows]
+        began, jump = self.jump_test.update(rows, z, (window == 0) & self.jump_on[None])
+        i, c = np.nonzero(began)
+        if len(i):
+            # the state one window before: the filter may have taken the step's start for a change of theta
+            r = rows[i]
+            updates = self.samples[r] - self.start_samples
+            full = updates >= self.window_samples
+            slot = self.samples[r] % self.window_samples
+            self.rest_par[r, c] = np.where(full[:, None], self.history_par[r, slot, c], self.par[r, c])
+            self.rest_P[r, c] = np.where(full[:, None, None], self.history_P[r, slot, c], self.P[r, c])
+            self.rest_sample[r, c] = self.samples[r] - np.where(full, self.window_samples, 0)
+        if jump.any():
+            window = window + np.where(jump, self.window_samples, 0)
+            self.window[rows] = window
+            self.jumps[rows] += jump
+        return np.asarray(window > 0)
+
+    def _close_windows(self, rows: np.ndarray, following: np.ndarray, H: FloatArray) -> None:
+        """Count the windows down and attribute the step of those that end (module docstring, 3), from the state
+        kept one window before the evidence began, aged by the random walks to now."""
+        window = self.window[rows] - following
+        self.window[rows] = window
+        i, c = np.nonzero(following & (window == 0))
+        if not len(i):
+            return
+        r = rows[i]
+        age = (self.samples[r] - self.rest_sample[r, c] + 1).astype(float)
+        P_0 = self.rest_P[r, c] + age[:, None, None] * self.Q[c]
+        theta_bounds = (self.theta_low, self.theta_high)
+        par, P = attribute_step(
+            self.par[r, c], self.P[r, c], H[i, c], self.rest_par[r, c], P_0, self.jump_var[c], theta_bounds,
+            self.loss_log_odds,
+        )  # fmt: skip
+        self.par[r, c], self.P[r, c] = par, P
+
+
+def attribute_step(
+    par: FloatArray,
+    P: FloatArray,
+    H: FloatArray,
+    par_0: FloatArray,
+    P_0: FloatArray,
+    jump_var: FloatArray,
+    theta_bounds: tuple[float, float],
+    loss_log_odds: float,
+    prune: float = JUMP_PRUNE,
+) -> tuple[FloatArray, FloatArray]:
+    """A detected step of the fault attributed to the bias or to the effectiveness (module docstring, 3).
+
+    Parameters
+    ----------
+    par, P : (m, 2), (m, 2, 2)
+        [b, theta] and their covariance at the window's end (the bias followed the step).
+    H : (m,)
+        The regressor at the window's end [N m or rad].
+    par_0, P_0 : (m, 2), (m, 2, 2)
+        [b, theta] one window before the jump test's evidence began, their covariance aged to now by the random
+        walks.
+    jump_var : (m,)
+        J^2, the variance of a step of the bias [N m^2 or rad^2].
+    theta_bounds : (low, high)
+        A loss puts theta uniformly within these [-].
+    loss_log_odds : float
+        ln(p / (1 - p)), p the prior probability that a step is a loss.
+    prune : float
+        An explanation with less posterior weight than this is dropped.
+
+    Returns
+    -------
+    par, P : (m, 2), (m, 2, 2)
+        The two explanations merged by their posterior weights (the mixture's mean and covariance).
+    """
+    phi = np.stack([np.ones_like(H), H], axis=1)
+    # s_e = b + theta H, the fitted fault; d = s_e - (b_0 + theta_0 H), the step
+    fitted = np.einsum("mi,mi->m", phi, par)
+    fitted_var = np.einsum("mi,mij,mj->m", phi, P, phi)
+    step = fitted - np.einsum("mi,mi->m", phi, par_0)
+    bias_var = jump_var + fitted_var + np.einsum("mi,mij,mj->m", phi, P_0, phi)
+    # a bias step: d ~ N(0, J^2 + V_d); a loss: theta uniform within its bounds, d = (theta - theta_0) H
+    log_bias = -0.5 * (step**2 / bias_var + np.log(2.0 * np.pi * bias_var))
+    H_safe = np.where(H == 0.0, 1.0, H)
+    theta = par_0[:, 1] + step / H_safe
+    possible = (H != 0.0) & (theta >= theta_bounds[0]) & (theta <= theta_bounds[1])
+    log_loss = -np.log((theta_bounds[1] - theta_bounds[0]) * np.abs(H_safe))
+    log_odds = np.clip(log_loss - log_bias + loss_log_odds, -700.0, 700.0)
+    w = np.where(possible, 1.0 / (1.0 + np.exp(-log_odds)), 0.0)
+    w = np.where(w < prune, 0.0, np.where(w > 1.0 - prune, 1.0, w))
+    # the bias stepped: the Kalman update of P_0 + J^2 on b with the measurement s_e (its variance V_se)
+    prior = P_0.copy()
+    prior[:, 0, 0] += jump_var
+    gain = np.einsum("mij,mj->mi", prior, phi) / bias_var[:, None]
+    mean_b = par_0 + gain * step[:, None]
+    mean_b[:, 1] = np.clip(mean_b[:, 1], *theta_bounds)
+    cov_b = prior - gain[:, :, None] * np.einsum("mi,mij->mj", phi, prior)[:, None, :]
+    b_var = P_0[:, 0, 0]
+    # a loss: b = b_0, theta = (s_e - b_0) / H
+    mean_t = np.stack([par_0[:, 0], np.where(possible, theta, par_0[:, 1])], axis=1)
+    cov_t = _sym(b_var, -b_var / H_safe, (fitted_var + b_var) / H_safe**2)
+    mean = (1.0 - w)[:, None] * mean_b + w[:, None] * mean_t
+    d_b, d_t = mean_b - mean, mean_t - mean
+    cov = (1.0 - w)[:, None, None] * (cov_b + d_b[:, :, None] * d_b[:, None, :]) + w[:, None, None] * (
+        cov_t + d_t[:, :, None] * d_t[:, None, :]
+    )
+    return mean, cov
+
+
+def _sym(a: FloatArray, b: FloatArray, c: FloatArray) -> FloatArray:
+    """(m, 2, 2) symmetric matrices [[a, b], [b, c]]."""
+    return np.stack([np.stack([a, b], axis=1), np.stack([b, c], axis=1)], axis=1)
 
 
 @dataclass(slots=True)

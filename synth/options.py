@@ -79,6 +79,30 @@ class EffectivenessOptions(BaseModel):
     start_after_s: Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)] = Field(
         3.0, description="the stage starts once the observer has converged, this long after it starts [s]"
     )
+    torque_jump_nm: Annotated[float, Field(ge=0, le=1e5, allow_inf_nan=False)] = Field(
+        0.0,
+        description="standard deviation of a step of the torque bias (a gust's step of the estimate): steps are "
+        "detected and attributed to the bias or to alpha (docs/math.md section 14); 0: the bias only drifts, no "
+        "jump test on T_f (calibration sets it) [N m]",
+    )
+    steer_jump_rad: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = Field(
+        0.0025,
+        description="standard deviation of a step of the steering bias: half the step a strong lateral gust makes "
+        "in the delta_f estimate (calibration sets it from the stated gust); 0: no jump test on delta_f [rad]",
+    )
+    jump_false_alarm_interval_s: Annotated[float, Field(ge=1, le=1e7, allow_inf_nan=False)] = Field(
+        600.0,
+        description="the jump test's design: its mean time between detections on white innovations, per "
+        "channel (sets the CUSUM's threshold) [s]",
+    )
+    jump_window_s: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = Field(
+        0.3,
+        description="after a detected step the bias follows the estimate this long (about the observer's "
+        "response to a fault step) before the step is attributed to the bias or to alpha [s]",
+    )
+    jump_loss_prior: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = Field(
+        0.01, description="prior probability that a detected step is a loss of effectiveness, not a bias step [-]"
+    )
 
     @field_validator("alpha_bounds")
     @classmethod

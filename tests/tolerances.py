@@ -71,3 +71,6 @@ SAMPLE_GRID_ATOL_S = 1e-9
 #: The service's effectiveness stage (biases, total faults) against the offline stage on the same measurements:
 #: rows stepped in batches of another size sum in another order [N m], [rad].
 STAGE_BATCH_ATOL = 1e-6
+#: Detections of a Page CUSUM on 10^7 white Gaussian samples against its design rate (10,000 expected): about
+#: four standard deviations of the count, plus the Brook-Evans chain's discretisation (100 states), relative.
+PAGE_TEST_RATE_RTOL = 0.04

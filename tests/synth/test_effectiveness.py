@@ -10,12 +10,13 @@ from edge_client.faults import LossOfEffectivenessFault
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint
 from edge_client.simulation import PlantRecord, simulate_plant
 from synth.certificate import spectral_radius_grid
-from synth.effectiveness import EffectivenessEstimator, EffectivenessObserver
+from synth.cusum import cusum_threshold
+from synth.effectiveness import JUMP_DRIFT, EffectivenessEstimator, EffectivenessObserver, attribute_step
 from synth.errors import BadParameters, VerificationFailed
 from synth.gains import ObserverGains
 from synth.observer import FuzzyObserver
 from synth.options import EffectivenessOptions
-from tests.tolerances import AMPLIFIED_ROUNDING_ATOL, FORMULA_EQUALITY_ATOL
+from tests.tolerances import AMPLIFIED_ROUNDING_ATOL, FORMULA_EQUALITY_ATOL, PAGE_TEST_RATE_RTOL
 
 ONSET_S, RATE_PER_S, ALPHA_MIN = 8.0, 0.04, 0.6
 RAMP_END_S = ONSET_S + (1.0 - ALPHA_MIN) / RATE_PER_S
@@ -225,3 +226,55 @@ def test_a_stage_whose_recursion_is_not_the_certified_one_is_refused(robust_gain
     stage.N = [mixed, quiet]
     with pytest.raises(VerificationFailed, match=r"vertex LMI #\d+ of eq. \(33\) fails"):
         stage.verify()
+
+
+def test_without_a_detected_step_the_estimates_are_those_without_the_jump_test(robust_gains_default):
+    """The jump test changes nothing until it detects a step: on the slalom whose steering loses effectiveness at
+    0.04 per second (a ramp, no step) it detects none, and every estimate equals the stage's without the test."""
+    drive = simulate_plant([steer_loss_scenario()])
+    y, u = drive.y[:, 0], drive.u[:, 0]
+    out = []
+    for options in (OPTIONS, OPTIONS.model_copy(update={"steer_jump_rad": 0.0})):
+        estimator = EffectivenessObserver(robust_gains_default, options, y[:1], None, u[:1])
+        steps = [estimator.step(y[k : k + 1], u[k : k + 1]) for k in range(len(drive.t))]
+        out.append(np.array([np.concatenate([s.alpha[0], s.faults[0], s.bias[0], s.alpha_sigma[0]]) for s in steps]))
+        jumps = estimator.stage.jumps
+    assert OPTIONS.steer_jump_rad > 0.0 and jumps.tolist() == [[0, 0]]
+    np.testing.assert_array_equal(out[0], out[1])
+
+
+def test_the_jump_test_detects_steps_on_white_noise_at_its_design_rate(robust_gains_default):
+    """The stage's jump test is a two-sided Page CUSUM whose threshold comes from its run length on white noise:
+    designed for one detection per 1,000 samples (jump_false_alarm_interval_s 10 s at 100 Hz), fed 400 x 25,000
+    standard normal innovations per channel, it detects 10,000 per channel within the tolerance."""
+    options = OPTIONS.model_copy(update={"jump_false_alarm_interval_s": 10.0})
+    rows, steps = 400, 25_000
+    test = EffectivenessEstimator(robust_gains_default, options, rows).jump_test
+    assert test.drift == JUMP_DRIFT and test.h == pytest.approx(cusum_threshold(JUMP_DRIFT, 1000.0))
+    rng = np.random.default_rng(11)
+    index, active = np.arange(rows), np.ones((rows, 2), dtype=bool)
+    detected = np.zeros(2, dtype=np.int64)
+    for _ in range(steps):
+        detected += test.update(index, rng.standard_normal((rows, 2)), active)[1].sum(axis=0)
+    assert detected / (rows * steps / 1000.0) == pytest.approx([1.0, 1.0], rel=PAGE_TEST_RATE_RTOL)
+
+
+def test_a_step_is_attributed_to_the_bias_or_to_alpha_by_its_size_against_a_bias_steps():
+    """attribute_step on a step d of the fitted fault, the state before it known to 0.1 mrad and alpha to 0.01, a
+    bias step's standard deviation J = 2.5 mrad and odds of 1 in 100 for a loss: a 4 mrad step at a regressor of
+    0.02 rad is the bias's (alpha stays within its sigma of 1); a 25 mrad step at 0.125 rad (10 J) is a loss to 0.8;
+    an 8 mrad step at 0.03 rad is in between (a loss to 0.73 has about a fifth of the weight), and alpha's sigma
+    carries that doubt."""
+    J, bounds, log_odds = 0.0025, (-1.0, 0.5), float(np.log(0.01 / 0.99))
+    P_0 = np.array([np.diag([1e-4**2, 0.01**2])] * 3)
+    H = np.array([0.02, 0.125, 0.03])
+    d = np.array([-0.004, -0.025, -0.008])
+    par_end = np.stack([d, np.zeros(3)], axis=1)  # the bias followed the step
+    par, P = attribute_step(par_end, P_0.copy(), H, np.zeros((3, 2)), P_0, np.full(3, J**2), bounds, log_odds)
+    alpha, sigma = 1.0 + par[:, 1], np.sqrt(P[:, 1, 1])
+    # the bias's: alpha moves by less than its sigma, the bias takes the step
+    assert abs(alpha[0] - 1.0) < sigma[0] <= 0.01 and par[0, 0] == pytest.approx(d[0], abs=1e-4)
+    # the loss's: alpha = 1 + d / H, the bias where it was, alpha's sigma that of the bias over H
+    assert alpha[1] == pytest.approx(0.8, abs=1e-9) and par[1, 0] == 0.0 and sigma[1] < 0.011
+    # in between: alpha between the two explanations, its sigma ten times either's
+    assert 1.0 + d[2] / H[2] < alpha[2] < 1.0 - 0.02 and sigma[2] > 0.05
