@@ -70,6 +70,9 @@ REQUIRED_SHARE_FLOOR = 0.25
 #: above what the observer reports for it (:func:`gust_drives`), or a gust would be a false alarm.
 GUST_N = 800.0
 GUST_S = 2.0
+#: A gust whose held response on a fault estimate is within this many healthy sigmas makes no bias step the
+#: effectiveness stage tests for (:func:`jump_size`).
+JUMP_NOISE_SIGMAS = 3.0
 CHANNELS = ("torque", "steer")
 UNITS = {"torque": "N m", "steer": "rad"}
 
@@ -207,11 +210,14 @@ def calibrate_profile(
         result, chosen, drives, gusts, alarm_base, false_alarms_per_1000_h, nominal, say
     )
     design_options = gains.options
-    # the effectiveness stage's measurement noise: the observer's healthy RMS (the stage stays off unless asked)
+    # the effectiveness stage's measurement noise: the observer's healthy RMS, its bias steps: the gust's (the
+    # stage stays off unless asked)
     stage = EffectivenessOptions(
         enabled=effectiveness,
         torque_sigma_nm=_round_up(max(thresholds["torque"].sigma, 1e-6)),
         steer_sigma_rad=_round_up(max(thresholds["steer"].sigma, 1e-9)),
+        torque_jump_nm=jump_size(thresholds["torque"]),
+        steer_jump_rad=jump_size(thresholds["steer"]),
     )
     if effectiveness:  # the alarms then watch the stage's totals: thresholds from those
         estimates = healthy_fault_estimates(gains, drives, alarm_base.warmup_s, stage)
@@ -523,6 +529,15 @@ def _running_min(x: FloatArray, window: int) -> FloatArray:
     if x.size < window:
         return np.zeros(0)
     return np.asarray(np.lib.stride_tricks.sliding_window_view(x, window).min(axis=1))
+
+
+def jump_size(channel: ChannelThresholds) -> float:
+    """The effectiveness stage's bias-step size of a channel (``torque_jump_nm``, ``steer_jump_rad``; docs/math.md
+    section 14): half the stated gust's held response (that gust's step at two standard deviations), or 0 (no jump
+    test) where that response is within JUMP_NOISE_SIGMAS of the healthy estimate's noise."""
+    if channel.gust_peak <= JUMP_NOISE_SIGMAS * channel.sigma:
+        return 0.0
+    return _round_up(channel.gust_peak / 2.0)
 
 
 def _round_up(value: float) -> float:

@@ -48,6 +48,10 @@ def test_calibrate_writes_a_profile_that_synth_and_replay_accept(files, capsys):
     effectiveness = doc["effectiveness"]
     assert effectiveness["enabled"] is False
     assert effectiveness["torque_sigma_nm"] == pytest.approx(summary["thresholds"]["torque"]["sigma"], rel=0.01)
+    # its bias steps: half the gust's held steering response; the gust barely moves the torque estimate, no steps
+    assert effectiveness["steer_jump_rad"] == pytest.approx(steer["gust_peak"] / 2.0, rel=0.01)
+    assert summary["thresholds"]["torque"]["gust_peak"] < 3.0 * summary["thresholds"]["torque"]["sigma"]
+    assert effectiveness["torque_jump_nm"] == 0.0
     # the same file is a --params profile: it designs the same gains and replays with its own thresholds
     gains = root / "gains.json"
     assert main(["synth", "--params", str(profile), "--out", str(gains)]) == 0
