@@ -757,7 +757,7 @@ def run_fleet_job(job: FleetJob) -> dict[str, Any]:
         "driving": vars(driving),
         "observer": tallies["observer"].summary(),
         "EKF": tallies["EKF"].summary(),
-        ALPHA: tallies[ALPHA].summary(),
+        ALPHA: tallies[ALPHA].summary() | {"jump_detections": [] if stage is None else stage.jumps.sum(0).tolist()},
         "wall_s": time.perf_counter() - started,
     }
 
@@ -1310,6 +1310,9 @@ def merge_fleet(
             figures["rules"][rule.key] = {"factor": rule.factor, "channels": channels}
         events = sorted((e for t in tallies for e in t["events"]), key=lambda e: (e["t_s"], e["vehicle"]))
         figures["events"] = events[:KEPT_EVENTS]
+        detections = [t["jump_detections"] for t in tallies if t.get("jump_detections")]
+        if detections:  # the effectiveness stage's bias-jump test (docs/math.md section 14), per channel
+            figures["jump_detections"] = np.sum(detections, axis=0).tolist()
         merged[name] = figures
     return merged
 
@@ -1705,7 +1708,25 @@ def render_effectiveness(document: dict[str, Any]) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     lines += [_delay_row(case["label"], "alpha rule", case[ALPHA]["default"]) for case in document["faults"].values()]
-    return "\n".join(lines) + "\n"
+    return "\n".join([*lines, *_jump_lines(document)]) + "\n"
+
+
+def _jump_lines(document: dict[str, Any]) -> list[str]:
+    """The stage's bias-jump test on the healthy fleet: its options and detections per vehicle-hour."""
+    detections = document["healthy"][ALPHA].get("jump_detections")
+    stage = document["plan"]["effectiveness"]["stage"]
+    if detections is None or "steer_jump_rad" not in stage:
+        return []
+    hours = document["healthy"]["hours"]
+    sizes = f"J {stage['torque_jump_nm']:g} N m / {stage['steer_jump_rad']:g} rad (0: no test)"
+    design = 3600.0 / stage["jump_false_alarm_interval_s"]
+    rates = " / ".join(f"{n / hours:.0f}" for n in detections)
+    return [
+        "",
+        f"The stage's bias-jump test (docs/math.md section 14; {sizes}, window {stage['jump_window_s']:g} s, loss "
+        f"prior {stage['jump_loss_prior']:g}) on the healthy fleet: {rates} detections per vehicle-hour T_f / delta_f "
+        f"({' / '.join(str(n) for n in detections)}), designed for {design:g} per hour on white innovations.",
+    ]
 
 
 def _plan_document(plan: DetectionPlan, calibrated: Calibrated, cusum_rule: bool) -> dict[str, Any]:

@@ -127,6 +127,21 @@ def test_the_alpha_rule_counts_over_the_observer_s_hours_with_the_profile_s_thre
         assert 0.0 <= stats["warn"]["never_share"] <= stats["fault"]["never_share"] <= 1.0
 
 
+def test_the_healthy_fleet_counts_the_stage_s_bias_jump_detections(outcome):
+    """The stage's bias-jump test on the healthy fleet (docs/math.md section 14): the calibrated car tests the
+    steering only (its gust barely moves the torque estimate), the detections are counted per channel, and the
+    effectiveness part's report gives them per vehicle-hour beside the design's rate."""
+    _, _, document = outcome
+    stage = document["plan"]["effectiveness"]["stage"]
+    detections = document["healthy"][bench.ALPHA]["jump_detections"]
+    assert stage["torque_jump_nm"] == 0.0 and stage["steer_jump_rad"] > 0.0
+    assert len(detections) == 2 and all(_is_count(n) for n in detections) and detections[0] == 0
+    made_up = {"healthy": {"hours": 2.0, bench.ALPHA: {"jump_detections": [0, 600]}}, "plan": document["plan"]}
+    line = bench._jump_lines(made_up)[-1]
+    expected = 3600.0 / stage["jump_false_alarm_interval_s"]
+    assert "0 / 300 detections per vehicle-hour T_f / delta_f (0 / 600)" in line and f"{expected:g} per hour" in line
+
+
 def test_multibody_counts_are_consistent_with_the_drives(outcome):
     _, _, document = outcome
     (result,) = document["multibody"]
