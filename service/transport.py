@@ -45,7 +45,7 @@ import threading
 import time
 from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict
 
 import zenoh
 
@@ -70,6 +70,8 @@ from agv_protocol.zenoh_session import ConfigValue, TransportError, session_conf
 from service.settings import ZenohSettings
 
 if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
     from agv_protocol.wire import EstimateBatch
 
 #: Ground-truth samples kept per followed vehicle between two drains (newest kept).
@@ -95,14 +97,16 @@ log = logging.getLogger(__name__)
 Session = zenoh.Session
 
 
+class SessionFiles(TypedDict, total=False):
+    """What a session takes beside its mode and endpoint (:func:`zenoh_config`, :func:`open_session`)."""
+
+    config_file: str | Path | None
+    credentials_file: str | Path | None
+    child_dir: Path | None
+
+
 def zenoh_config(
-    mode: str,
-    endpoint: str,
-    connect_timeout_ms: int = 10_000,
-    *,
-    config_file: str | Path | None = None,
-    credentials_file: str | Path | None = None,
-    child_dir: Path | None = None,
+    mode: str, endpoint: str, connect_timeout_ms: int = 10_000, **files: Unpack[SessionFiles]
 ) -> zenoh.Config:
     """A session config on one explicit endpoint: routers listen on it, clients and peers connect to it.
 
@@ -123,7 +127,8 @@ def zenoh_config(
             ConfigValue("connect/endpoints", [endpoint], required=True),
             ConfigValue("connect/timeout_ms", connect_timeout_ms),
         ]
-    config = session_config(values, config_file, credentials_file)
+    config = session_config(values, files.get("config_file"), files.get("credentials_file"))
+    child_dir = files.get("child_dir")
     if router and child_dir is not None:
         _let_children_in(config, child_dir)
     return config
@@ -203,27 +208,15 @@ def subscribe_payloads(session: zenoh.Session, key: str, callback: Callable[[byt
 
 
 def open_session(
-    mode: str,
-    endpoint: str,
-    connect_timeout_ms: int = 10_000,
-    *,
-    config_file: str | Path | None = None,
-    credentials_file: str | Path | None = None,
-    child_dir: Path | None = None,
+    mode: str, endpoint: str, connect_timeout_ms: int = 10_000, **files: Unpack[SessionFiles]
 ) -> zenoh.Session:
     """Open a session (see :func:`zenoh_config`); raise :class:`TransportError` naming the endpoint."""
-    config = zenoh_config(
-        mode,
-        endpoint,
-        connect_timeout_ms,
-        config_file=config_file,
-        credentials_file=credentials_file,
-        child_dir=child_dir,
-    )
+    config = zenoh_config(mode, endpoint, connect_timeout_ms, **files)
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
         verb = "listen on" if mode == "router" else "connect to"
+        config_file = files.get("config_file")
         secured = f" with {config_file}" if config_file else ""
         raise TransportError(f"zenoh {mode}: cannot {verb} {endpoint}{secured}: {exc}") from exc
 
