@@ -35,6 +35,9 @@ class EstimatorOutput(Protocol):
     @property
     def in_domain(self) -> NDArray[np.bool_]: ...  # (nv,)
 
+    @property
+    def certified(self) -> NDArray[np.bool_]: ...  # (nv,) the estimate lies where the design's bound holds
+
 
 class BatchEstimator(Protocol):
     """A state and fault estimator for a batch of vehicles."""

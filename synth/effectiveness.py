@@ -487,7 +487,7 @@ class EffectivenessStep:
     """One step of :class:`EffectivenessObserver` for a batch: the observer's result with the total faults.
 
     x_hat : (nv, n) the observer's reported estimate, its fault rows replaced by the total faults
-    in_domain : (nv,) as the observer's; alpha, bias, alpha_sigma : (nv, 2) as :class:`EffectivenessResult`;
+    in_domain, certified : (nv,) as the observer's; alpha, bias, alpha_sigma : (nv, 2) as :class:`EffectivenessResult`;
     observer_faults : (nv, 2) the observer's own (additive) fault estimate
     """
 
@@ -497,6 +497,8 @@ class EffectivenessStep:
     bias: FloatArray
     observer_faults: FloatArray
     alpha_sigma: FloatArray
+    #: (nv,) as the observer's :attr:`~synth.observer.StepResult.certified`
+    certified: np.ndarray
 
     @property
     def state(self) -> FloatArray:
@@ -548,4 +550,5 @@ class EffectivenessObserver:
             bias=second.bias,
             observer_faults=np.array(result.faults, dtype=float),
             alpha_sigma=second.alpha_sigma,
+            certified=result.certified,
         )

@@ -43,6 +43,12 @@ class EKFResult(AugmentedEstimate):
     x_hat: FloatArray
     in_domain: np.ndarray
 
+    @property
+    def certified(self) -> np.ndarray:
+        """(nv,) the premise lay in the box of the gains it was tuned beside (the EKF has no certificate; its
+        alarms are held outside the same box as the observer's, for a like-for-like comparison)."""
+        return self.in_domain
+
 
 def jacobian(x: FloatArray, p: VehicleParams, steer_rad: FloatArray | None = None) -> FloatArray:
     """d(dx/dt)/d[v_x, v_y, r] of eqs. (1)-(2) at x.

@@ -345,6 +345,12 @@ class StepResult(AugmentedEstimate):
     #: so that its squared norm is the switching statistic's increment (switched designs; None otherwise)
     innovation: FloatArray | None = None
 
+    @property
+    def certified(self) -> np.ndarray:
+        """(nv,) the certificate covers this step: the premise in the box, v_y_hat and the applied angle in their
+        bounds (outside, the error bound of the design does not hold and the fault alarms do not judge)."""
+        return self.in_domain & self.vy_in_bounds
+
 
 def initial_observer_state(
     rt: RuntimeGains, y: ArrayLike, x_hat0: ArrayLike | None = None, u0: ArrayLike | None = None

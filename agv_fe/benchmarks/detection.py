@@ -414,16 +414,18 @@ class RaiseCounter:
         t_ns: int,
         usable: NDArray[np.bool_] | None = None,
         alpha_sigma: FloatArray | None = None,
+        certified: NDArray[np.bool_] | None = None,
     ) -> tuple[NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
-        """Feed one sample's fault estimates f_hat (n, 2) [N m, rad] at ``t_ns`` [ns] (``usable``: finite rows);
-        alpha_hat (n, 2) [-] and ``alpha_sigma`` (n, 2) [-] for the effectiveness rule (a non-finite alpha_hat
-        raises nothing).
+        """Feed one sample's fault estimates f_hat (n, 2) [N m, rad] at ``t_ns`` [ns] (``usable``: finite rows;
+        ``certified``: the rows the design's certificate covers, as the service's levels take them); alpha_hat
+        (n, 2) [-] and ``alpha_sigma`` (n, 2) [-] for the effectiveness rule (a non-finite alpha_hat raises
+        nothing).
 
         Returns the vehicles whose level changed (m,) and, for them, where WARN and FAULT were raised (m, 2).
         """
         self._t_ns.fill(t_ns)
         if isinstance(self.levels, FaultLevels):
-            changed = self.levels.update(self.rows, f_hat, self._t_ns, usable)
+            changed = self.levels.update(self.rows, f_hat, self._t_ns, usable, certified)
         else:
             sigma = np.zeros_like(f_hat) if alpha_sigma is None else alpha_sigma
             changed = self.levels.update(self.rows, f_hat, sigma, self._t_ns)
@@ -526,6 +528,8 @@ class Tally:
     samples_after_warmup: int = 0
     samples: int = 0
     in_domain: int = 0
+    #: samples outside the certified domain (premise, v_y_hat or the applied angle out of the box)
+    uncertified: int = 0
     non_finite: int = 0
 
     @classmethod
@@ -550,16 +554,20 @@ class Tally:
         near_gust: NDArray[np.bool_],
         context: Callable[[int], dict[str, Any]],
         alpha_sigma: FloatArray | None = None,
+        certified: NDArray[np.bool_] | None = None,
     ) -> None:
         """One sample of the batch, n vehicles: f_hat (n, 2), in_domain (n,), near_gust (n,) a gust within
         GUST_WINDOW_S; ``warm``: after the warm-up; ``context(vehicle)`` describes an alarm's vehicle;
-        ``alpha_sigma`` (n, 2): alpha_hat's standard deviation, for the effectiveness rule."""
+        ``alpha_sigma`` (n, 2): alpha_hat's standard deviation, for the effectiveness rule; ``certified`` (n,):
+        the rows the design's certificate covers (None: all)."""
         usable = usable_rows(f_hat)
         finite = slice(None) if usable is None else usable
         if usable is not None:
             self.non_finite += int((~usable).sum())
         self.samples += f_hat.shape[0]
         self.in_domain += int(np.count_nonzero(in_domain))
+        if certified is not None:
+            self.uncertified += int(certified.size - np.count_nonzero(certified))
         if warm:
             magnitude = np.abs(1.0 - f_hat[finite] if self.effectiveness else f_hat[finite])
             if magnitude.size:
@@ -567,7 +575,7 @@ class Tally:
                 self.sum_squares += np.einsum("ij,ij->j", magnitude, magnitude)
                 self.samples_after_warmup += magnitude.shape[0]
         for i, counter in enumerate(self.counters):
-            rows, to_warn, to_fault = counter.update(f_hat, t_ns, usable, alpha_sigma)
+            rows, to_warn, to_fault = counter.update(f_hat, t_ns, usable, alpha_sigma, certified)
             if not rows.size:
                 continue
             gust = near_gust[rows, None]
@@ -604,6 +612,7 @@ class Tally:
             "samples_after_warmup": self.samples_after_warmup,
             "samples": self.samples,
             "in_domain": self.in_domain,
+            "uncertified": self.uncertified,
             "non_finite": self.non_finite,
         }
 
@@ -741,12 +750,17 @@ def run_fleet_job(job: FleetJob) -> dict[str, Any]:
                 }
 
             result = observer.step(sample.y, sample.u)
-            tallies["observer"].update(result.faults, result.in_domain, t_ns, warm, near_gust, context)
+            certified = result.certified
+            tallies["observer"].update(
+                result.faults, result.in_domain, t_ns, warm, near_gust, context, certified=certified
+            )
             second = stage.step(result, sample.y, sample.u)
             tallies[ALPHA].update(second.alpha, result.in_domain, t_ns, warm, near_gust, context, second.alpha_sigma)
             if job.n_ekf:
                 out = estimators["EKF"].step(sample.y[: job.n_ekf], sample.u[: job.n_ekf])
-                tallies["EKF"].update(out.faults, out.in_domain, t_ns, warm, near_gust[: job.n_ekf], context)
+                tallies["EKF"].update(
+                    out.faults, out.in_domain, t_ns, warm, near_gust[: job.n_ekf], context, certified=out.certified
+                )
             k_total += 1
         state, steer = plant.state, plant.steer_angle
     return {
@@ -942,16 +956,17 @@ def run_fault_job(job: FaultJob) -> dict[str, Any]:
                     counter.restart(0)
         result = observer.step(sample.y, sample.u)
         second = stage.step(result, sample.y, sample.u)
+        ekf_out = ekf.step(sample.y, sample.u) if ekf is not None else None
         outputs = {
-            "observer": result.faults,
-            "EKF": ekf.step(sample.y, sample.u).faults if ekf is not None else np.zeros_like(result.faults),
-            ALPHA: second.alpha,
+            "observer": (result.faults, result.certified),
+            "EKF": (np.zeros_like(result.faults), None) if ekf_out is None else (ekf_out.faults, ekf_out.certified),
+            ALPHA: (second.alpha, None),
         }
-        for name, values in outputs.items():
+        for name, (values, certified) in outputs.items():
             usable = usable_rows(values)
             sigma = second.alpha_sigma if name == ALPHA else None
             for counter, tracker in zip(counters[name], trackers[name], strict=True):
-                counter.update(values, k * period_ns, usable, sigma)
+                counter.update(values, k * period_ns, usable, sigma, certified)
                 tracker.update(sample.t, counter.level)
     results: dict[str, Any] = {"runs": [list(r) for r in job.runs], "onset_s": onset.tolist()}
     other = 1 - channel
@@ -1292,6 +1307,7 @@ def merge_fleet(
             "rms_estimate": np.sqrt(squares / max(samples_after, 1)).tolist(),
             "in_domain_share": sum(t["in_domain"] for t in tallies) / max(sum(t["samples"] for t in tallies), 1),
             "out_of_domain_samples": sum(t["samples"] - t["in_domain"] for t in tallies),
+            "uncertified_samples": sum(t.get("uncertified", 0) for t in tallies),
             "non_finite_samples": sum(t["non_finite"] for t in tallies),
         }
         for rule in rules:

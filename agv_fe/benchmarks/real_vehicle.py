@@ -442,7 +442,7 @@ def _estimate_batch(
         in_domain[k] = step.in_domain
         finite[k] = np.isfinite(f_hat[k]).all(axis=1)
         usable = None if finite[k].all() else finite[k]
-        levels.update(rows, f_hat[k], np.full(nv, t_ns[k], dtype=np.int64), usable)
+        levels.update(rows, f_hat[k], np.full(nv, t_ns[k], dtype=np.int64), usable, step.certified)
         level[k, :, 0] = levels.torque.level
         level[k, :, 1] = levels.steer.level
     return [

@@ -197,7 +197,7 @@ def replay(
                 alpha, bias = np.ones((n, 2)), np.zeros((n, 2))
             alpha[k], bias[k], alpha_sigma = step.alpha[0], step.bias[0], step.alpha_sigma
         if np.isfinite(x_hat[k]).all() and np.isfinite(f_hat[k]).all():
-            levels.update(row, f_hat[k : k + 1], t)
+            levels.update(row, f_hat[k : k + 1], t, certified=step.certified)
             if alpha is not None and t[0] - levels.started_t_ns[0] >= levels.warmup_ns:
                 effectiveness.update(row, alpha[k : k + 1], alpha_sigma, t)
         else:

@@ -172,8 +172,9 @@ class FaultLevels:
     :class:`LevelDetector`, 'cusum' :class:`service.fleet.cusum.CusumDetector`),
     and the warm-up rule: a row's fault estimates are evaluated only once
     ``warmup_s`` of sample time has passed since its observer (re)started
-    (:meth:`restart`). Time is the samples' time stamps [ns]; ``sample_period_s``
-    sets the CUSUM's samples per block.
+    (:meth:`restart`) and since its estimate last left the certified domain
+    (:meth:`update`). Time is the samples' time stamps [ns];
+    ``sample_period_s`` sets the CUSUM's samples per block.
     """
 
     def __init__(self, capacity: int, alarms: AlarmThresholds, sample_period_s: float = 0.01) -> None:
@@ -218,14 +219,26 @@ class FaultLevels:
         self.steer.reset(rows, keep_level=True)
 
     def update(
-        self, rows: np.ndarray, f_hat: np.ndarray, t_ns: np.ndarray, usable: np.ndarray | None = None
+        self,
+        rows: np.ndarray,
+        f_hat: np.ndarray,
+        t_ns: np.ndarray,
+        usable: np.ndarray | None = None,
+        certified: np.ndarray | None = None,
     ) -> np.ndarray:
         """Feed the fault estimates of one sample per row; return the indices (into rows) whose level changed.
 
         rows : (k,) distinct slots; f_hat : (k, 2) [T_f [N m], delta_f [rad]]; t_ns : (k,) sample times [ns];
         usable : (k,) bool, the rows whose estimate may be used (finite), None for all. A row still in its
         warm-up, or not usable, leaves its detectors untouched. An index may appear twice (both channels).
+        certified : (k,) bool, the rows whose estimate the design's certificate covers (synth.observer.StepResult
+        .certified), None for all. A row outside is judged as an observer that restarts there: its levels are
+        held, its persistence timers forgotten, and its warm-up runs again from its last uncertified sample (the
+        estimate carries what the model got wrong outside the box until the error has decayed).
         """
+        if certified is not None and not certified.all():
+            outside = np.flatnonzero(~certified)
+            self.restart(rows[outside], t_ns[outside])
         warm = t_ns - self.started_t_ns[rows] >= self.warmup_ns
         if usable is None and warm.all():  # the common case: every row, no picking out
             torque = self.torque.update(rows, f_hat[:, 0], t_ns)

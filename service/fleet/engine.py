@@ -711,15 +711,15 @@ class FleetEngine:
         """Stage 5: the fault channels after the warm-up (FaultLevels, as `agv-fe replay` runs them), the domain
         always, the effectiveness when the profile runs its stage; alarm records follow the rows that changed."""
         bank, slots, t, out, all_finite = step.bank, step.slots, step.t, step.out, step.all_finite
-        est, in_domain, vy_in_bounds, finite = out.values, out.in_domain, out.vy_in_bounds, out.finite
+        est, finite = out.values, out.finite
+        certified = out.in_domain & out.vy_in_bounds
         usable = None if self._shortcuts and all_finite else finite
-        changed: set[int] = set(bank.faults.update(slots, est[:, FAULTS], t, usable).tolist())
+        changed: set[int] = set(bank.faults.update(slots, est[:, FAULTS], t, usable, certified).tolist())
         if self._shortcuts and all_finite:
-            changed.update(bank.domain.update(slots, (~in_domain | ~vy_in_bounds).astype(float), t).tolist())
+            changed.update(bank.domain.update(slots, (~certified).astype(float), t).tolist())
         else:
             f = np.flatnonzero(finite)
-            outside = (~in_domain[f] | ~vy_in_bounds[f]).astype(float)
-            changed.update(f[bank.domain.update(slots[f], outside, t[f])].tolist())
+            changed.update(f[bank.domain.update(slots[f], (~certified[f]).astype(float), t[f])].tolist())
         if bank.stage is not None:  # the effectiveness alarms, on alpha_hat and its sigma (finite rows)
             f = np.flatnonzero(finite)
             sigma = bank.stage.alpha_sigma(slots[f])

@@ -86,6 +86,35 @@ def test_fault_levels_wait_for_the_warm_up_and_keep_levels_across_a_restart():
     assert levels.steer.level.tolist() == before.tolist()
 
 
+def test_fault_levels_do_not_judge_outside_the_certified_domain():
+    """An uncertified sample (premise, v_y_hat or the applied angle out of the design's box) holds the level,
+    forgets the persistence timer, and starts the warm-up again: a large estimate outside the box, or in the
+    warm-up after it, raises nothing; the same estimate held inside the box afterwards does."""
+    alarms = AlarmThresholds(
+        torque_warn_nm=10.0, torque_fault_nm=20.0, steer_warn_rad=0.01, steer_fault_rad=0.02,
+        raise_after_s=0.05, clear_after_s=0.1, warmup_s=0.1,
+    )  # fmt: skip
+    levels = FaultLevels(2, alarms)
+    rows = np.array([0, 1])
+    levels.restart(rows, np.array([0, 0]))
+    big = np.array([[30.0, 0.0], [30.0, 0.0]])
+    torque: list[list[int]] = []
+    for k in range(60):  # row 0 leaves the certified domain from 200 to 300 ms; row 1 never does
+        certified = np.array([not 20 <= k < 30, True])
+        levels.update(rows, big if k >= 20 else np.zeros((2, 2)), np.full(2, k * 10 * MS), None, certified)
+        torque.append(levels.torque.level.tolist())
+    row0, row1 = [t[0] for t in torque], [t[1] for t in torque]
+    # row 1: above the thresholds from 200 ms, FAULT 50 ms later
+    assert row1[24] == OK and row1[25] == FAULT
+    # row 0: nothing while outside (to 290 ms) and in the warm-up after its last uncertified sample (to 390 ms);
+    # then held for 50 ms: FAULT at 440 ms (sample 44)
+    assert row0[:44] == [OK] * 44 and row0[44:] == [FAULT] * 16
+    # a raised level is held, not cleared, outside the domain
+    for k in range(60, 80):
+        levels.update(rows, np.zeros((2, 2)), np.full(2, k * 10 * MS), None, np.array([False, True]))
+    assert levels.torque.level.tolist() == [FAULT, OK]
+
+
 class InFull(LevelDetector):
     """The detector without its shortcut for quiet rows: every row's timers and level updated in full."""
 
