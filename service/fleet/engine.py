@@ -721,7 +721,9 @@ class FleetEngine:
             f = np.flatnonzero(finite)
             changed.update(f[bank.domain.update(slots[f], (~certified[f]).astype(float), t[f])].tolist())
         if bank.stage is not None:  # the effectiveness alarms, on alpha_hat and its sigma (finite rows)
-            f = np.flatnonzero(finite)
+            # after the fault channels' warm-up, which restarts where the estimate left the certified domain, as
+            # `agv-fe replay` judges them
+            f = np.flatnonzero(finite & (t - bank.faults.started_t_ns[slots] >= bank.faults.warmup_ns))
             sigma = bank.stage.alpha_sigma(slots[f])
             changed.update(f[bank.effectiveness.update(slots[f], est[f, ALPHAS], sigma, t[f])].tolist())
         for j in sorted(changed):
