@@ -25,6 +25,7 @@ design, alarms), the body ``PUT /profiles/{name}`` takes and the file
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -173,6 +174,7 @@ def calibrate_profile(
     *,
     design: dict[str, Any] | None = None,
     alarms: dict[str, Any] | None = None,
+    bounds: dict[str, Any] | None = None,
     nominal_torque_nm: float | None = None,
     false_alarms_per_1000_h: float = 1.0,
     gust_n: float = GUST_N,
@@ -186,6 +188,8 @@ def calibrate_profile(
     base : vehicle parameters a data sheet gives (synth.calibration.REQUIRED_BASE_FIELDS at least);
     design : design options to keep (the noise model's sensor sigmas are replaced by the measured ones);
     alarms : alarm settings to keep (persistence, warm-up...; the four fault thresholds are set here);
+    bounds : an operating box to keep (synth.params.OperatingBounds fields, any of them), widened where the
+    recordings go beyond it (:func:`stated_bounds`); without it, the box of the recordings' envelope;
     nominal_torque_nm : the drive torque a 10 % fault is measured against (default: m_eff R_w 2 m/s^2);
     gust_n : the lateral wind gust [N] (held GUST_S) the vehicle must ride through without an alarm; 0: none.
     effectiveness : enable the loss-of-effectiveness stage in the profile, and set the fault thresholds from the
@@ -196,6 +200,8 @@ def calibrate_profile(
         raise ValueError(f"false_alarms_per_1000_h must be positive, got {false_alarms_per_1000_h}")
     say = progress or (lambda _line: None)
     result = calibrate(drives, base, options)
+    if bounds:
+        result = stated_bounds(result, bounds)
     say(f"parameters identified from {result.duration_s:.0f} s of driving")
     params = result.params
     chosen = dict(design or {})
@@ -308,12 +314,14 @@ def calibrate_from_base(
     effectiveness: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> CalibrationReport:
-    """:func:`calibrate_profile` with a base document: {"params": {...}, "design"?, "alarms"?, "description"?}."""
+    """:func:`calibrate_profile` with a base document: {"params": {...}, "bounds"?, "design"?, "alarms"?,
+    "description"?}."""
     return calibrate_profile(
         drives,
         base["params"],
         design=base.get("design"),
         alarms=base.get("alarms"),
+        bounds=base.get("bounds"),
         nominal_torque_nm=nominal_torque_nm,
         false_alarms_per_1000_h=false_alarms_per_1000_h,
         gust_n=gust_n,
@@ -321,6 +329,37 @@ def calibrate_from_base(
         description=str(base.get("description", "")),
         progress=progress,
     )
+
+
+_LOWER_LIMITS = frozenset({"vx_min_mps", "vy_min_mps", "r_min_radps"})
+
+
+def stated_bounds(result: CalibrationResult, given: dict[str, Any]) -> CalibrationResult:
+    """``result`` with the operating box a vehicle engineer states (``given``: any OperatingBounds fields) kept
+    and widened where the recordings' box (:func:`synth.calibration.operating_bounds`) goes beyond it: each
+    limit the wider of the two, so that the recordings the thresholds are set from stay in the certified domain.
+
+    A wider box than the recordings need is a choice: the certificate then covers tighter turns and lower
+    speeds (no out-of-domain stretch there, docs/math.md section 8), at the price of noisier estimates (the
+    bounds of the DMVT terms grow). Raises ValueError (pydantic's) for an invalid box.
+    """
+    if not isinstance(given, dict):
+        raise ValueError(f"bounds must be an object of OperatingBounds fields, got {type(given).__name__}")
+    recorded = result.bounds
+    stated = OperatingBounds.model_validate({**recorded.model_dump(), **given})
+    merged: dict[str, Any] = {}
+    for name in OperatingBounds.model_fields:
+        mine, theirs = getattr(stated, name), getattr(recorded, name)
+        if mine is None or theirs is None:
+            merged[name] = theirs if mine is None else mine
+        else:
+            merged[name] = min(mine, theirs) if name in _LOWER_LIMITS else max(mine, theirs)
+    box = OperatingBounds.model_validate(merged)
+    widened = sorted(name for name in given if merged.get(name) != getattr(stated, name))
+    note = "operating box: the base's bounds kept" + (
+        f", widened to hold the recordings in {', '.join(widened)}" if widened else ""
+    )
+    return dataclasses.replace(result, bounds=box, notes=[*result.notes, note])
 
 
 def channel_thresholds(
