@@ -127,6 +127,15 @@ def test_calibration_figures_against_the_plant(figures):
     assert alarms["steer_fault_rad"] == cal["summary"]["thresholds"]["steer"]["fault"]
 
 
+def test_every_third_healthy_drive_is_in_town():
+    """Seeds 3, 6, 9... drive at 6-12 m/s with corners up to 0.65 rad/s (seed 9's reaches 0.64 rad/s at 7 m/s^2,
+    beyond the open roads' 0.5 rad/s); seed 1 drives on open roads."""
+    town, road = bench.healthy_drive(9, 60.0), bench.healthy_drive(1, 60.0)
+    assert bench.URBAN_SPEED_MPS[0] <= town.speed_mps.min() and town.speed_mps.max() <= bench.URBAN_SPEED_MPS[1]
+    assert 0.6 < np.abs(town.yaw_rate_radps).max() <= bench.URBAN_YAW_RATE_RADPS
+    assert np.abs(road.yaw_rate_radps).max() <= 0.5 and road.speed_mps.min() >= 8.0
+
+
 def test_healthy_counts_are_consistent(figures):
     healthy = figures["healthy"]
     driving = healthy["driving"]
@@ -137,6 +146,8 @@ def test_healthy_counts_are_consistent(figures):
         result = healthy[name]
         assert _is_count(result["non_finite_samples"])
         assert 0.0 <= result["in_domain_share"] <= 1.0
+        # the levels judge only samples after the warm-up (3 s of each 30 s drive at least), never more
+        assert 0.0 < result["assessed_share"] <= 1.0 - 3.0 / bench.QUICK_HEALTHY_DURATION_S + 1e-9
         for channel, c in result["channels"].items():
             assert _is_count(c["warn_raised"]) and _is_count(c["fault_raised"]), (name, channel, c)
             assert 0 <= c["held_peak_abs_estimate"] <= c["peak_abs_estimate"]
