@@ -376,6 +376,20 @@ def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_
     rows = read_rows(tmp_path / "replay.csv")
     assert float(rows[0]["steer_fault_hat"]) == 0.0 and abs(float(rows[0]["vx_hat"])) > 0  # a cold start
 
+    estimates = assert_the_engine_gives_the_replay(body, gains, recording, rows)
+    assert runs([r["steer_level"] for r in rows]) == ["OK", "WARN", "FAULT"]
+    order = ["OK", "WARN", "FAULT"]
+    assert [e.level for e in estimates] == [
+        order[max(order.index(r["torque_level"]), order.index(r["steer_level"]))] for r in rows
+    ]
+
+
+def assert_the_engine_gives_the_replay(
+    body: dict[str, Any], gains: Any, recording: Path, rows: list[dict[str, str]]
+) -> list[Estimate]:
+    """Feed the recording's samples to an in-process fleet engine with the profile ``body`` and ``gains``: its
+    estimates are the replay's ``rows`` and its fault alarms change level at the replay's transition samples.
+    Returns the engine's estimates."""
     engine = FleetEngine(EngineConfig())
     engine.add_profile("default", ProfileSpec.model_validate(body))
     engine.activate("default", gains)
@@ -383,8 +397,8 @@ def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_
     alarms = []
     for k, row in enumerate(read_rows(recording)):
         vx, r, torque, steer = (float(row[c]) for c in ("vx", "r", "torque", "steer"))
-        m = Measurement("lag-1", k, T0_NS + k * PERIOD_NS, vx, r, torque, steer)
-        result = engine.process([(vehicle_key("lag-1", "meas"), m.encode())])
+        m = Measurement("veh-1", k, T0_NS + k * PERIOD_NS, vx, r, torque, steer)
+        result = engine.process([(vehicle_key("veh-1", "meas"), m.encode())])
         estimates += [Estimate.decode(doc) for _, doc in result.estimates]
         alarms += [change.event for change in result.alarms]
     assert [e.seq for e in estimates] == list(range(len(rows)))
@@ -395,8 +409,44 @@ def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_
     for kind, column in (("torque_fault", "torque_level"), ("steer_fault", "steer_level")):
         service = [(a.t_ns - T0_NS, a.level if a.state == "raised" else "OK") for a in alarms if a.kind == kind]
         assert service == transitions(rows, column), kind
-    assert runs([r["steer_level"] for r in rows]) == ["OK", "WARN", "FAULT"]
-    order = ["OK", "WARN", "FAULT"]
-    assert [e.level for e in estimates] == [
-        order[max(order.index(r["torque_level"]), order.index(r["steer_level"]))] for r in rows
-    ]
+    return estimates
+
+
+def test_outside_the_certified_domain_the_replay_holds_the_levels_as_the_engine_does(tmp_path, capsys):
+    """A profile whose box holds yaw rates to 0.15 rad/s only, a turn beyond it, and a torque bias from inside
+    the turn: neither the replay nor the engine judges the fault channels in the turn and for the warm-up after
+    it; both raise the bias at the same sample, the warm-up after the last sample outside."""
+    body = {"bounds": {"r_min_radps": -0.15, "r_max_radps": 0.15}, "design": {"switching": None}, "alarms": E2E_ALARMS}
+    spec = ProfileSpec.model_validate(body)
+    gains = synthesize(spec.params, spec.bounds, DesignOptions(switching=None))
+    (tmp_path / "gains.json").write_text(json.dumps(gains.to_dict()))
+    (tmp_path / "profile.json").write_text(json.dumps(body))
+    scenario = Scenario(
+        name="leaves-the-box",
+        duration_s=10.0,
+        initial_speed_mps=12.0,
+        manoeuvres=(Manoeuvre(kind="turn", start_s=1.5, duration_s=4.0, amplitude_rad=0.06, ramp_s=0.5),),
+        faults=(BiasFault(channel="torque", onset_s=3.0, magnitude=150.0),),
+        noise=REALISTIC_NOISE,
+        seed=11,
+    )
+    recording = record(tmp_path / "turn.csv", scenario)
+    code, _, err = replay(
+        capsys,
+        recording,
+        tmp_path / "replay.csv",
+        "--gains",
+        str(tmp_path / "gains.json"),
+        "--params",
+        str(tmp_path / "profile.json"),
+    )
+    assert code == 0, err
+    rows = read_rows(tmp_path / "replay.csv")
+    outside = [float(r["t"]) for r in rows if r["in_domain"] in ("False", "0", "false")]
+    assert outside and 1.5 < outside[0] < 3.0 < outside[-1] < 6.0  # the turn leaves the box around the onset
+    first_warn = first_at_least(rows, "torque_level", "WARN")
+    alarms = AlarmThresholds(**E2E_ALARMS)
+    # the bias is above WARN from its onset, yet judged only from the warm-up after the last sample outside
+    assert first_warn is not None and first_warn >= outside[-1] + alarms.warmup_s + alarms.raise_after_s - 0.011
+    assert first_held(rows, "torque_fault_hat", alarms.torque_warn_nm, alarms) < outside[-1]  # the old rule's
+    assert_the_engine_gives_the_replay(body, gains, recording, rows)
