@@ -343,6 +343,21 @@ def test_replay_levels_equal_the_services_for_the_same_stream(tmp_path, capsys):
     assert [e["level"] for e in estimates] == offline_levels
 
 
+def replay_with_files(capsys: pytest.CaptureFixture[str], tmp_path: Path, recording: Path) -> list[dict[str, str]]:
+    """Replay ``recording`` with tmp_path's gains.json and profile.json; the rows it wrote."""
+    code, _, err = replay(
+        capsys,
+        recording,
+        tmp_path / "replay.csv",
+        "--gains",
+        str(tmp_path / "gains.json"),
+        "--params",
+        str(tmp_path / "profile.json"),
+    )
+    assert code == 0, err
+    return read_rows(tmp_path / "replay.csv")
+
+
 def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_path, capsys):
     """With a steering actuator lag the observer state carries the actuator's angle, which starts on the first
     demand (a turn held from t = 0): the replay passes it, as the service's bank does. In-process, the fleet
@@ -363,17 +378,7 @@ def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_
         seed=7,
     )
     recording = record(tmp_path / "lag.csv", scenario)
-    code, _, err = replay(
-        capsys,
-        recording,
-        tmp_path / "replay.csv",
-        "--gains",
-        str(tmp_path / "gains.json"),
-        "--params",
-        str(tmp_path / "profile.json"),
-    )
-    assert code == 0, err
-    rows = read_rows(tmp_path / "replay.csv")
+    rows = replay_with_files(capsys, tmp_path, recording)
     assert float(rows[0]["steer_fault_hat"]) == 0.0 and abs(float(rows[0]["vx_hat"])) > 0  # a cold start
 
     estimates = assert_the_engine_gives_the_replay(body, gains, recording, rows)
@@ -431,17 +436,7 @@ def test_outside_the_certified_domain_the_replay_holds_the_levels_as_the_engine_
         seed=11,
     )
     recording = record(tmp_path / "turn.csv", scenario)
-    code, _, err = replay(
-        capsys,
-        recording,
-        tmp_path / "replay.csv",
-        "--gains",
-        str(tmp_path / "gains.json"),
-        "--params",
-        str(tmp_path / "profile.json"),
-    )
-    assert code == 0, err
-    rows = read_rows(tmp_path / "replay.csv")
+    rows = replay_with_files(capsys, tmp_path, recording)
     outside = [float(r["t"]) for r in rows if r["in_domain"] in ("False", "0", "false")]
     assert outside and 1.5 < outside[0] < 3.0 < outside[-1] < 6.0  # the turn leaves the box around the onset
     first_warn = first_at_least(rows, "torque_level", "WARN")

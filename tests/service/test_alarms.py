@@ -54,14 +54,17 @@ def test_rows_are_independent():
     assert changed.tolist() == [0, 1] and d.level.tolist() == [FAULT, OK, WARN]
 
 
+#: Fault-channel rules quick enough to show every transition in a few dozen samples of 10 ms.
+QUICK_ALARMS = AlarmThresholds(
+    torque_warn_nm=10.0, torque_fault_nm=20.0, steer_warn_rad=0.01, steer_fault_rad=0.02,
+    raise_after_s=0.05, clear_after_s=0.1, warmup_s=0.1,
+)  # fmt: skip
+
+
 def test_fault_levels_wait_for_the_warm_up_and_keep_levels_across_a_restart():
     """The fault-channel rule: nothing is evaluated during the warm-up after a (re)start, the persistence runs
     from the first warm sample, a restart holds the level, and an unusable row is left alone."""
-    alarms = AlarmThresholds(
-        torque_warn_nm=10.0, torque_fault_nm=20.0, steer_warn_rad=0.01, steer_fault_rad=0.02,
-        raise_after_s=0.05, clear_after_s=0.1, warmup_s=0.1,
-    )  # fmt: skip
-    levels = FaultLevels(2, alarms)
+    levels = FaultLevels(2, QUICK_ALARMS)
     rows = np.array([0, 1])
     levels.restart(rows, np.array([0, 0]))
     torque_row0: list[int] = []
@@ -90,11 +93,7 @@ def test_fault_levels_do_not_judge_outside_the_certified_domain():
     """An uncertified sample (premise, v_y_hat or the applied angle out of the design's box) holds the level,
     forgets the persistence timer, and starts the warm-up again: a large estimate outside the box, or in the
     warm-up after it, raises nothing; the same estimate held inside the box afterwards does."""
-    alarms = AlarmThresholds(
-        torque_warn_nm=10.0, torque_fault_nm=20.0, steer_warn_rad=0.01, steer_fault_rad=0.02,
-        raise_after_s=0.05, clear_after_s=0.1, warmup_s=0.1,
-    )  # fmt: skip
-    levels = FaultLevels(2, alarms)
+    levels = FaultLevels(2, QUICK_ALARMS)
     rows = np.array([0, 1])
     levels.restart(rows, np.array([0, 0]))
     big = np.array([[30.0, 0.0], [30.0, 0.0]])
