@@ -39,14 +39,15 @@ _INITIAL_CAPACITY = 64
 class StepOutput:
     """Result of one batched step, rows in the order of the call.
 
-    values : (k, len(ESTIMATE_COLUMNS)) estimates; in_domain, vy_in_bounds, finite : (k,) bool;
+    values : (k, len(ESTIMATE_COLUMNS)) estimates; in_domain, finite : (k,) bool; certified : (k,) bool, the
+    design's certificate covers the step (synth.observer.StepResult.certified);
     restarted : (k,) bool, the row's observer was (re)initialised at this sample.
     fast : (k,) bool, the row ran the fast gain set of a switched design (None: the design has one set).
     """
 
     values: FloatArray
     in_domain: np.ndarray
-    vy_in_bounds: np.ndarray
+    certified: np.ndarray
     finite: np.ndarray
     restarted: np.ndarray
     fast: np.ndarray | None = None
@@ -325,7 +326,7 @@ class ProfileBank:
         return StepOutput(
             values=values,
             in_domain=res.in_domain,
-            vy_in_bounds=res.vy_in_bounds,
+            certified=res.certified,
             finite=finite,
             restarted=restarted,
             fast=res.fast if rt.switched else None,

@@ -711,8 +711,7 @@ class FleetEngine:
         """Stage 5: the fault channels after the warm-up (FaultLevels, as `agv-fe replay` runs them), the domain
         always, the effectiveness when the profile runs its stage; alarm records follow the rows that changed."""
         bank, slots, t, out, all_finite = step.bank, step.slots, step.t, step.out, step.all_finite
-        est, finite = out.values, out.finite
-        certified = out.in_domain & out.vy_in_bounds
+        est, finite, certified = out.values, out.finite, out.certified
         usable = None if self._shortcuts and all_finite else finite
         changed: set[int] = set(bank.faults.update(slots, est[:, FAULTS], t, usable, certified).tolist())
         if self._shortcuts and all_finite:
