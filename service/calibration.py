@@ -188,8 +188,7 @@ def calibrate_profile(
     base : vehicle parameters a data sheet gives (synth.calibration.REQUIRED_BASE_FIELDS at least);
     design : design options to keep (the noise model's sensor sigmas are replaced by the measured ones);
     alarms : alarm settings to keep (persistence, warm-up...; the four fault thresholds are set here);
-    bounds : an operating box to keep (synth.params.OperatingBounds fields, any of them), widened where the
-    recordings go beyond it (:func:`stated_bounds`); without it, the box of the recordings' envelope;
+    bounds : an operating box to keep (OperatingBounds fields), widened to hold the recordings (:func:`stated_bounds`);
     nominal_torque_nm : the drive torque a 10 % fault is measured against (default: m_eff R_w 2 m/s^2);
     gust_n : the lateral wind gust [N] (held GUST_S) the vehicle must ride through without an alarm; 0: none.
     effectiveness : enable the loss-of-effectiveness stage in the profile, and set the fault thresholds from the
@@ -199,9 +198,7 @@ def calibrate_profile(
     if not (false_alarms_per_1000_h > 0 and math.isfinite(false_alarms_per_1000_h)):
         raise ValueError(f"false_alarms_per_1000_h must be positive, got {false_alarms_per_1000_h}")
     say = progress or (lambda _line: None)
-    result = calibrate(drives, base, options)
-    if bounds:
-        result = stated_bounds(result, bounds)
+    result = stated_bounds(calibrate(drives, base, options), bounds)
     say(f"parameters identified from {result.duration_s:.0f} s of driving")
     params = result.params
     chosen = dict(design or {})
@@ -334,15 +331,18 @@ def calibrate_from_base(
 _LOWER_LIMITS = frozenset({"vx_min_mps", "vy_min_mps", "r_min_radps"})
 
 
-def stated_bounds(result: CalibrationResult, given: dict[str, Any]) -> CalibrationResult:
+def stated_bounds(result: CalibrationResult, given: dict[str, Any] | None) -> CalibrationResult:
     """``result`` with the operating box a vehicle engineer states (``given``: any OperatingBounds fields) kept
     and widened where the recordings' box (:func:`synth.calibration.operating_bounds`) goes beyond it: each
     limit the wider of the two, so that the recordings the thresholds are set from stay in the certified domain.
+    ``given`` None or empty: ``result`` as it is.
 
     A wider box than the recordings need is a choice: the certificate then covers tighter turns and lower
     speeds (no out-of-domain stretch there, docs/math.md section 8), at the price of noisier estimates (the
     bounds of the DMVT terms grow). Raises ValueError (pydantic's) for an invalid box.
     """
+    if not given:
+        return result
     if not isinstance(given, dict):
         raise ValueError(f"bounds must be an object of OperatingBounds fields, got {type(given).__name__}")
     recorded = result.bounds
