@@ -343,8 +343,13 @@ def test_replay_levels_equal_the_services_for_the_same_stream(tmp_path, capsys):
     assert [e["level"] for e in estimates] == offline_levels
 
 
-def replay_with_files(capsys: pytest.CaptureFixture[str], tmp_path: Path, recording: Path) -> list[dict[str, str]]:
-    """Replay ``recording`` with tmp_path's gains.json and profile.json; the rows it wrote."""
+def replay_with_files(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, recording: Path, gains: Any, body: dict[str, Any]
+) -> list[dict[str, str]]:
+    """Write ``gains`` and the profile ``body`` as files in tmp_path and replay ``recording`` with them (as
+    `--gains` and `--params`); the rows it wrote."""
+    (tmp_path / "gains.json").write_text(json.dumps(gains.to_dict()))
+    (tmp_path / "profile.json").write_text(json.dumps(body))
     code, _, err = replay(
         capsys,
         recording,
@@ -365,8 +370,6 @@ def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_
     params = {"steer_time_constant_s": 0.05}
     body = {"params": params, "design": {"switching": None}, "alarms": E2E_ALARMS}
     gains = synthesize(VehicleParams(**params), options=DesignOptions(switching=None))
-    (tmp_path / "gains.json").write_text(json.dumps(gains.to_dict()))
-    (tmp_path / "profile.json").write_text(json.dumps(body))
     scenario = Scenario(
         name="lag",
         duration_s=8.0,
@@ -378,7 +381,7 @@ def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_
         seed=7,
     )
     recording = record(tmp_path / "lag.csv", scenario)
-    rows = replay_with_files(capsys, tmp_path, recording)
+    rows = replay_with_files(capsys, tmp_path, recording, gains, body)
     assert float(rows[0]["steer_fault_hat"]) == 0.0 and abs(float(rows[0]["vx_hat"])) > 0  # a cold start
 
     estimates = assert_the_engine_gives_the_replay(body, gains, recording, rows)
@@ -424,8 +427,6 @@ def test_outside_the_certified_domain_the_replay_holds_the_levels_as_the_engine_
     body = {"bounds": {"r_min_radps": -0.15, "r_max_radps": 0.15}, "design": {"switching": None}, "alarms": E2E_ALARMS}
     spec = ProfileSpec.model_validate(body)
     gains = synthesize(spec.params, spec.bounds, DesignOptions(switching=None))
-    (tmp_path / "gains.json").write_text(json.dumps(gains.to_dict()))
-    (tmp_path / "profile.json").write_text(json.dumps(body))
     scenario = Scenario(
         name="leaves-the-box",
         duration_s=10.0,
@@ -436,7 +437,7 @@ def test_outside_the_certified_domain_the_replay_holds_the_levels_as_the_engine_
         seed=11,
     )
     recording = record(tmp_path / "turn.csv", scenario)
-    rows = replay_with_files(capsys, tmp_path, recording)
+    rows = replay_with_files(capsys, tmp_path, recording, gains, body)
     outside = [float(r["t"]) for r in rows if r["in_domain"] in ("False", "0", "false")]
     assert outside and 1.5 < outside[0] < 3.0 < outside[-1] < 6.0  # the turn leaves the box around the onset
     first_warn = first_at_least(rows, "torque_level", "WARN")
