@@ -297,7 +297,42 @@ class ServiceCollector(Collector):
             stats["restarts"],
         )
         yield _one(CounterMetricFamily("agv_fe_estimates", "estimates computed"), stats["estimates"])
-        vehicle = m.vehicle_estimates
+        yield from self._vehicle_keys()
+        yield _one(
+            CounterMetricFamily(
+                "agv_fe_fleet_estimates_published",
+                "estimates published on Zenoh in the replica's one-message-per-tick fleet stream",
+            ),
+            m.fleet_estimates_out,
+        )
+        yield _one(
+            GaugeMetricFamily(
+                "agv_fe_estimate_keys_unmatched",
+                "vehicles whose estimate key no subscriber matched at the last check (their estimates are not sent)",
+            ),
+            0 if m.vehicle_estimates is None else m.vehicle_estimates.unmatched,
+        )
+        yield _one(
+            GaugeMetricFamily(
+                "agv_fe_ingest_last_batch",
+                "measurements drained in the last tick (the queue depth seen by the ingest loop)",
+            ),
+            m.last_batch,
+        )
+        yield _one(
+            CounterMetricFamily("agv_fe_ingest_full_batches", "ticks that hit ingest.max_batch (backlog)"),
+            m.full_batches,
+        )
+        yield m.tick_seconds.family("agv_fe_tick_seconds", "time to drain, validate, step, alarm and publish one tick")
+        yield m.tick_batch.family("agv_fe_tick_batch_measurements", "measurements per tick")
+        yield m.end_to_end_seconds.family(
+            "agv_fe_estimate_latency_seconds",
+            "end-to-end delay of each estimate: from its sample's time stamp (vehicle clock) to its publication",
+        )
+
+    def _vehicle_keys(self) -> Iterator[Metric]:
+        """Each vehicle's estimates on its own keys: how many, lost, failed, and how late."""
+        vehicle = self.source.metrics.vehicle_estimates
         published = CounterMetricFamily(
             "agv_fe_estimates_published",
             "estimates published on Zenoh on their vehicle's key, by encoding (json on .../estimate, binary on "
@@ -320,36 +355,17 @@ class ServiceCollector(Collector):
             ),
             0 if vehicle is None else vehicle.errors,
         )
-        yield _one(
-            CounterMetricFamily(
-                "agv_fe_fleet_estimates_published",
-                "estimates published on Zenoh in the replica's one-message-per-tick fleet stream",
-            ),
-            m.fleet_estimates_out,
+        yield (Histogram(END_TO_END_BUCKETS_S) if vehicle is None else vehicle.delay).family(
+            "agv_fe_vehicle_estimate_latency_seconds",
+            "each estimate put on its vehicle's own keys: from its sample's time stamp (vehicle clock) to the end of "
+            "its tick's puts",
         )
         yield _one(
             GaugeMetricFamily(
-                "agv_fe_estimate_keys_unmatched",
-                "vehicles whose estimate key no subscriber matched at the last check (their estimates are not sent)",
+                "agv_fe_vehicle_estimate_backlog_seconds",
+                "how long the oldest tick waiting for publication on the vehicle keys has waited (0: none waits)",
             ),
-            0 if vehicle is None else vehicle.unmatched,
-        )
-        yield _one(
-            GaugeMetricFamily(
-                "agv_fe_ingest_last_batch",
-                "measurements drained in the last tick (the queue depth seen by the ingest loop)",
-            ),
-            m.last_batch,
-        )
-        yield _one(
-            CounterMetricFamily("agv_fe_ingest_full_batches", "ticks that hit ingest.max_batch (backlog)"),
-            m.full_batches,
-        )
-        yield m.tick_seconds.family("agv_fe_tick_seconds", "time to drain, validate, step, alarm and publish one tick")
-        yield m.tick_batch.family("agv_fe_tick_batch_measurements", "measurements per tick")
-        yield m.end_to_end_seconds.family(
-            "agv_fe_estimate_latency_seconds",
-            "end-to-end delay of each estimate: from its sample's time stamp (vehicle clock) to its publication",
+            0.0 if vehicle is None else vehicle.backlog_s,
         )
 
     def _fleet(self) -> Iterator[Metric]:

@@ -47,6 +47,7 @@ from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TypedDict
 
+import numpy as np
 import zenoh
 
 from agv_protocol.wire import (
@@ -67,6 +68,7 @@ from agv_protocol.wire import (
     vehicle_key,
 )
 from agv_protocol.zenoh_session import ConfigValue, TransportError, session_config
+from service.metrics import END_TO_END_BUCKETS_S, Histogram
 from service.settings import ZenohSettings
 
 if TYPE_CHECKING:
@@ -251,6 +253,12 @@ class VehiclePublisher(Protocol):
     @property
     def unmatched(self) -> int: ...
 
+    @property
+    def delay(self) -> Histogram: ...
+
+    @property
+    def backlog_s(self) -> float: ...
+
     def submit(self, batches: Sequence[EstimateBatch]) -> None: ...
 
     def close(self, timeout_s: float = 5.0) -> None: ...
@@ -269,7 +277,9 @@ class VehicleEstimates:
 
     Counters (written by one thread each, read by any): :attr:`sent` messages put by encoding name
     (:data:`ENCODING_NAMES`), :attr:`dropped` estimates dropped, :attr:`errors` publications that failed,
-    :attr:`unmatched` vehicles nobody listens to in any encoding.
+    :attr:`unmatched` vehicles nobody listens to in any encoding. Where the time goes: :attr:`delay`, each
+    estimate put, from its sample's time stamp (vehicle clock) to the end of its tick's puts, and
+    :attr:`backlog_s`, how long the oldest tick waiting has waited.
     """
 
     def __init__(self, session: zenoh.Session, prefix: str, congestion: Any, subscribed_only: bool) -> None:
@@ -287,6 +297,8 @@ class VehicleEstimates:
         self.dropped = 0
         self.errors = 0
         self.unmatched = 0
+        #: [s] per estimate put in some encoding (written by this thread only; a vehicle clock ahead counts as 0)
+        self.delay = Histogram(END_TO_END_BUCKETS_S)
         self._queue: collections.deque[tuple[float, Sequence[EstimateBatch]]] = collections.deque()
         self._wake = threading.Event()
         self._take = threading.Lock()  # taking the oldest tick: the thread to publish it, submit() to drop it
@@ -304,6 +316,14 @@ class VehicleEstimates:
                     self.dropped += sum(len(b) for b in queue.popleft()[1])
         queue.append((now, batches))
         self._wake.set()
+
+    @property
+    def backlog_s(self) -> float:
+        """How long the oldest tick waiting for publication has waited [s] (0: none waits)."""
+        try:
+            return max(0.0, time.monotonic() - self._queue[0][0])
+        except IndexError:  # none waits, or the thread took the last one meanwhile
+            return 0.0
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Publish what is queued, stop the thread, undeclare the publishers and their listeners."""
@@ -327,23 +347,34 @@ class VehicleEstimates:
                     if not self._queue:
                         break
                     _, batches = self._queue.popleft()
-                try:
-                    self.publish(batches)
-                except Exception:  # a failed put or declaration: counted and logged, the thread goes on
-                    self.errors += 1
-                    log.exception("publishing %d vehicles' estimates failed", sum(len(b) for b in batches))
+                self._publish_counted(batches)
             if self._stopping:
                 return
             if idle and self.subscribed_only:
                 with contextlib.suppress(Exception):
                     self.refresh_matching()
 
-    def publish(self, batches: Sequence[EstimateBatch]) -> None:
-        """Encode and put ``batches`` on the vehicles' keys, in every encoding someone subscribes to."""
+    def _publish_counted(self, batches: Sequence[EstimateBatch]) -> None:
+        """:meth:`publish`, its delays observed; a failure counted and logged (the publisher goes on)."""
+        try:
+            stamps = self.publish(batches)
+        except Exception:  # a failed put or declaration
+            self.errors += 1
+            log.exception("publishing %d vehicles' estimates failed", sum(len(b) for b in batches))
+            return
+        if stamps:
+            delay_ns = time.time_ns() - (stamps[0] if len(stamps) == 1 else np.concatenate(stamps))
+            self.delay.observe_many(np.maximum(delay_ns, 0) * 1e-9)
+
+    def publish(self, batches: Sequence[EstimateBatch]) -> list[np.ndarray]:
+        """Encode and put ``batches`` on the vehicles' keys, in every encoding someone subscribes to; return the
+        sample time stamps of the estimates put (in one encoding at least), an array per batch that had some."""
         if self.subscribed_only:
             self.refresh_matching()
         pubs = self.pubs
+        stamps = []
         for batch in batches:
+            put: set[int] | None = set()  # the rows put in some encoding (None: every row)
             for kind, (encode, _) in VEHICLE_ENCODINGS.items():
                 unmatched = self.unmatched_keys[kind]
                 ids = batch.vehicle_ids
@@ -353,14 +384,22 @@ class VehicleEstimates:
                         continue
                     ids = [ids[j] for j in rows]
                     documents = encode(batch, rows)
+                    if put is not None:
+                        put.update(rows)
                 else:
                     documents = encode(batch, None)
+                    put = None
                 for vehicle_id, document in zip(ids, documents, strict=True):
                     pub = pubs.get((vehicle_id, kind))
                     if pub is None:
                         pub = pubs[vehicle_id, kind] = self.declare(vehicle_id, kind)
                     pub.put(document)
                 self.sent[ENCODING_NAMES[kind]] += len(documents)
+            if put is None:
+                stamps.append(batch.t_ns)
+            elif put:
+                stamps.append(batch.t_ns[sorted(put)])
+        return stamps
 
     def declare(self, vehicle_id: str, kind: Kind) -> Any:
         """The publisher of ``vehicle_id``'s estimates in the encoding of key ``kind`` (with its matching listener

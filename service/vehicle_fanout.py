@@ -19,13 +19,20 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 from agv_protocol.wire import EstimateBatch
 from service.fleet_child import POLL_S, FleetStreamChild, child_session, fleet_key, serve_fleet_stream
+from service.metrics import END_TO_END_BUCKETS_S, Histogram
 from service.settings import ZenohSettings
 from service.transport import ENCODING_NAMES, VehicleEstimates, estimate_congestion
 
-#: The shared counters, in order (service/fleet_child.py adds the two flags).
-_COUNTERS = (*ENCODING_NAMES.values(), "dropped", "errors", "unmatched")
+#: The shared counters, in order (service/fleet_child.py adds the two flags): the publisher's counters, its
+#: backlog [us], then its delay histogram: a count per bucket (the last above every bound) and the sum [s] (a
+#: float64's bits: years-old time stamps would overflow any integer unit).
+_COUNTERS = (*ENCODING_NAMES.values(), "dropped", "errors", "unmatched", "backlog_us")
+_DELAY_AT = len(_COUNTERS)
+_DELAY_SLOTS = len(END_TO_END_BUCKETS_S) + 2
 
 
 def fanout_main(zenoh_settings: dict[str, Any], replica_id: str, child_dir: str | None, counters: Any) -> None:
@@ -39,7 +46,11 @@ def fanout_main(zenoh_settings: dict[str, Any], replica_id: str, child_dir: str 
     def publish_counters(unread: int) -> None:
         unreadable[0] = unread
         counts = [*(vehicles.sent[name] for name in ENCODING_NAMES.values()), vehicles.dropped]
-        counters[: len(_COUNTERS)] = [*counts, vehicles.errors + unread, vehicles.unmatched]
+        backlog_us = round(vehicles.backlog_s * 1e6)
+        counters[:_DELAY_AT] = [*counts, vehicles.errors + unread, vehicles.unmatched, backlog_us]
+        delay = vehicles.delay
+        total_bits = int(np.float64(delay.sum).view(np.int64))
+        counters[_DELAY_AT : _DELAY_AT + _DELAY_SLOTS] = [*delay.counts.tolist(), total_bits]
 
     def every_poll(unread: int) -> None:
         time.sleep(POLL_S)
@@ -61,7 +72,7 @@ class VehicleFanout(FleetStreamChild):
     def __init__(self, settings: ZenohSettings, replica_id: str, child_dir: str | None = None) -> None:
         """``child_dir``: where the child connects (fleet_child.child_session)."""
         args = (settings.model_dump(mode="json"), replica_id, child_dir)
-        super().__init__(fanout_main, args, len(_COUNTERS), "vehicle estimate")
+        super().__init__(fanout_main, args, _DELAY_AT + _DELAY_SLOTS, "vehicle estimate")
 
     def start(self) -> VehicleFanout:
         """Start the child and wait until it subscribes; raise TransportError if it cannot."""
@@ -86,3 +97,17 @@ class VehicleFanout(FleetStreamChild):
     @property
     def unmatched(self) -> int:
         return int(self.shared[_COUNTERS.index("unmatched")])
+
+    @property
+    def delay(self) -> Histogram:
+        """The child's delay histogram (VehicleEstimates.delay) as of its last poll."""
+        histogram = Histogram(END_TO_END_BUCKETS_S)
+        slots = self.shared[_DELAY_AT : _DELAY_AT + _DELAY_SLOTS]
+        histogram.counts[:] = slots[:-1]
+        histogram.count = int(histogram.counts.sum())
+        histogram.sum = float(np.int64(slots[-1]).view(np.float64))
+        return histogram
+
+    @property
+    def backlog_s(self) -> float:
+        return self.shared[_COUNTERS.index("backlog_us")] * 1e-6

@@ -264,6 +264,10 @@ def _metric(text: str, name: str) -> float:
     return total
 
 
+#: The service's own delay histograms (sample time stamp to the end of the tick; to the end of the puts on the
+#: vehicles' keys), and the bound a step reads their share above: where the time beyond the target goes.
+LATENCY_HISTOGRAMS = ("estimate_latency_seconds", "vehicle_estimate_latency_seconds")
+TARGET_DELAY_S = 0.01
 #: The service's counters a step reads before and after it, from /metrics.
 STEP_COUNTERS = (
     "agv_fe_measurements_received_total",
@@ -274,6 +278,7 @@ STEP_COUNTERS = (
     'agv_fe_estimates_published_total{encoding="binary"}',
     "agv_fe_fleet_estimates_published_total",
     "agv_fe_tick_batch_measurements_count",
+    *(f"agv_fe_{h}_{part}" for h in LATENCY_HISTOGRAMS for part in ("count", f'bucket{{le="{TARGET_DELAY_S!r}"}}')),
 )
 
 
@@ -324,6 +329,10 @@ def _step(
         "arrival": arrival,
         "duration_s": duration_s,
         "p99_windows_ms": latency["p99_windows_ms"],
+        # the share of the step's estimates the service itself counted later than TARGET_DELAY_S: at the end of
+        # their tick, and at the end of their puts on the vehicle keys (None: none put there)
+        "over_target_at_tick": _share_over(diff, LATENCY_HISTOGRAMS[0]),
+        "over_target_on_vehicle_keys": _share_over(diff, LATENCY_HISTOGRAMS[1]),
     }
     result["zero_loss"] = (
         result["accepted"] == result["sent"]
@@ -333,6 +342,13 @@ def _step(
     )
     result["paced"] = rate >= PACE_FRACTION * n * RATE_HZ
     return result
+
+
+def _share_over(diff: dict[str, float], histogram: str) -> float | None:
+    """The share of the values ``agv_fe_<histogram>`` counted in a step above TARGET_DELAY_S (None: none)."""
+    count = diff[f"agv_fe_{histogram}_count"]
+    within = diff[f'agv_fe_{histogram}_bucket{{le="{TARGET_DELAY_S!r}"}}']
+    return (count - within) / count if count else None
 
 
 def _drive(

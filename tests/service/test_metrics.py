@@ -224,7 +224,8 @@ def test_a_real_service_exposes_its_series_the_process_and_the_end_to_end_delay(
 
         def settled() -> object:
             m = parse_metrics(srv.get("/metrics").text)
-            return m if m.value("agv_fe_estimate_latency_seconds_count") == n + 1 else None
+            observed = [m.value(f"agv_fe_{s}estimate_latency_seconds_count") for s in ("", "vehicle_")]
+            return m if observed == [n + 1, n + 1] else None
 
         scrape = wait_for(settled, what="every estimate's delay observed")
         response = srv.get("/metrics")
@@ -245,11 +246,14 @@ def test_a_real_service_exposes_its_series_the_process_and_the_end_to_end_delay(
         assert [served.value("agv_fe_bucket_served", bucket=b) for b in all_buckets()] == [
             int(b in shard_buckets(1, 2)) for b in all_buckets()
         ]
-        buckets = scrape.buckets("agv_fe_estimate_latency_seconds")
-        assert buckets[0] == (END_TO_END_BUCKETS_S[0], 1)  # the vehicle clock ahead
-        assert buckets[-2][1] == 1 and buckets[-1] == (float("inf"), n + 1)  # the others are years old
         age_s = (time.time_ns() - T0_NS - n * PERIOD_NS) / 1e9
-        assert scrape.value("agv_fe_estimate_latency_seconds_sum") >= n * age_s * 0.99
+        # at the tick, and at the end of the puts on each vehicle's own key (the probe subscribes to them)
+        for name in ("agv_fe_estimate_latency_seconds", "agv_fe_vehicle_estimate_latency_seconds"):
+            buckets = scrape.buckets(name)
+            assert buckets[0] == (END_TO_END_BUCKETS_S[0], 1), name  # the vehicle clock ahead
+            assert buckets[-2][1] == 1 and buckets[-1] == (float("inf"), n + 1), name  # the others are years old
+            assert scrape.value(f"{name}_sum") >= n * age_s * 0.99, name
+        assert 0 <= scrape.value("agv_fe_vehicle_estimate_backlog_seconds") < 2.0
 
         other = Service(make_settings(tmp_path / "c"))  # built, not started: its registry is its own
         other_scrape = parse_metrics(exposition(other.registry).decode())

@@ -26,7 +26,7 @@ from agv_protocol.wire import (
 )
 from service.fleet_child import fleet_batches
 from service.transport import open_session
-from tests.service.helpers import make_settings, parse_metrics, plant_measurements, running, wait_for
+from tests.service.helpers import T0_NS, make_settings, parse_metrics, plant_measurements, running, wait_for
 
 
 def _batch(columns: tuple[str, ...], switched: bool, version: str) -> EstimateBatch:
@@ -108,9 +108,18 @@ def test_the_process_puts_every_estimate_on_its_keys_as_the_thread_would_and_its
                 return (
                     scrape.value("agv_fe_estimates_published_total", encoding="binary") >= 400
                     and scrape.value("agv_fe_estimates_published_total", encoding="json") >= 200
+                    and scrape.value("agv_fe_vehicle_estimate_latency_seconds_count") >= 400
                 )
 
             wait_for(counted, what="the child's counts on /metrics")
+            # the child's delay histogram: every estimate once (each vehicle's, put in one encoding or two), the
+            # samples stamped in 2023 above every bound
+            scrape = parse_metrics(server.get("/metrics").text)
+            delay = scrape.buckets("agv_fe_vehicle_estimate_latency_seconds")
+            assert delay[-1] == (float("inf"), 400) and delay[-2][1] == 0
+            years_s = time.time() - T0_NS / 1e9
+            assert 0.99 * 400 * years_s < scrape.value("agv_fe_vehicle_estimate_latency_seconds_sum") < 400 * years_s
+            assert 0 <= scrape.value("agv_fe_vehicle_estimate_backlog_seconds") < 2.0
             process._process.kill()
             wait_for(lambda: not process.alive, what="the child gone")
             ready = server.get("/ready").json()
