@@ -437,6 +437,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     which.add_argument("--baseline", nargs=2, metavar=("DIR", "LABEL"), help="this checkout against DIR's service")
     parser.add_argument("--label", default="this checkout", help="with --baseline: this checkout's label")
+    parser.add_argument(
+        "--stream",
+        choices=("fleet", "vehicle-bin", "vehicle"),
+        default="fleet",
+        help="with --baseline: what the receiver takes, the fleet stream or every vehicle's binary or JSON key",
+    )
     parser.add_argument("--out", type=Path, required=True, help="the report to write")
     parser.add_argument("--rounds", type=int, default=ROUNDS)
     parser.add_argument("--vehicles", type=int, default=TARGET_VEHICLES, help="the fleet (default %(default)s)")
@@ -463,8 +469,12 @@ def _chosen(
     source, label = Path(args.baseline[0]).resolve(), args.baseline[1]
     if not (source / "agv_fe").is_dir():
         parser.error(f"{source} is not a checkout of this project (no agv_fe/ in it)")
-    configs = (Configuration(label, env, source), Configuration(args.label, env))
-    return configs, f"Service capacity: {label} against {args.label}", f"--baseline DIR '{label}'"
+    configs = (
+        Configuration(label, env, source, stream=args.stream),
+        Configuration(args.label, env, stream=args.stream),
+    )
+    stream = "" if args.stream == "fleet" else f" --stream {args.stream}"
+    return configs, f"Service capacity: {label} against {args.label}", f"--baseline DIR '{label}'{stream}"
 
 
 def main(argv: list[str] | None = None) -> int:

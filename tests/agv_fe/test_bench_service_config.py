@@ -121,6 +121,20 @@ def test_the_plain_tcp_probe_finds_a_plain_listener():
         router.close()
 
 
+def test_a_baseline_compares_on_the_stream_asked_for_and_the_command_says_so(tmp_path):
+    (tmp_path / "agv_fe").mkdir()
+    parser = bench._parser()
+    argv = ["--baseline", str(tmp_path), "old", "--label", "new", "--out", "r.md"]
+    for stream, said in (("vehicle-bin", " --stream vehicle-bin"), (None, "")):
+        args = parser.parse_args(argv + (["--stream", stream] if stream else []))
+        configs, title, which = bench._chosen(parser, args, {})
+        assert [(c.label, c.source, c.stream) for c in configs] == [
+            ("old", tmp_path.resolve(), stream or "fleet"),
+            ("new", None, stream or "fleet"),
+        ]
+        assert which == f"--baseline DIR 'old'{said}" and title == "Service capacity: old against new"
+
+
 def test_configs_names_the_configurations_and_excludes_a_baseline(tmp_path, capsys):
     out = str(tmp_path / "r.md")
     with pytest.raises(SystemExit) as exc:
