@@ -75,6 +75,13 @@ class Histogram:
         self.sum += float(values.sum())
         self.count += int(values.size)
 
+    def observe_since(self, t_ns: Sequence[np.ndarray], now_ns: int) -> None:
+        """Add the delays [s] from the time stamps ``t_ns`` [ns] (one array per batch) to ``now_ns``, in one
+        vectorised step; a time stamp ahead of ``now_ns`` (a clock ahead) counts as 0."""
+        if t_ns:
+            stamps = t_ns[0] if len(t_ns) == 1 else np.concatenate(t_ns)
+            self.observe_many(np.maximum(now_ns - stamps, 0) * 1e-9)
+
     def family(self, name: str, documentation: str) -> HistogramMetricFamily:
         cumulative = np.cumsum(self.counts).tolist()
         buckets = [(repr(b), n) for b, n in zip(self.bounds, cumulative, strict=False)]
@@ -102,11 +109,7 @@ class ServiceMetrics:
         """Sample time stamps ``t_ns`` (vehicle clock [ns], one array per estimate batch) to ``published_ns``
         (service clock [ns]), added to the end-to-end histogram in one vectorised step. A vehicle clock ahead
         of the service's would give a negative delay: it counts as 0."""
-        if not t_ns:
-            return
-        stamps = t_ns[0] if len(t_ns) == 1 else np.concatenate(t_ns)
-        delay_s = np.maximum(published_ns - stamps, 0) * 1e-9
-        self.end_to_end_seconds.observe_many(delay_s)
+        self.end_to_end_seconds.observe_since(t_ns, published_ns)
 
 
 class MetricsSource(Protocol):

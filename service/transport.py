@@ -362,9 +362,7 @@ class VehicleEstimates:
             self.errors += 1
             log.exception("publishing %d vehicles' estimates failed", sum(len(b) for b in batches))
             return
-        if stamps:
-            delay_ns = time.time_ns() - (stamps[0] if len(stamps) == 1 else np.concatenate(stamps))
-            self.delay.observe_many(np.maximum(delay_ns, 0) * 1e-9)
+        self.delay.observe_since(stamps, time.time_ns())
 
     def publish(self, batches: Sequence[EstimateBatch]) -> list[np.ndarray]:
         """Encode and put ``batches`` on the vehicles' keys, in every encoding someone subscribes to; return the
