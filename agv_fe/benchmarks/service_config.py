@@ -278,8 +278,9 @@ def render(
         "",
         "| round | configuration | Zenoh link | storage | estimate history running | warm-up step p99 [ms] "
         "| hold: zero loss | hold p50 [ms] | hold p99 per window [ms] | hold: over 10 ms at the tick / at the "
-        "vehicle-key puts (the service's histograms) | service CPU [cores] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "vehicle-key puts (the service's histograms) | service CPU [cores] | hold: waiting for a core, service / "
+        "generator / receiver [s per s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         h = r["hold"]
@@ -288,7 +289,7 @@ def render(
             f"| {r['warm']['p99_ms']:.2f} | {'yes' if h['zero_loss'] else 'no'} "
             f"| {h['p50_ms']:.2f} | {', '.join(f'{x:.2f}' for x in h['p99_windows_ms'])} "
             f"| {_share(h.get('over_target_at_tick'))} / {_share(h.get('over_target_on_vehicle_keys'))} "
-            f"| {h['service_cpu']:.2f} |"
+            f"| {h['service_cpu']:.2f} | {_waits(h)} |"
         )
     lines += ["", "```json", json.dumps(runs, indent=1), "```", ""]
     return "\n".join(lines)
@@ -307,6 +308,15 @@ def _streams(configs: tuple[Configuration, ...]) -> str:
 def _share(value: float | None) -> str:
     """A share as a percentage; '-' where nothing was counted (no estimate on a vehicle key, or an older run)."""
     return "-" if value is None else f"{100 * value:.2f} %"
+
+
+def _waits(step: dict[str, Any]) -> str:
+    """The time the service, the generator and the receiver waited for a core in a step, per second of it ('-':
+    not counted by this kernel, or an older run)."""
+    return " / ".join(
+        "-" if step.get(f"{who}_waited") is None else f"{step[f'{who}_waited']:.2f}"
+        for who in ("service", "generator", "receiver")
+    )
 
 
 def _times(n: int) -> str:

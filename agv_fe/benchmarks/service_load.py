@@ -158,6 +158,7 @@ def _generator(
     ticks = int(duration_s * RATE_HZ)
     start = time.monotonic()
     cpu0 = time.process_time()
+    waited0 = _waited_s(os.getpid())
     late = 0
     for k in range(ticks):
         for p, group in enumerate(groups):
@@ -178,7 +179,9 @@ def _generator(
             late += 1
     elapsed = time.monotonic() - start
     cpu_s = time.process_time() - cpu0
-    out.put({"sent": ticks * n, "elapsed_s": elapsed, "late_ticks": late, "ticks": ticks, "cpu_s": cpu_s})
+    waited1 = _waited_s(os.getpid())
+    report = {"sent": ticks * n, "elapsed_s": elapsed, "late_ticks": late, "ticks": ticks, "cpu_s": cpu_s}
+    out.put(report | {"waited_s": _difference(waited0, waited1)})
     time.sleep(0.5)
     for pub in pubs:
         pub.undeclare()
@@ -242,16 +245,42 @@ def _receiver(
     session.close()
 
 
+def _waited_s(pid: int) -> float | None:
+    """Time [s] the threads of process ``pid`` and of its live children spent ready to run but waiting for a core
+    (the run queue: /proc/PID/task/TID/schedstat's second field); None where the kernel keeps no such count.
+
+    Beside the CPU time it says whether a step was bound by the machine: a process that waits for a core about
+    as long as it runs shares cores that are full, whatever its own code does."""
+    if not (Path("/proc") / str(pid) / "schedstat").exists():
+        return None
+    total = 0
+    for process in _family(pid):
+        for task in (Path("/proc") / process / "task").glob("[0-9]*/schedstat"):
+            with contextlib.suppress(OSError, IndexError, ValueError):  # the thread is gone meanwhile
+                total += int(task.read_text().split()[1])
+    return total / 1e9
+
+
+def _family(pid: int) -> list[str]:
+    """The ids of process ``pid`` and of its live children (as /proc names them)."""
+    family = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            parent = stat.read_text().rsplit(")", 1)[1].split()[1]
+        except (OSError, IndexError):  # gone meanwhile
+            continue
+        if stat.parent.name == str(pid) or parent == str(pid):
+            family.append(stat.parent.name)
+    return family
+
+
 def _cpu_s(pid: int) -> float:
     """CPU time [s] of process ``pid`` and of its live children (the service's vehicle estimate process, with
     ``zenoh.vehicle_publisher=process``)."""
     total = 0
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # gone meanwhile
-            continue
-        if stat.parent.name == str(pid) or fields[1] == str(pid):
+    for process in _family(pid):
+        with contextlib.suppress(OSError, IndexError, ValueError):  # gone meanwhile
+            fields = (Path("/proc") / process / "stat").read_text().rsplit(")", 1)[1].split()
             total += int(fields[11]) + int(fields[12])
     return total / os.sysconf("SC_CLK_TCK")
 
@@ -320,6 +349,10 @@ def _step(
         "service_cpu": cpu["service_s"] / gen["elapsed_s"],
         "receiver_cpu": cpu["receiver_s"] / gen["elapsed_s"],
         "generator_cpu": gen["cpu_s"] / gen["elapsed_s"],
+        # [s per s] the time each process waited for a core, beside the CPU time it ran (None: not counted here)
+        "service_waited": _per_second(cpu["service_waited_s"], gen["elapsed_s"]),
+        "receiver_waited": _per_second(cpu["receiver_waited_s"], gen["elapsed_s"]),
+        "generator_waited": _per_second(gen["waited_s"], gen["elapsed_s"]),
         "estimate_every_n": every_n,
         "stream": stream,
         "published_per_vehicle": int(diff['agv_fe_estimates_published_total{encoding="json"}']),
@@ -344,6 +377,10 @@ def _step(
     return result
 
 
+def _per_second(seconds: float | None, elapsed_s: float) -> float | None:
+    return None if seconds is None else seconds / elapsed_s
+
+
 def _share_over(diff: dict[str, float], histogram: str) -> float | None:
     """The share of the values ``agv_fe_<histogram>`` counted in a step above TARGET_DELAY_S (None: none)."""
     count = diff[f"agv_fe_{histogram}_count"]
@@ -360,10 +397,11 @@ def _drive(
     stream: str,
     arrival: str,
     clients: SecureClients | None = None,
-) -> tuple[dict[str, Any], dict[str, Any], dict[str, float], dict[str, float]]:
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, float], dict[str, Any]]:
     """Run the receiver and the generator processes for one step. Returns what the generator and the receiver
     reported, the change of the service's STEP_COUNTERS, and the CPU time [s] the service and the receiver
-    used while the generator ran ("service_s", "receiver_s")."""
+    used while the generator ran ("service_s", "receiver_s") and the time they waited for a core
+    ("service_waited_s", "receiver_waited_s", :func:`_waited_s`; None where the kernel does not count it)."""
     ctx = multiprocessing.get_context("spawn")
     gen_q, rec_q = ctx.Queue(), ctx.Queue()
     ready = ctx.Event()
@@ -374,20 +412,32 @@ def _drive(
     receiver.start()
     ready.wait(30)
     before = http.get("/metrics").text
-    cpu0 = _cpu_s(pid)
+    cpu0, waited0 = _cpu_s(pid), _waited_s(pid)
     receiver_cpu0 = _cpu_s(receiver.pid) if receiver.pid is not None else 0.0
+    receiver_waited0 = _waited_s(receiver.pid) if receiver.pid is not None else None
     phases = SPREAD_PHASES if arrival == "spread" else 1
     generator = ctx.Process(target=_generator, args=(endpoint, n, duration_s, gen_q, phases, files[0]))
     generator.start()
     gen = gen_q.get(timeout=duration_s * 10 + 60)
-    cpu1 = _cpu_s(pid)
+    cpu1, waited1 = _cpu_s(pid), _waited_s(pid)
     receiver_cpu1 = _cpu_s(receiver.pid) if receiver.pid is not None else 0.0
+    receiver_waited1 = _waited_s(receiver.pid) if receiver.pid is not None else None
     generator.join(30)
     rec = rec_q.get(timeout=duration_s + 120)
     receiver.join(30)
     after = http.get("/metrics").text
     diff = {name: _metric(after, name) - _metric(before, name) for name in STEP_COUNTERS}
-    return gen, rec, diff, {"service_s": cpu1 - cpu0, "receiver_s": receiver_cpu1 - receiver_cpu0}
+    times = {
+        "service_s": cpu1 - cpu0,
+        "receiver_s": receiver_cpu1 - receiver_cpu0,
+        "service_waited_s": _difference(waited0, waited1),
+        "receiver_waited_s": _difference(receiver_waited0, receiver_waited1),
+    }
+    return gen, rec, diff, times
+
+
+def _difference(before: float | None, after: float | None) -> float | None:
+    return None if before is None or after is None else after - before
 
 
 def _latencies(rec: dict[str, Any]) -> dict[str, Any]:

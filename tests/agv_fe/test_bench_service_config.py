@@ -31,7 +31,11 @@ def test_the_configurations_alternate_and_each_service_runs_with_its_settings(tm
     for r in runs:
         assert r["hold"]["vehicles"] == 10 and r["hold"]["zero_loss"]
         assert r["hold"]["estimates_received"] == r["hold"]["sent"] > 0
+        # each process's wait for a core, counted by this Linux kernel (the run table shows it beside the CPU)
+        assert all(r["hold"][f"{who}_waited"] >= 0 for who in ("service", "generator", "receiver"))
     text = bench.render("t", bench.HISTORY, runs, 10, "cmd")
+    for r in runs:
+        assert f"| {r['hold']['service_cpu']:.2f} | {bench._waits(r['hold'])} |" in text
     assert json.loads(text.rsplit("```json\n", 1)[1].split("\n```")[0]) == runs
     on, off = (bench._summary(c.label, runs) for c in bench.HISTORY)
     assert on["runs"] == off["runs"] == 2

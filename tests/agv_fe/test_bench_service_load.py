@@ -1,5 +1,9 @@
 import json
+import os
 import re
+import subprocess
+import sys
+import time
 
 import pytest
 
@@ -110,3 +114,22 @@ def test_the_largest_fleet_is_a_lower_bound_when_nothing_failed():
     assert bench._largest(behind, (100, 250)) == "100 vehicles"
     assert [bench._verdict(r) for r in behind] == ["sustained", "falling behind"]
     assert bench._largest([{"vehicles": 100, "zero_loss": False, "paced": False}], (100,)) == "none of the sizes tried"
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/schedstat"), reason="the kernel keeps no run-queue counts")
+def test_the_wait_for_a_core_counts_the_children_that_wait():
+    """More busy children than cores: together they wait for a core (the run queue), and the count of the parent
+    and its live children says so; a process that is not there has no count."""
+    busy = "import time\nend = time.monotonic() + 1.5\nwhile time.monotonic() < end: pass"
+    before = bench._waited_s(os.getpid())
+    children = [subprocess.Popen([sys.executable, "-c", busy]) for _ in range((os.cpu_count() or 1) + 2)]
+    try:
+        time.sleep(1.0)
+        during = bench._waited_s(os.getpid())
+    finally:
+        for child in children:
+            child.wait(30)
+    assert before is not None and during is not None
+    # at least two of them were always ready without a core for the second they all ran: ~2 s; 0.2 leaves room
+    assert during - before > 0.2
+    assert bench._waited_s(2**22 + 1) is None  # above the largest process id Linux hands out
