@@ -487,6 +487,14 @@ def _chosen(
     return configs, f"Service capacity: {label} against {args.label}", f"--baseline DIR '{label}'{stream}"
 
 
+def _command(args: argparse.Namespace, which: str) -> str:
+    """The command line that makes the report again: what it compares, and every option not at its default."""
+    fleet = "" if args.vehicles == TARGET_VEHICLES else f" --vehicles {args.vehicles}"
+    rounds = "" if args.rounds == ROUNDS else f" --rounds {args.rounds}"
+    settings = "".join(f" --env {e}" for e in args.env)
+    return f"python -m agv_fe.benchmarks.service_config {which}{fleet}{rounds}{settings} --out {args.out}"
+
+
 def main(argv: list[str] | None = None) -> int:
     """``--configs NAME,...``: the named configurations, alternated; ``--baseline DIR LABEL``: this checkout's
     service against the one of DIR. Both with the same ``--env`` settings on top, ``--vehicles`` in the fleet."""
@@ -499,9 +507,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--vehicles and --rounds take a positive number")
     env = dict(e.split("=", 1) for e in args.env)
     configs, title, which = _chosen(parser, args, env)
-    fleet = "" if args.vehicles == TARGET_VEHICLES else f" --vehicles {args.vehicles}"
-    settings = "".join(f" --env {e}" for e in args.env)
-    command = f"python -m agv_fe.benchmarks.service_config {which}{fleet}{settings} --out {args.out}"
+    command = _command(args, which)
     runs = measure(configs, args.rounds, args.vehicles)
     text = render(title, configs, runs, args.vehicles, command)
     note = "(rewrites this file; DIR is a checkout of the baseline, e.g. a `git worktree`)" if args.baseline else ""

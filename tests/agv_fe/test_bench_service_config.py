@@ -139,6 +139,22 @@ def test_a_baseline_compares_on_the_stream_asked_for_and_the_command_says_so(tmp
         assert which == f"--baseline DIR 'old'{said}" and title == "Service capacity: old against new"
 
 
+def test_the_command_in_the_report_names_every_option_not_at_its_default():
+    parser = bench._parser()
+    default = parser.parse_args(["--configs", "plain", "--out", "r.md"])
+    assert (
+        bench._command(default, "--configs plain")
+        == "python -m agv_fe.benchmarks.service_config --configs plain --out r.md"
+    )
+    args = parser.parse_args(
+        ["--configs", "plain", "--rounds", "3", "--vehicles", "1500", "--env", "AGV_FE_A=1", "--out", "r.md"]
+    )
+    assert bench._command(args, "--configs plain") == (
+        "python -m agv_fe.benchmarks.service_config --configs plain --vehicles 1500 --rounds 3 --env AGV_FE_A=1"
+        " --out r.md"
+    )
+
+
 def test_configs_names_the_configurations_and_excludes_a_baseline(tmp_path, capsys):
     out = str(tmp_path / "r.md")
     with pytest.raises(SystemExit) as exc:
