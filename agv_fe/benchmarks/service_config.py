@@ -453,6 +453,11 @@ def _parser() -> argparse.ArgumentParser:
         default="fleet",
         help="with --baseline: what the receiver takes, the fleet stream or every vehicle's binary or JSON key",
     )
+    parser.add_argument(
+        "--tls",
+        action="store_true",
+        help="with --baseline: both services behind the TLS + ACL link of the 'tls' configurations",
+    )
     parser.add_argument("--out", type=Path, required=True, help="the report to write")
     parser.add_argument("--rounds", type=int, default=ROUNDS)
     parser.add_argument("--vehicles", type=int, default=TARGET_VEHICLES, help="the fleet (default %(default)s)")
@@ -480,11 +485,12 @@ def _chosen(
     if not (source / "agv_fe").is_dir():
         parser.error(f"{source} is not a checkout of this project (no agv_fe/ in it)")
     configs = (
-        Configuration(label, env, source, stream=args.stream),
-        Configuration(args.label, env, stream=args.stream),
+        Configuration(label, env, source, stream=args.stream, tls=args.tls),
+        Configuration(args.label, env, stream=args.stream, tls=args.tls),
     )
     stream = "" if args.stream == "fleet" else f" --stream {args.stream}"
-    return configs, f"Service capacity: {label} against {args.label}", f"--baseline DIR '{label}'{stream}"
+    options = f"{stream}{' --tls' if args.tls else ''} --label '{args.label}'"
+    return configs, f"Service capacity: {label} against {args.label}", f"--baseline DIR '{label}'{options}"
 
 
 def _command(args: argparse.Namespace, which: str) -> str:

@@ -125,18 +125,22 @@ def test_the_plain_tcp_probe_finds_a_plain_listener():
         router.close()
 
 
-def test_a_baseline_compares_on_the_stream_asked_for_and_the_command_says_so(tmp_path):
+def test_a_baseline_compares_on_the_stream_and_link_asked_for_and_the_command_says_so(tmp_path):
     (tmp_path / "agv_fe").mkdir()
     parser = bench._parser()
     argv = ["--baseline", str(tmp_path), "old", "--label", "new", "--out", "r.md"]
-    for stream, said in (("vehicle-bin", " --stream vehicle-bin"), (None, "")):
-        args = parser.parse_args(argv + (["--stream", stream] if stream else []))
+    for options, stream, tls, said in (
+        (["--stream", "vehicle-bin"], "vehicle-bin", False, " --stream vehicle-bin"),
+        ([], "fleet", False, ""),
+        (["--tls"], "fleet", True, " --tls"),
+    ):
+        args = parser.parse_args(argv + options)
         configs, title, which = bench._chosen(parser, args, {})
-        assert [(c.label, c.source, c.stream) for c in configs] == [
-            ("old", tmp_path.resolve(), stream or "fleet"),
-            ("new", None, stream or "fleet"),
+        assert [(c.label, c.source, c.stream, c.tls) for c in configs] == [
+            ("old", tmp_path.resolve(), stream, tls),
+            ("new", None, stream, tls),
         ]
-        assert which == f"--baseline DIR 'old'{said}" and title == "Service capacity: old against new"
+        assert which == f"--baseline DIR 'old'{said} --label 'new'" and title == "Service capacity: old against new"
 
 
 def test_the_command_in_the_report_names_every_option_not_at_its_default():

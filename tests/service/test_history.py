@@ -102,6 +102,35 @@ def test_the_writer_keeps_converted_tables_not_batches_and_reads_and_writes_them
     assert table.column("seq").to_pylist()[50:100] == list(range(50))  # sorted by vehicle, then time
 
 
+def test_a_chunk_is_written_a_row_group_at_a_time_while_the_writer_takes_the_next_ticks(tmp_path, monkeypatch):
+    """The writer does not write a chunk's file in one burst: it orders the rows, then writes a row group per round,
+    resting between rounds; meanwhile a read finds the chunk's rows in memory and the next ticks go on into the
+    next chunk. The file, once complete, holds every row once, by vehicle and time, a row group per round."""
+    monkeypatch.setattr(service.history, "ROW_GROUP_ROWS", 5)
+    monkeypatch.setattr(service.history, "CONVERT_S", 0.05)  # the longest rest between two rounds
+    monkeypatch.setattr(service.history, "WRITE_REST", 1e6)  # always that longest rest
+    history = EstimateHistory(tmp_path / "history", "r0", retention_s=3600.0, chunk_s=1.0)
+    history.start()
+    try:
+        for seq in range(100):  # 200 rows: 40 row groups, about 2 s of rounds
+            history.append([_batch(["b", "a"], seq)])
+        wait_for(lambda: history._writing is not None, what="the chunk's write begun", timeout=10)
+        assert history._chunk is None and history.stats.files_written == 0
+        assert [r["seq"] for r in table_rows(history.read("a", T0_NS, T0_NS + 100 * PERIOD_NS))] == list(range(100))
+        history.append([_batch(["c"], 100)])
+        wait_for(lambda: history._chunk is not None and history._chunk.rows == 1, what="the next tick taken")
+        assert history._writing is not None  # still writing the first chunk
+        _wait_files(history, 1)
+    finally:
+        history.close()
+    first = min((tmp_path / "history").glob("*/*.parquet"))
+    meta = pq.ParquetFile(first).metadata
+    table = pq.read_table(first)
+    assert meta.num_row_groups == 40 and table.num_rows == 200
+    assert table.column("vehicle").to_pylist() == ["a"] * 100 + ["b"] * 100
+    assert table.column("seq").to_pylist() == list(range(100)) * 2
+
+
 def test_a_table_of_mixed_batches_keeps_each_rows_columns_gain_version_and_set():
     """Batches of two gain versions, with and without the effectiveness columns, with and without a gain set: each
     row keeps its own values, and what its batch lacks is null."""
@@ -185,7 +214,7 @@ def test_old_files_go_after_the_retention_and_a_failed_write_is_counted(tmp_path
         assert not first.exists()
         # the directory gone, a file in its place (a volume unmounted, say): the write fails, is counted with its
         # rows, and the writer goes on to write the next interval once the directory is back
-        wait_for(lambda: history._chunk is None, what="every interval before written")
+        wait_for(lambda: history._chunk is None and history._writing is None, what="every interval before written")
         moved = tmp_path / "moved"
         root.rename(moved)
         root.write_text("not a directory")
