@@ -70,9 +70,9 @@ _GAIN_SETS = pa.array(["fast", "quiet"])
 CONVERT_S = 0.25
 #: How much lower the writer thread's CPU priority is than the service's (a nice increment, :func:`_lower_priority`).
 WRITER_NICE = 10
-#: A chunk's file is written a row group at a time, the writer resting this many times as long as each row group
-#: took before the next (:meth:`EstimateHistory._write_some`): a minute of 1,000 vehicles, about 3.5 s of a core at
-#: once, becomes a quarter of a core for about fifteen seconds, while the writer goes on taking the ticks.
+#: A chunk's file is written in rounds, the writer resting this many times as long as each round took before the
+#: next (:meth:`EstimateHistory._rounds`): a minute of 1,000 vehicles, 3-4 s of a core at once, becomes rounds of
+#: at most 0.5 s spread at a quarter of a core, while the writer goes on taking the ticks.
 WRITE_REST = 3.0
 
 
