@@ -413,11 +413,6 @@ def table_rows(table: pa.Table) -> Iterator[dict[str, Any]]:
         yield {k: v for k, v in row.items() if v is not None}
 
 
-def _by_vehicle_and_time(table: pa.Table) -> pa.Table:
-    """The rows sorted by vehicle, then time (:func:`_vehicle_and_time_order`)."""
-    return table.take(_vehicle_and_time_order(table))
-
-
 def _vehicle_and_time_order(table: pa.Table) -> pa.Array:
     """The row indices of ``table`` in the order of vehicle, then time.
 

@@ -161,7 +161,7 @@ def test_a_chunk_is_sorted_by_vehicle_then_time_across_tables_with_different_dic
              for order in (range(10, 20), range(0, 10), range(30, 20, -1))]  # fmt: skip
     table = pa.concat_tables(parts)
     assert len({part["vehicle"].chunk(0).dictionary.to_pylist().__repr__() for part in parts}) == 3
-    ordered = service.history._by_vehicle_and_time(table)
+    ordered = table.take(service.history._vehicle_and_time_order(table))
     keys = pa.table({"vehicle": table["vehicle"].cast(pa.string()), "t_ns": table["t_ns"]})
     by_strings = table.take(pc.sort_indices(keys, sort_keys=[("vehicle", "ascending"), ("t_ns", "ascending")]))
     assert ordered["vehicle"].cast(pa.string()).to_pylist() == by_strings["vehicle"].cast(pa.string()).to_pylist()
