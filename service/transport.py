@@ -280,6 +280,12 @@ class VehicleEstimates:
     :attr:`unmatched` vehicles nobody listens to in any encoding. Where the time goes: :attr:`delay`, each
     estimate put, from its sample's time stamp (vehicle clock) to the end of its tick's puts, and
     :attr:`backlog_s`, how long the oldest tick waiting has waited.
+
+    While nobody subscribes to any vehicle's key in any encoding (:attr:`quiet`: every publisher settled, every
+    key unmatched) a tick of vehicles that all have their publishers is not handed over at all: the ingest loop
+    neither wakes this thread nor gives it the interpreter lock for a tick with nothing to put (:attr:`handed_over`
+    counts the ticks that were). A matching report not yet applied, or a vehicle without its publishers, hands the
+    tick over as before.
     """
 
     def __init__(self, session: zenoh.Session, prefix: str, congestion: Any, subscribed_only: bool) -> None:
@@ -297,6 +303,12 @@ class VehicleEstimates:
         self.dropped = 0
         self.errors = 0
         self.unmatched = 0
+        #: vehicles with a publisher in every encoding (this thread adds them; the ingest loop reads)
+        self.declared: set[str] = set()
+        #: nothing to put for a declared vehicle: every publisher settled and unmatched (set by this thread)
+        self.quiet = False
+        #: ticks the ingest loop handed to this thread
+        self.handed_over = 0
         #: [s] per estimate put in some encoding (written by this thread only; a vehicle clock ahead counts as 0)
         self.delay = Histogram(END_TO_END_BUCKETS_S)
         self._queue: collections.deque[tuple[float, Sequence[EstimateBatch]]] = collections.deque()
@@ -308,6 +320,8 @@ class VehicleEstimates:
 
     def submit(self, batches: Sequence[EstimateBatch]) -> None:
         """Queue a tick's batches for publication (returns at once)."""
+        if self.quiet and not self.match_events and all(self.declared.issuperset(b.vehicle_ids) for b in batches):
+            return  # nobody would get any of these estimates: the thread stays asleep
         now = time.monotonic()
         queue = self._queue
         if queue and now - queue[0][0] > VEHICLE_QUEUE_MAX_AGE_S:
@@ -315,6 +329,7 @@ class VehicleEstimates:
                 while queue and now - queue[0][0] > VEHICLE_QUEUE_MAX_AGE_S:
                     self.dropped += sum(len(b) for b in queue.popleft()[1])
         queue.append((now, batches))
+        self.handed_over += 1
         self._wake.set()
 
     @property
@@ -336,6 +351,7 @@ class VehicleEstimates:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         self.listeners, self.pubs, self.settling = [], {}, {}
+        self.declared, self.quiet = set(), False
 
     def _run(self) -> None:
         while True:
@@ -393,6 +409,7 @@ class VehicleEstimates:
                         pub = pubs[vehicle_id, kind] = self.declare(vehicle_id, kind)
                     pub.put(document)
                 self.sent[ENCODING_NAMES[kind]] += len(documents)
+            self.declared.update(batch.vehicle_ids)
             if put is None:
                 stamps.append(batch.t_ns)
             elif put:
@@ -408,6 +425,7 @@ class VehicleEstimates:
             encoding=VEHICLE_ENCODINGS[kind][1],
         )
         if self.subscribed_only:
+            self.quiet = False  # a new publisher settles first, taken as matched
             events, key = self.match_events, (vehicle_id, kind)  # a deque: appending from Zenoh's threads is safe
             # indirect=False: the append runs on Zenoh's own thread. The default runs every callback handler on a
             # Python thread of its own: one thread per vehicle (1,014 threads at 1,000 vehicles, soak benchmark)
@@ -426,6 +444,8 @@ class VehicleEstimates:
         whose first MATCH_SETTLE_S have passed has its status read once, since a listener reports changes only.
         A publisher still settling is taken as matched."""
         events, unmatched, settling = self.match_events, self.unmatched_keys, self.settling
+        if events:  # before taking them: submit() must not skip a tick on the state before them
+            self.quiet = False
         while events:
             (vehicle_id, kind), matched = events.popleft()
             if (vehicle_id, kind) in settling:
@@ -445,6 +465,8 @@ class VehicleEstimates:
                 (unmatched[key[1]].discard if matched else unmatched[key[1]].add)(key[0])
         sets = list(unmatched.values())
         self.unmatched = len(set.intersection(*sets)) if sets else 0
+        declared = len(self.declared)
+        self.quiet = not settling and not events and all(len(keys) == declared for keys in sets)
         return self.unmatched
 
 

@@ -2,11 +2,12 @@
 
 import os
 
+import numpy as np
 import pytest
 
-from agv_protocol.wire import all_buckets, vehicle_key
+from agv_protocol.wire import BINARY_ESTIMATE_KIND, EstimateBatch, all_buckets, vehicle_key
 from service.settings import ZenohSettings
-from service.transport import Transport, open_session
+from service.transport import Transport, VehicleEstimates, open_session
 from tests.service.helpers import free_port, wait_for
 
 pytestmark = pytest.mark.network
@@ -43,6 +44,58 @@ def test_estimate_publishers_and_their_matching_listeners_start_no_thread_per_ve
         assert len(unmatched) == len(ids) - 1
         watcher.undeclare()
         wait_for(lambda: ids[7] in unmatched, what="the listener reporting the subscriber gone")
+    finally:
+        if client is not None:
+            client.close()
+        transport.close()
+
+
+def _batch(ids: list[str], seq: int) -> EstimateBatch:
+    n = len(ids)
+    return EstimateBatch(
+        ids,
+        np.full(n, seq, dtype=np.int64),
+        np.full(n, seq * 10_000_000, dtype=np.int64),
+        np.zeros((n, 5)),
+        np.ones(n, dtype=bool),
+        ["OK"] * n,
+        "0123456789ab",
+    )
+
+
+def test_a_tick_nobody_subscribes_to_is_not_handed_to_the_publisher_thread():
+    """Once every vehicle's publishers have settled unmatched, the ingest loop keeps a tick to itself; a new
+    vehicle, or a subscriber that comes, hands ticks over again, and the subscriber gets its estimates."""
+    settings = ZenohSettings(mode="router", endpoint=f"tcp/127.0.0.1:{free_port()}")
+    transport = Transport(settings, all_buckets(), "replica-test")
+    transport.open()
+    client = None
+    try:
+        ids = [f"quiet-{i}" for i in range(3)]
+        vehicles = transport.vehicle_estimates
+        assert isinstance(vehicles, VehicleEstimates)
+        vehicles.submit([_batch(ids, 0)])  # declares their publishers: taken as matched while they settle
+        assert vehicles.handed_over == 1
+        wait_for(lambda: vehicles.quiet, what="every key settled unmatched")
+        assert vehicles.declared == set(ids)
+        for seq in range(1, 4):
+            vehicles.submit([_batch(ids, seq)])
+        assert vehicles.handed_over == 1  # nothing to put: the thread was not woken
+        vehicles.submit([_batch([*ids, "quiet-new"], 4)])
+        assert vehicles.handed_over == 2  # a vehicle without publishers
+        wait_for(lambda: vehicles.quiet, what="the new vehicle's keys settled unmatched")
+        client = open_session("client", settings.endpoint)
+        watcher = client.declare_subscriber(vehicle_key(ids[1], BINARY_ESTIMATE_KIND))
+        seqs = iter(range(5, 100_000))
+
+        def received() -> bool:
+            vehicles.submit([_batch(ids, next(seqs))])
+            return watcher.try_recv() is not None
+
+        wait_for(received, what="the subscriber's estimates")
+        assert vehicles.handed_over > 2 and not vehicles.quiet
+        watcher.undeclare()
+        wait_for(lambda: vehicles.quiet, what="the subscriber gone, every key unmatched again")
     finally:
         if client is not None:
             client.close()
