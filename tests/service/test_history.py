@@ -104,29 +104,35 @@ def test_the_writer_keeps_converted_tables_not_batches_and_reads_and_writes_them
 
 def test_a_chunk_is_written_a_row_group_at_a_time_while_the_writer_takes_the_next_ticks(tmp_path, monkeypatch):
     """The writer does not write a chunk's file in one burst: it orders the rows, then writes a row group per round,
-    resting between rounds; meanwhile a read finds the chunk's rows in memory and the next ticks go on into the
-    next chunk. The file, once complete, holds every row once, by vehicle and time, a row group per round."""
-    monkeypatch.setattr(service.history, "ROW_GROUP_ROWS", 5)
-    monkeypatch.setattr(service.history, "CONVERT_S", 0.05)  # the longest rest between two rounds
+    resting between rounds; meanwhile a read finds the chunk's rows in memory, and the next ticks go on into the
+    next chunk and are converted as often as ever (CONVERT_S), not only between rounds. The file, once complete,
+    holds every row once, by vehicle and time, a row group per round."""
+    monkeypatch.setattr(service.history, "ROW_GROUP_ROWS", 50)
+    monkeypatch.setattr(service.history, "CONVERT_S", 0.01)
+    monkeypatch.setattr(service.history, "WRITE_REST_MAX_S", 0.1)  # the longest rest between two rounds
     monkeypatch.setattr(service.history, "WRITE_REST", 1e6)  # always that longest rest
-    history = EstimateHistory(tmp_path / "history", "r0", retention_s=3600.0, chunk_s=1.0)
+    # a chunk's write is finished at once when the next chunk ends: 4 s, longer than the rounds' rests
+    history = EstimateHistory(tmp_path / "history", "r0", retention_s=3600.0, chunk_s=4.0)
     history.start()
     try:
-        for seq in range(100):  # 200 rows: 40 row groups, about 2 s of rounds
+        for seq in range(100):  # 200 rows: a round per column, the order, 4 row groups; 0.1 s rests between
             history.append([_batch(["b", "a"], seq)])
         wait_for(lambda: history._writing is not None, what="the chunk's write begun", timeout=10)
+        began = time.monotonic()
         assert history._chunk is None and history.stats.files_written == 0
         assert [r["seq"] for r in table_rows(history.read("a", T0_NS, T0_NS + 100 * PERIOD_NS))] == list(range(100))
         history.append([_batch(["c"], 100)])
         wait_for(lambda: history._chunk is not None and history._chunk.rows == 1, what="the next tick taken")
+        wait_for(lambda: not history._chunk.batches, what="the next tick converted")  # type: ignore[union-attr]
         assert history._writing is not None  # still writing the first chunk
         _wait_files(history, 1)
+        assert time.monotonic() - began >= 10 * 0.1  # the rounds rested, although the writer woke every 0.01 s
     finally:
         history.close()
     first = min((tmp_path / "history").glob("*/*.parquet"))
     meta = pq.ParquetFile(first).metadata
     table = pq.read_table(first)
-    assert meta.num_row_groups == 40 and table.num_rows == 200
+    assert meta.num_row_groups == 4 and table.num_rows == 200
     assert table.column("vehicle").to_pylist() == ["a"] * 100 + ["b"] * 100
     assert table.column("seq").to_pylist() == list(range(100)) * 2
 
