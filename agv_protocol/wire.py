@@ -265,6 +265,19 @@ class _Message(_Json):
 
 
 Level = Literal["OK", "WARN", "FAULT", "STALE"]
+#: The levels by their code: the code is what :class:`EstimateBatch` carries and the binary estimate writes.
+LEVELS: tuple[Level, ...] = ("OK", "WARN", "FAULT", "STALE")
+#: The code of each level (its place in :data:`LEVELS`).
+LEVEL_CODES: dict[Level, int] = {level: code for code, level in enumerate(LEVELS)}
+
+
+def level_codes(levels: Iterable[str]) -> np.ndarray:
+    """The codes of ``levels`` (names of :data:`LEVELS`) as an int8 array; KeyError names one that is not a level."""
+    return np.array([LEVEL_CODES[cast(Level, level)] for level in levels], dtype=np.int8)
+
+
+#: :data:`LEVELS` as a numpy object array: ``_LEVEL_OBJECTS[codes].tolist()`` names a batch's levels in one call.
+_LEVEL_OBJECTS = np.array(LEVELS, dtype=object)
 GainSetName = Literal["fast", "quiet"]
 
 
@@ -421,13 +434,14 @@ def _known_fields(payload: bytes, known: Iterable[str]) -> bytes:
 class EstimateBatch:
     """Estimates of one gain version, as columns: what one profile step of the service produced.
 
-    vehicle_ids, levels : n each; seq, t_ns : (n,) int64; values : (n, len(columns)) float64, the float
-    columns named by ``columns`` (:data:`STATE_COLUMNS` and any optional group the profile runs);
-    in_domain : (n,) bool; fast : (n,) bool, the row ran the fast gain set of a switched design (None: the
-    gains have one set, and no ``gain_set`` is written). The caller guarantees finite floats, valid vehicle
-    ids and a hex gain version, so nothing needs escaping. The columns are written as they are into the fleet
-    stream (:func:`encode_fleet_estimates`); the per-vehicle documents are made only for the vehicles someone
-    listens to (:meth:`documents`).
+    vehicle_ids : n; level_codes : (n,) int8, each row's level as its :data:`LEVEL_CODES` code (the service's
+    detectors have them as numbers: a name is made only where a document is written); seq, t_ns : (n,) int64;
+    values : (n, len(columns)) float64, the float columns named by ``columns`` (:data:`STATE_COLUMNS` and any
+    optional group the profile runs); in_domain : (n,) bool; fast : (n,) bool, the row ran the fast gain set of
+    a switched design (None: the gains have one set, and no ``gain_set`` is written). The caller guarantees
+    finite floats, valid vehicle ids and a hex gain version, so nothing needs escaping. The columns are written
+    as they are into the fleet stream (:func:`encode_fleet_estimates`); the per-vehicle documents are made only
+    for the vehicles someone listens to (:meth:`documents`).
     """
 
     vehicle_ids: list[str]
@@ -435,10 +449,20 @@ class EstimateBatch:
     t_ns: np.ndarray
     values: np.ndarray
     in_domain: np.ndarray
-    levels: Sequence[Level]
+    level_codes: np.ndarray
     gain_version: str
     fast: np.ndarray | None = None
     columns: tuple[str, ...] = STATE_COLUMNS
+
+    def __post_init__(self) -> None:
+        codes = np.asarray(self.level_codes)
+        if codes.dtype.kind not in "iu" or codes.shape != (len(self.vehicle_ids),):
+            raise TypeError(f"level_codes: one integer code of LEVEL_CODES per row, got {codes.dtype} {codes.shape}")
+        self.level_codes = codes.astype(np.int8, copy=False)
+
+    def levels(self, rows: Sequence[int] | np.ndarray | slice = slice(None)) -> list[Level]:
+        """The level names of ``rows`` (every row by default), in the order asked."""
+        return cast(list[Level], _LEVEL_OBJECTS[self.level_codes[rows]].tolist())
 
     def __len__(self) -> int:
         return len(self.vehicle_ids)
@@ -453,18 +477,20 @@ class EstimateBatch:
         pick: Sequence[int] = range(len(self)) if rows is None else rows
         if not len(pick):
             return []
-        ids, levels, version = self.vehicle_ids, self.levels, self.gain_version
+        ids, version = self.vehicle_ids, self.gain_version
         if rows is None:
             seq, t_ns, values, domains, fast = self.seq, self.t_ns, self.values, self.in_domain, self.fast
+            levels = self.levels()
         else:
             at = np.asarray(rows, dtype=np.intp)
             seq, t_ns, values, domains = self.seq[at], self.t_ns[at], self.values[at], self.in_domain[at]
             fast = None if self.fast is None else self.fast[at]
+            levels = self.levels(at)
         document = _document_builder(self.columns)
         docs = [
-            document(ids[i], sq, t, row, dom, version, levels[i])
-            for i, sq, t, row, dom in zip(
-                pick, seq.tolist(), t_ns.tolist(), values.tolist(), domains.tolist(), strict=True
+            document(ids[i], sq, t, row, dom, version, level)
+            for i, sq, t, row, dom, level in zip(
+                pick, seq.tolist(), t_ns.tolist(), values.tolist(), domains.tolist(), levels, strict=True
             )
         ]
         if fast is not None:  # a switched design: which of its two gain sets made each estimate
@@ -485,7 +511,7 @@ class EstimateBatch:
             t_ns=int(self.t_ns[j]),
             in_domain=bool(self.in_domain[j]),
             gain_version=self.gain_version,
-            level=self.levels[j],
+            level=LEVELS[self.level_codes[j]],
             gain_set=None if self.fast is None else ("fast" if self.fast[j] else "quiet"),
             rev=revision_of(self.columns) or None,
             v=1,
@@ -508,7 +534,7 @@ class EstimateBatch:
             np.asarray(group["t_ns"], dtype=np.int64),
             np.ascontiguousarray(values),
             np.asarray(group["in_domain"], dtype=np.bool_),
-            list(group["level"]),
+            level_codes(group["level"]),
             group["gain_version"],
             None if gain_set is None else np.array([s == "fast" for s in gain_set], dtype=np.bool_),
             columns,
@@ -527,7 +553,7 @@ class EstimateBatch:
                 "t_ns": np.ascontiguousarray(self.t_ns, dtype=np.int64),
             }
             | dict(zip(self.columns, values, strict=True))
-            | {"in_domain": np.ascontiguousarray(self.in_domain, dtype=np.bool_), "level": self.levels}
+            | {"in_domain": np.ascontiguousarray(self.in_domain, dtype=np.bool_), "level": self.levels()}
             | ({} if self.fast is None else {"gain_set": ["fast" if on else "quiet" for on in self.fast.tolist()]})
         )
 
@@ -596,7 +622,7 @@ def _concatenated(parts: Sequence[EstimateBatch]) -> EstimateBatch:
         np.concatenate([p.t_ns for p in parts]),
         np.concatenate([p.values for p in parts]),
         np.concatenate([p.in_domain for p in parts]),
-        [level for p in parts for level in p.levels],
+        np.concatenate([p.level_codes for p in parts]),
         parts[0].gain_version,
         None if any(f is None for f in fast) else np.concatenate([f for f in fast if f is not None]),
         parts[0].columns,
@@ -612,7 +638,7 @@ def encode_estimate(estimate: Estimate) -> bytes:
         np.array([estimate.t_ns], dtype=np.int64),
         np.array([[getattr(estimate, name) for name in columns]], dtype=np.float64),
         np.array([estimate.in_domain]),
-        [estimate.level],
+        level_codes([estimate.level]),
         estimate.gain_version,
         None if estimate.gain_set is None else np.array([estimate.gain_set == "fast"]),
         columns,
@@ -873,9 +899,6 @@ BINARY_FLAG_IN_DOMAIN = 0x01
 BINARY_FLAG_GAIN_SET = 0x02
 BINARY_FLAG_FAST = 0x04
 _BINARY_KNOWN_FLAGS = BINARY_FLAG_IN_DOMAIN | BINARY_FLAG_GAIN_SET | BINARY_FLAG_FAST
-#: Level codes of the binary estimate, in the order of :data:`Level`.
-LEVEL_CODES: dict[Level, int] = {"OK": 0, "WARN": 1, "FAULT": 2, "STALE": 3}
-_LEVELS_BY_CODE: dict[int, Level] = {code: level for level, code in LEVEL_CODES.items()}
 _GAIN_VERSION_BYTES = ESTIMATE_BINARY_HEADER_DTYPE["gain_version"].itemsize
 
 
@@ -906,8 +929,7 @@ def encode_binary_estimates(batch: EstimateBatch, rows: Sequence[int] | None = N
     if batch.fast is not None:
         flags |= BINARY_FLAG_GAIN_SET | np.where(batch.fast[at], BINARY_FLAG_FAST, 0).astype(np.uint8)
     records["flags"] = flags
-    levels = batch.levels
-    records["level"] = [LEVEL_CODES[levels[i]] for i in pick]
+    records["level"] = batch.level_codes[at]
     records["seq"] = batch.seq[at]
     records["t_ns"] = batch.t_ns[at]
     records["gain_version"] = batch.gain_version.encode("ascii")
@@ -940,7 +962,7 @@ def decode_binary_estimate(payload: bytes | bytearray | memoryview, vehicle_id: 
     flags, level, revision = int(head["flags"]), int(head["level"]), int(head["revision"])
     if flags & ~_BINARY_KNOWN_FLAGS or reserved:
         raise ProtocolError(f"binary estimate: reserved bits set (flags {flags:#04x}, reserved {reserved})")
-    if level not in _LEVELS_BY_CODE:
+    if level >= len(LEVELS):
         raise ProtocolError(f"binary estimate: unknown level code {level}")
     n_columns = int(head["n_columns"])
     expected = ESTIMATE_BINARY_HEADER_SIZE + 8 * n_columns
@@ -968,7 +990,7 @@ def decode_binary_estimate(payload: bytes | bytearray | memoryview, vehicle_id: 
                 "t_ns": int(head["t_ns"]),
                 "in_domain": bool(flags & BINARY_FLAG_IN_DOMAIN),
                 "gain_version": gain_version,
-                "level": _LEVELS_BY_CODE[level],
+                "level": LEVELS[level],
                 **fields,
             }
         )

@@ -124,6 +124,7 @@ def test_the_c_estimate_decoder_reads_python_binary_estimates_and_refuses_what_p
         ProtocolError,
         decode_binary_estimate,
         encode_binary_estimates,
+        level_codes,
     )
 
     header = (ROOT / "include/agv_fe/estimate.h").read_text()
@@ -134,7 +135,7 @@ def test_the_c_estimate_decoder_reads_python_binary_estimates_and_refuses_what_p
     for columns, fast in ((STATE_COLUMNS, None), (ESTIMATE_COLUMNS, np.array([True, False, True]))):
         batch = EstimateBatch(["a", "b", "c"], np.array([0, 2**63 + 5, 17]), np.array([-(2**63), 0, 2**62]),
                               rng.normal(0, 100, (3, len(columns))), np.array([True, False, True]),
-                              ["OK", "FAULT", "STALE"], "3f9a1c0b7d2e", fast, columns)  # fmt: skip
+                              level_codes(["OK", "FAULT", "STALE"]), "3f9a1c0b7d2e", fast, columns)  # fmt: skip
         for payload in encode_binary_estimates(batch):
             fields = _run(example, "decode-estimate", payload.hex()).stdout.split()
             record = np.frombuffer(payload, np.dtype([("h", "V40"), ("v", "<f8", (len(columns),))]))[0]
@@ -149,7 +150,7 @@ def test_the_c_estimate_decoder_reads_python_binary_estimates_and_refuses_what_p
             ]
             assert all(math.isnan(v) for v in got[len(columns) :])
     good = encode_binary_estimates(EstimateBatch(["a"], np.array([1]), np.array([2]), np.ones((1, 5)),
-                                                 np.array([True]), ["OK"], "v"))[0]  # fmt: skip
+                                                 np.array([True]), level_codes(["OK"]), "v"))[0]  # fmt: skip
     refused = {
         "size": good[:-8],
         "magic": b"AGVX" + good[4:],

@@ -15,25 +15,26 @@ from __future__ import annotations
 import time
 import uuid
 from dataclasses import dataclass, field, fields
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 
-from agv_protocol.wire import Alarm, AlarmKind, AlarmState, Level
+from agv_protocol.wire import LEVEL_CODES, Alarm, AlarmKind, AlarmState, Level
 from service.fleet.cusum import CusumDetector
 from service.profiles import AlarmThresholds
 
-OK, WARN, FAULT = 0, 1, 2
+#: The detectors' levels: their numbers are the protocol's level codes, which an estimate batch carries as they are.
+OK, WARN, FAULT = LEVEL_CODES["OK"], LEVEL_CODES["WARN"], LEVEL_CODES["FAULT"]
 LEVEL_NAMES: tuple[Level, Level, Level] = ("OK", "WARN", "FAULT")
 RecordState = Literal["raised", "cleared"]
 _NOT_HOLDING = np.iinfo(np.int64).min
 _NONE = np.zeros(0, dtype=np.intp)
 _NONE.flags.writeable = False
-_LEVEL_RANK: dict[str, int] = {"OK": 0, "WARN": 1, "FAULT": 2, "STALE": 3}
 
 
 def level_rank(level: str) -> int:
-    return _LEVEL_RANK[level]
+    """A level's rank: its protocol code (OK < WARN < FAULT < STALE); KeyError for a name that is not a level."""
+    return LEVEL_CODES[cast(Level, level)]
 
 
 def seconds_to_ns(seconds: float) -> int:

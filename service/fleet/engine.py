@@ -760,10 +760,10 @@ class FleetEngine:
         at = pub_idx.tolist()
         vehicles = step.rows.vehicles
         ids = [vehicles[i].id for i in at]
-        # every vehicle of the tick had its STALE state cleared before it was stepped (stage 3)
-        names = [LEVEL_NAMES[lvl] for lvl in level.tolist()]
+        # every vehicle of the tick had its STALE state cleared before it was stepped (stage 3); the detectors'
+        # level numbers are the protocol's level codes (alarms.OK, WARN, FAULT)
         batch = EstimateBatch(
-            ids, seq[pub_idx], pub_t, pub_est, pub_in_domain, names, bank.version or "", fast, bank.columns
+            ids, seq[pub_idx], pub_t, pub_est, pub_in_domain, level, bank.version or "", fast, bank.columns
         )
         result.estimate_batches.append(batch)
         if not self.events.wants("estimate"):

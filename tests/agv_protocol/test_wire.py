@@ -107,9 +107,43 @@ def _batch(states: list[list[float]], ids: list[str] | None = None, seq0: int = 
         np.arange(n, dtype=np.int64) + 1_700_000_010_420_000_000,
         np.array(states, dtype=np.float64).reshape(n, 5),
         np.array([k % 2 == 0 for k in range(n)], dtype=bool),
-        (["OK", "WARN", "FAULT", "STALE"] * n)[:n],
+        np.arange(n, dtype=np.int8) % 4,
         "3f9a1c0b7d2e",
     )
+
+
+def test_an_estimate_batch_carries_level_codes_and_names_them_only_where_a_document_is_written():
+    """The service's detectors give levels as numbers; the batch keeps them so, the JSON documents, the fleet
+    stream and Estimate name them, the binary estimate writes the code, and level names in place of codes are
+    refused at once rather than written as garbage."""
+    from agv_protocol.wire import (
+        ESTIMATE_BINARY_HEADER_DTYPE,
+        LEVEL_CODES,
+        LEVELS,
+        decode_binary_estimate,
+        encode_binary_estimates,
+        level_codes,
+    )
+
+    batch = _batch([[float(k)] * 5 for k in range(6)])
+    names = [LEVELS[k % 4] for k in range(6)]
+    assert batch.level_codes.dtype == np.int8 and batch.levels() == names
+    assert batch.levels([4, 1]) == [names[4], names[1]]
+    assert [Estimate.decode(d).level for d in batch.documents()] == names
+    assert [batch.estimate(k).level for k in range(6)] == names
+    (group,) = orjson.loads(encode_fleet_estimates("r", [batch]))["groups"]
+    assert group["level"] == names
+    assert np.array_equal(EstimateBatch.from_group(group).level_codes, batch.level_codes)
+    for k, payload in enumerate(encode_binary_estimates(batch)):
+        assert payload[ESTIMATE_BINARY_HEADER_DTYPE.fields["level"][1]] == LEVEL_CODES[names[k]]
+        assert decode_binary_estimate(payload, batch.vehicle_ids[k]).level == names[k]
+    assert list(level_codes(["STALE", "OK"])) == [3, 0]
+    with pytest.raises(KeyError):
+        level_codes(["BROKEN"])
+    with pytest.raises(TypeError, match="level_codes"):
+        EstimateBatch(["a"], batch.seq[:1], batch.t_ns[:1], batch.values[:1], batch.in_domain[:1], ["OK"], "v")
+    with pytest.raises(TypeError, match="level_codes"):  # one code per row
+        EstimateBatch(["a"], batch.seq[:1], batch.t_ns[:1], batch.values[:1], batch.in_domain[:1], [0, 1], "v")
 
 
 EXTREME_FLOATS = [10.0, -0.0, 1e-300, -3.25e-7, 29.700000000000003, 1.2345678901234567e8, -math.pi, 5e-324]
@@ -130,7 +164,7 @@ def test_the_fast_estimate_encoder_writes_the_estimate_model_exactly():
         json.loads(payload)  # plain JSON, no NaN or Infinity tokens
         e = Estimate.decode(payload)
         assert (e.vehicle, e.seq, e.t_ns, e.in_domain, e.gain_version, e.level) == (
-            batch.vehicle_ids[k], 1042 + k, 1_700_000_010_420_000_000 + k, k % 2 == 0, "3f9a1c0b7d2e", batch.levels[k]
+            batch.vehicle_ids[k], 1042 + k, 1_700_000_010_420_000_000 + k, k % 2 == 0, "3f9a1c0b7d2e", batch.levels()[k]
         )  # fmt: skip
         got = [e.vx, e.vy, e.r, e.torque_fault, e.steer_fault]
         assert got == states[k]

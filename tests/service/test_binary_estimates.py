@@ -20,6 +20,7 @@ from agv_protocol.wire import (
     ProtocolError,
     decode_binary_estimate,
     encode_binary_estimates,
+    level_codes,
     vehicle_key,
 )
 from service.transport import open_session
@@ -83,7 +84,7 @@ def _batch(n: int) -> EstimateBatch:
         np.arange(n, dtype=np.int64) * 10_000_000,
         rng.standard_normal((n, 5)),
         np.ones(n, dtype=bool),
-        ["OK"] * n,
+        np.zeros(n, np.int8),
         "0123456789ab",
     )
 
@@ -122,7 +123,7 @@ def test_a_binary_estimate_reads_as_the_json_document_of_the_same_row(columns, s
         np.arange(n, dtype=np.int64) * 10_000_000 + 1_700_000_000_000_000_000,
         rng.standard_normal((n, len(cols))) * 1e3,
         np.array([True, False] * 3),
-        ["OK", "WARN", "FAULT", "STALE", "OK", "WARN"],
+        level_codes(["OK", "WARN", "FAULT", "STALE", "OK", "WARN"]),
         "fedcba987654",
         np.array([True, False, False, True, True, False]) if switched else None,
         cols,

@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import service.history
-from agv_protocol.wire import ESTIMATE_COLUMNS, STATE_COLUMNS, Estimate, EstimateBatch
+from agv_protocol.wire import ESTIMATE_COLUMNS, STATE_COLUMNS, Estimate, EstimateBatch, level_codes
 from service.history import SCHEMA, EstimateHistory, batch_table, table_rows
 from service.history_process import HistoryProcess
 from tests.service.helpers import PERIOD_NS, T0_NS, make_settings, plant_measurements, probe, running, wait_for
@@ -33,7 +33,7 @@ def _batch(vehicles: list[str], seq: int, with_stage: bool = False) -> EstimateB
         np.full(n, T0_NS + seq * PERIOD_NS, dtype=np.int64),
         values,
         np.ones(n, dtype=bool),
-        ["OK"] * n,
+        np.zeros(n, np.int8),
         "3f9a1c0b7d2e",
         None,
         columns,
@@ -143,8 +143,8 @@ def test_a_table_of_mixed_batches_keeps_each_rows_columns_gain_version_and_set()
     plain, staged = _batch(["a", "b"], 1), _batch(["c"], 2, with_stage=True)
     t_ns, values = np.array([T0_NS, T0_NS]), np.ones((2, len(STATE_COLUMNS)))
     switched = EstimateBatch(
-        ["d", "e"], np.array([3, 4]), t_ns, values, np.array([True, False]), ["WARN", "OK"], "0123456789ab",
-        np.array([True, False]),
+        ["d", "e"], np.array([3, 4]), t_ns, values, np.array([True, False]), level_codes(["WARN", "OK"]),
+        "0123456789ab", np.array([True, False]),
     )  # fmt: skip
     table = batch_table([plain, switched, staged, _batch([], 5)])
     assert table.schema.equals(SCHEMA) and table.num_rows == 5

@@ -72,7 +72,7 @@ def _batch(ids: list[str], seq: int) -> EstimateBatch:
         np.full(n, seq * 10_000_000, dtype=np.int64),
         np.zeros((n, 5)),
         np.ones(n, dtype=bool),
-        ["OK"] * n,
+        np.zeros(n, np.int8),
         "0123456789ab",
     )
 

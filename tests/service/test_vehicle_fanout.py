@@ -22,6 +22,7 @@ from agv_protocol.wire import (
     ProtocolError,
     decode_binary_estimate,
     encode_fleet_estimates,
+    level_codes,
     vehicle_key,
 )
 from service.fleet_child import fleet_batches
@@ -38,7 +39,7 @@ def _batch(columns: tuple[str, ...], switched: bool, version: str) -> EstimateBa
         np.arange(n, dtype=np.int64) * 10_000_000 + 1_700_000_000_000_000_000,
         rng.standard_normal((n, len(columns))) * 1e3,
         np.array([True, False, True, True]),
-        ["OK", "WARN", "FAULT", "OK"],
+        level_codes(["OK", "WARN", "FAULT", "OK"]),
         version,
         np.array([True, False, False, True]) if switched else None,
         columns,
