@@ -2,7 +2,7 @@
 
 A figure from one service on this shared 2-core machine moves by tens of per cent from run to run
 (docs/benchmarks/service_load.md, the reading), so the cost of a feature is measured as a comparison made in
-one run: each configuration's service in turn, then again in the same order (ABAB...), each holding the
+one run: each configuration's service in turn, then again in the reverse order (ABBA...), each holding the
 service-load benchmark's target fleet (1,000 vehicles at 100 Hz, every vehicle at its own phase of the period,
 an estimate for every sample taken from the fleet stream, congestion control BLOCK) for a warm-up step and a
 30 s hold whose p99 is read per 10 s window, exactly as service_load.py measures it.
@@ -55,7 +55,7 @@ from agv_fe.benchmarks.service_load import (
 from agv_fe.pg_cluster import PostgresServer
 from agv_protocol.wire import N_BUCKETS
 
-#: How many times each configuration's service runs, alternating with the others.
+#: How many times each configuration's service runs, alternating with the others (ABBA: :func:`measure`).
 ROUNDS = 2
 #: How long a service with bucket leases may take to hold every bucket [s].
 LEASES_S = 60.0
@@ -203,7 +203,9 @@ def measure(
     vehicles: int = TARGET_VEHICLES,
     hold_s: float = TARGET_HOLD_S,
 ) -> list[dict[str, Any]]:
-    """Every configuration once per round, in order, ``rounds`` times; the runs in the order they were made."""
+    """Every configuration once per round, ``rounds`` times, in order in the first round and reversed in every
+    second one (ABBA), so that coming first or second in a round favours no configuration; the runs in the order
+    they were made."""
     with shared_resources(configs) as shared:
         return _alternate(configs, rounds, vehicles, hold_s, shared)
 
@@ -213,7 +215,7 @@ def _alternate(
 ) -> list[dict[str, Any]]:
     runs = []
     for r in range(rounds):
-        for config in configs:
+        for config in configs if r % 2 == 0 else configs[::-1]:
             run = measure_one(config, vehicles, hold_s, shared)
             run["round"] = r + 1
             hold = run["hold"]
@@ -257,9 +259,9 @@ def render(
         "process that puts the vehicles' estimates, where a configuration has one: its CPU is counted in the "
         "service's) share the machine's two cores. "
         f"Each configuration's service ran {_times(len(runs) // max(1, len(configs)))}, alternating with "
-        f"the others (one round runs each once, in the order below): a {STEP_S:.0f} s step that registers the "
-        f"fleet, then a {TARGET_HOLD_S:.0f} s hold whose p99 latency is taken per {STEP_S:.0f} s window "
-        "(agv_fe/benchmarks/service_config.py, the steps of service_load.py).\n",
+        "the others (one round runs each once, in the order below, reversed in every second round): a "
+        f"{STEP_S:.0f} s step that registers the fleet, then a {TARGET_HOLD_S:.0f} s hold whose p99 latency is "
+        f"taken per {STEP_S:.0f} s window (agv_fe/benchmarks/service_config.py, the steps of service_load.py).\n",
         *_setup(configs, runs),
         "| configuration | runs | zero loss, keeping up | p99 per window: median / worst [ms] "
         f"| ratio of median p99 to '{first['label']}' | windows under {TARGET_P99_MS:.0f} ms | service CPU [cores] "
