@@ -272,7 +272,7 @@ class HistorySettings(_Section):
     precision: Literal["float64", "float32"] = Field(
         "float64",
         description="the float channels on disk: float64 keeps the published values exactly (12 MB per "
-        "vehicle-hour), float32 halves the disk (5.8 MB) at 7 significant digits",
+        "vehicle-hour), float32 halves the disk (5.6 MB) at 7 significant digits",
     )
     directory: Path | None = Field(None, description="where the files go (default: DATA_DIR/history)")
     writer: Literal["thread", "process"] = Field(

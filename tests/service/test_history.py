@@ -69,6 +69,16 @@ def test_the_history_keeps_every_estimate_and_reads_a_vehicle_back_by_time(tmp_p
         wait_for(lambda: history.read("b", T0_NS, T0_NS + 400 * PERIOD_NS).num_rows == 305, what="pending rows read")
     finally:
         history.close()
+    # each column written as _ENCODINGS says: a dictionary only where the record's column is one, byte-stream
+    # split for the floats, deltas for seq and t_ns (Parquet's default tries a dictionary everywhere first)
+    path = min((tmp_path / "history").rglob("*.parquet"))  # the first chunk, 1,200 rows
+    chunk = pq.ParquetFile(path).metadata.row_group(0)
+    encodings = {chunk.column(i).path_in_schema: set(chunk.column(i).encodings) for i in range(chunk.num_columns)}
+    dictionary = {"RLE_DICTIONARY", "PLAIN_DICTIONARY"}  # (RLE alone: the definition levels of a nullable column)
+    assert "RLE_DICTIONARY" in encodings["vehicle"] and "RLE_DICTIONARY" in encodings["level"]
+    for name, encoding in {"vx": "BYTE_STREAM_SPLIT", "steer_alpha": "BYTE_STREAM_SPLIT",
+                           "seq": "DELTA_BINARY_PACKED", "t_ns": "DELTA_BINARY_PACKED"}.items():  # fmt: skip
+        assert encoding in encodings[name] and not encodings[name] & dictionary, (name, encodings[name])
     # a restart indexes the files it finds and reads them as before
     again = EstimateHistory(tmp_path / "history", "r0", retention_s=3600.0, chunk_s=1.0)
     again.start()
