@@ -238,11 +238,6 @@ class Measurement:
         return all(math.isfinite(v) for v in (self.vx_mps, self.r_radps, self.torque_nm, self.steer_rad))
 
 
-#: Only (magic, version, flags, seq): what the service's per-sample loop needs; the numbers are
-#: decoded for a whole tick at once with :data:`MEASUREMENT_HEADER_DTYPE`.
-unpack_measurement_sequence = struct.Struct("<4sBBxxQ").unpack_from
-
-
 class _Json(BaseModel):
     """A JSON message of the protocol: encoded by pydantic, decoded with a :class:`ProtocolError` on bad input."""
 

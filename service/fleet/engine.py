@@ -64,7 +64,6 @@ from agv_protocol.wire import (
     ProtocolError,
     bucket_of,
     parse_vehicle_key,
-    unpack_measurement_sequence,
 )
 from service.fleet.alarms import (
     FAULT,
@@ -88,6 +87,8 @@ from synth.observer import RuntimeGains
 
 #: Sequence numbers at or above this take the one-by-one path of a tick (exact Python integers there).
 _FAST_SEQ_LIMIT = 1 << 62
+#: What every measurement frame of this protocol version starts with: the magic, then the version byte.
+_FRAME_PREFIX = MAGIC + bytes([PROTOCOL_VERSION])
 
 
 def _limits_row(spec: ProfileSpec) -> tuple[float, float, float, float, float]:
@@ -339,10 +340,10 @@ class FleetEngine:
         result = TickResult()
         now_mono = self._monotonic()
         now_ns = self._clock_ns()
-        frames, headers = self._decode(batch, result, now_mono)
-        if not frames:
+        frame_vehicles, headers = self._decode(batch, result, now_mono)
+        if not frame_vehicles:
             return result
-        tick = self._plausibility(frames, headers)
+        tick = self._plausibility(frame_vehicles, headers)
         per_bank: dict[str, Rows] = {}
         in_order = self._sequence_in_order(tick, per_bank, now_mono, now_ns, result)
         self._sequence_one_by_one(tick, ~in_order, per_bank, now_mono, now_ns, result)
@@ -354,17 +355,19 @@ class FleetEngine:
 
     def _decode(
         self, batch: Iterable[tuple[str, bytes]], result: TickResult, now_mono: float
-    ) -> tuple[list[tuple[Vehicle, int, int]], list[bytes]]:
-        """Stage 1: the well-formed frames of known (or newly registered) vehicles, in arrival order, as (vehicle,
-        seq, flags) and their 64-byte headers; every other payload is rejected with its reason."""
+    ) -> tuple[list[Vehicle], list[bytes]]:
+        """Stage 1: the well-formed frames of known (or newly registered) vehicles, in arrival order, as their
+        vehicles and their 64-byte headers; every other payload is rejected with its reason. The header's numbers
+        (seq and flags among them) are read for the whole tick at once by :meth:`_plausibility`."""
         received = 0
-        unpack = unpack_measurement_sequence
+        by_key = self._by_key.get
+        prefix = _FRAME_PREFIX
         header_size = MEASUREMENT_HEADER_SIZE
-        frames: list[tuple[Vehicle, int, int]] = []
+        vehicles: list[Vehicle] = []
         headers: list[bytes] = []
         for key, payload in batch:
             received += 1
-            vehicle = self._by_key.get(key)
+            vehicle = by_key(key)
             if vehicle is None:
                 vehicle = self._resolve(key, payload, result, now_mono)
                 if vehicle is None:
@@ -372,27 +375,28 @@ class FleetEngine:
             if len(payload) != vehicle.payload_len:
                 self._reject(vehicle, _classify(payload, vehicle.id), now_mono, result)
                 continue
-            magic, version, flags, seq = unpack(payload)
-            if magic != MAGIC or version != PROTOCOL_VERSION:
+            if not payload.startswith(prefix):  # the magic and the protocol version
                 self._reject(vehicle, "malformed", now_mono, result)
                 continue
             if not payload.endswith(vehicle.id_bytes):  # same length as expected: the id is the tail
                 self._reject(vehicle, "id_mismatch", now_mono, result)
                 continue
-            frames.append((vehicle, seq, flags))
+            vehicles.append(vehicle)
             headers.append(payload[:header_size])
         self.stats["received"] += received
         result.received = received
-        return frames, headers
+        return vehicles, headers
 
-    def _plausibility(self, frames: list[tuple[Vehicle, int, int]], headers: list[bytes]) -> Checked:
+    def _plausibility(self, frame_vehicles: list[Vehicle], headers: list[bytes]) -> Checked:
         """Stage 2: the values of every frame at once, checked against its profile's limits before its sequence
         number is believed: finite, within limits, flag bits this version defines and zero reserved bytes."""
         header = np.frombuffer(b"".join(headers), dtype=MEASUREMENT_HEADER_DTYPE)
         values = np.column_stack([header["vx"], header["r"], header["torque"], header["steer"]])
         ordinal = self._ordinal
-        frame_vehicles = [v for v, _, _ in frames]
-        bank_of = np.array([ordinal[v.bank.name] for v in frame_vehicles], dtype=np.intp)
+        if len(ordinal) == 1:  # one profile: no need to look at each vehicle's
+            bank_of = np.zeros(len(frame_vehicles), dtype=np.intp)
+        else:
+            bank_of = np.array([ordinal[v.bank.name] for v in frame_vehicles], dtype=np.intp)
         lim = self._limits[bank_of]
         finite = np.isfinite(values).all(axis=1)
         conforming = ((header["flags"] & ~np.uint8(KNOWN_FLAGS)) == 0) & (header["reserved"] == 0)
@@ -406,7 +410,7 @@ class FleetEngine:
                 & (np.abs(values[:, 2]) <= lim[:, 3])
                 & (np.abs(values[:, 3]) <= lim[:, 4])
             )
-        return Checked(frames, frame_vehicles, header, values, bank_of, ok, conforming, finite)
+        return Checked(frame_vehicles, header, values, bank_of, ok, conforming, finite)
 
     def _sequence_in_order(
         self, tick: Checked, per_bank: dict[str, Rows], now_mono: float, now_ns: int, result: TickResult
@@ -458,9 +462,10 @@ class FleetEngine:
             return
         good = tick.ok.tolist()
         t_list = tick.header["t_ns"].tolist()
+        seq_list, flags_list = tick.header["seq"].tolist(), tick.header["flags"].tolist()
         touched: list[Vehicle] = []
         for position in slow_at:
-            vehicle, seq, flags = tick.frames[position]
+            vehicle, seq, flags = tick.vehicles[position], seq_list[position], flags_list[position]
             vehicle.last_seen_mono = now_mono
             vehicle.last_seen_ns = now_ns
             if vehicle.stale:

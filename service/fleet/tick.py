@@ -45,13 +45,12 @@ class Rows:
 class Checked:
     """A tick's frames after decoding and the plausibility check (stages 1-2 of :meth:`FleetEngine.process`).
 
-    frames : (vehicle, seq, flags) in arrival order; vehicles : the frames' vehicles; header : the decoded
-    headers (MEASUREMENT_HEADER_DTYPE); values : (n, 4) [v_x, r, T_d, delta_d]; bank_of : each frame's profile
-    ordinal; ok : plausible (conforming, finite, within limits); conforming, finite : the parts of ok that name
-    a reject reason.
+    vehicles : the frames' vehicles, in arrival order; header : their decoded headers (MEASUREMENT_HEADER_DTYPE:
+    seq and flags among them); values : (n, 4) [v_x, r, T_d, delta_d]; bank_of : each frame's profile ordinal;
+    ok : plausible (conforming, finite, within limits); conforming, finite : the parts of ok that name a reject
+    reason.
     """
 
-    frames: list[tuple[Vehicle, int, int]]
     vehicles: list[Vehicle]
     header: np.ndarray
     values: FloatArray
