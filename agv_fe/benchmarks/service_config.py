@@ -79,6 +79,7 @@ class Configuration:
 
 _HISTORY_OFF = {"AGV_FE_HISTORY__ENABLED": "false"}
 _HISTORY_PROCESS = {"AGV_FE_HISTORY__WRITER": "process"}
+_TICK_2MS = {"AGV_FE_INGEST__TICK_INTERVAL_S": "0.002"}
 #: The configurations of the default run: the estimate history on (the default) and off.
 HISTORY = (
     Configuration("history on (default)"),
@@ -92,6 +93,8 @@ CONFIGURATIONS = {
     "tls-history": Configuration("TLS + ACL, history on", tls=True),
     "tls-history-process": Configuration("TLS + ACL, history in its own process", _HISTORY_PROCESS, tls=True),
     "plain-history-process": Configuration("plain TCP, history in its own process", _HISTORY_PROCESS),
+    "plain-tick-2ms": Configuration("plain TCP, history on, a tick at most every 2 ms", _TICK_2MS),
+    "tls-history-tick-2ms": Configuration("TLS + ACL, history on, a tick at most every 2 ms", _TICK_2MS, tls=True),
     "tls-history-noacl": Configuration("TLS without ACL, history on", tls=True, acl=False),
     "tls-history-leases": Configuration("TLS + ACL, history on, PostgreSQL leases", tls=True, leases=True),
     "vehicle-bin-thread": Configuration("every vehicle's binary key, put by a thread (default)", stream="vehicle-bin"),
