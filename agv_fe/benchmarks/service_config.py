@@ -79,7 +79,8 @@ class Configuration:
 
 _HISTORY_OFF = {"AGV_FE_HISTORY__ENABLED": "false"}
 _HISTORY_PROCESS = {"AGV_FE_HISTORY__WRITER": "process"}
-_TICK_2MS = {"AGV_FE_INGEST__TICK_INTERVAL_S": "0.002"}
+_TICK_2MS = {"AGV_FE_INGEST__TICK_INTERVAL_S": "0.002"}  # the default since 2026-11-27
+_TICK_1MS = {"AGV_FE_INGEST__TICK_INTERVAL_S": "0.001"}  # the default before
 #: The configurations of the default run: the estimate history on (the default) and off.
 HISTORY = (
     Configuration("history on (default)"),
@@ -95,6 +96,8 @@ CONFIGURATIONS = {
     "plain-history-process": Configuration("plain TCP, history in its own process", _HISTORY_PROCESS),
     "plain-tick-2ms": Configuration("plain TCP, history on, a tick at most every 2 ms", _TICK_2MS),
     "tls-history-tick-2ms": Configuration("TLS + ACL, history on, a tick at most every 2 ms", _TICK_2MS, tls=True),
+    "plain-tick-1ms": Configuration("plain TCP, history on, a tick at most every 1 ms", _TICK_1MS),
+    "tls-history-tick-1ms": Configuration("TLS + ACL, history on, a tick at most every 1 ms", _TICK_1MS, tls=True),
     "tls-history-noacl": Configuration("TLS without ACL, history on", tls=True, acl=False),
     "tls-history-leases": Configuration("TLS + ACL, history on, PostgreSQL leases", tls=True, leases=True),
     "vehicle-bin-thread": Configuration("every vehicle's binary key, put by a thread (default)", stream="vehicle-bin"),

@@ -469,16 +469,18 @@ def _latencies(rec: dict[str, Any]) -> dict[str, Any]:
 
 
 ENGINE_TICKS = 300
-#: The engine alone also in ticks of a tenth of the fleet, as vehicles spread over the period arrive at 1 ms ticks.
-ENGINE_PHASES = 10
+#: The engine alone also in ticks of a fifth of the fleet: vehicles spread over the 10 ms period, in ticks 2 ms apart
+#: (the service's default tick interval).
+ENGINE_PHASES = 5
+ENGINE_SHARE = "a fifth"
 
 
 def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: int) -> list[dict[str, Any]]:
     """The fleet engine in this process, no Zenoh: microseconds of ingest work per measurement.
 
     The same gains as the service, the same estimate decimation; each vehicle sends ENGINE_TICKS samples, all of
-    them in each tick (a tick of the whole fleet: aligned clocks) or a tenth of the fleet per tick (ENGINE_PHASES:
-    vehicles spread over the 10 ms period, as the service's 1 ms ticks take them). This is the service's own
+    them in each tick (a tick of the whole fleet: aligned clocks) or a fifth of the fleet per tick (ENGINE_PHASES:
+    vehicles spread over the 10 ms period, in the service's default ticks 2 ms apart). This is the service's own
     cost, apart from the transport and the processes it shares the machine with; the two differ by what a tick
     costs whatever its size.
     """
@@ -502,7 +504,7 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: in
         )
         print(
             f"  engine alone, {n} vehicles, every {every_n}: {us:.2f} us per measurement "
-            f"({spread:.2f} in ticks of a tenth of the fleet)",
+            f"({spread:.2f} in ticks of {ENGINE_SHARE} of the fleet)",
             flush=True,
         )
     return rows
@@ -720,11 +722,11 @@ def _report(
             "",
             "The fleet engine alone, in one process without Zenoh (same gains and estimate decimation, "
             f"{ENGINE_TICKS} samples per vehicle, the start-up heap frozen as the service does): the service's own "
-            "ingest work, with every vehicle in each tick, and with a tenth of the fleet in each tick (vehicles "
-            "spread over the 10 ms period, as the service's 1 ms ticks take them).",
+            f"ingest work, with every vehicle in each tick, and with {ENGINE_SHARE} of the fleet in each tick "
+            "(vehicles spread over the 10 ms period, in the service's default ticks 2 ms apart).",
             "",
             "| vehicles | us per measurement, whole fleet per tick | cores needed at 100 Hz "
-            "| us per measurement, a tenth per tick | cores needed at 100 Hz |",
+            f"| us per measurement, {ENGINE_SHARE} per tick | cores needed at 100 Hz |",
             "|---|---|---|---|---|",
             *(
                 f"| {e['vehicles']} | {e['us_per_msg']:.2f} | {e['cores_at_100hz']:.3f} "
@@ -846,7 +848,8 @@ def _against_target(
             f"The engine alone needs {e['us_per_msg']:.2f} us per measurement, {e['cores_at_100hz']:.2f} of a "
             f"core for {e['vehicles']:,} vehicles in ticks of the whole fleet"
             + (
-                f" ({e['us_per_msg_spread']:.2f} us, {e['cores_at_100hz_spread']:.2f} of a core, in ticks of a tenth)"
+                f" ({e['us_per_msg_spread']:.2f} us, {e['cores_at_100hz_spread']:.2f} of a core, "
+                f"in ticks of {ENGINE_SHARE})"
                 if "us_per_msg_spread" in e
                 else ""
             )

@@ -91,9 +91,9 @@ def test_the_verdict_says_when_the_latency_target_is_missed():
     verdict = bench._against_target(rows, engine)
     assert "1,000 vehicles at 100 Hz ran with zero loss (p50 50.0 ms, p99 80.0 ms" in verdict
     assert "held up to 100 vehicles" in verdict and "2.50 us per measurement, 0.25 of a core" in verdict
-    assert "in ticks of a tenth" not in verdict
+    assert "in ticks of a fifth" not in verdict
     spread = [{**engine[0], "us_per_msg_spread": 2.75, "cores_at_100hz_spread": 0.275}]
-    assert "(2.75 us, 0.28 of a core, in ticks of a tenth)" in bench._against_target(rows, spread)
+    assert "(2.75 us, 0.28 of a core, in ticks of a fifth)" in bench._against_target(rows, spread)
     assert "not met" in bench._against_target(rows[1:], engine)
     hold = {**rows[2], "duration_s": 30.0, "p50_ms": 5.0, "p99_windows_ms": [8.0, 12.5, 9.0]}
     held = bench._against_target(rows, engine, hold)
