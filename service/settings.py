@@ -126,7 +126,7 @@ class IngestSettings(_Section):
         description="the ingest loop starts a tick at most this often [s]: what arrived in between is stepped as one "
         "batch. Vehicles with independent clocks send all through the period; without a floor the loop would run a "
         "tick for every few samples and spend its time on per-tick work. 2 ms took 9-13 % less CPU than 1 ms at "
-        "1,000 vehicles for about 0.5 ms of median latency (docs/capacity.md)",
+        "1,000 vehicles for 0.5-1.1 ms of median latency (docs/capacity.md)",
     )
     max_batch: Annotated[int, Field(ge=1)] = Field(20_000, description="measurements processed per tick at most")
     housekeeping_interval_s: Annotated[float, Field(gt=0)] = Field(
