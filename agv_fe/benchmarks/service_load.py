@@ -718,28 +718,30 @@ def _report(
                 f"| {r.get('receiver_cpu', float('nan')):.2f} | {r.get('generator_cpu', float('nan')):.2f} "
                 f"| {_ticks(r)} | {verdict} |"
             )
-        lines += [
-            "",
-            "The fleet engine alone, in one process without Zenoh (same gains and estimate decimation, "
-            f"{ENGINE_TICKS} samples per vehicle, the start-up heap frozen as the service does): the service's own "
-            f"ingest work, with every vehicle in each tick, and with {ENGINE_SHARE} of the fleet in each tick "
-            "(vehicles spread over the 10 ms period, in the service's default ticks 2 ms apart).",
-            "",
-            "| vehicles | us per measurement, whole fleet per tick | cores needed at 100 Hz "
-            f"| us per measurement, {ENGINE_SHARE} per tick | cores needed at 100 Hz |",
-            "|---|---|---|---|---|",
-            *(
-                f"| {e['vehicles']} | {e['us_per_msg']:.2f} | {e['cores_at_100hz']:.3f} "
-                f"| {e['us_per_msg_spread']:.2f} | {e['cores_at_100hz_spread']:.3f} |"
-                for e in engine
-            ),
-            "",
-            _against_target(rows, engine, hold),
-        ]
+        lines += ["", *_engine_table(engine), "", _against_target(rows, engine, hold)]
     path = out_dir / "service_load.md"
     text = "\n".join(lines) + "\n" + ANALYSIS
     path.write_text(text + "\n```json\n" + json.dumps(sweeps, indent=1) + "\n```\n")
     return path
+
+
+def _engine_table(engine: list[dict[str, Any]]) -> list[str]:
+    """The report's lines on the fleet engine alone (:func:`_engine_alone`)."""
+    return [
+        "The fleet engine alone, in one process without Zenoh (same gains and estimate decimation, "
+        f"{ENGINE_TICKS} samples per vehicle, the start-up heap frozen as the service does): the service's own "
+        f"ingest work, with every vehicle in each tick, and with {ENGINE_SHARE} of the fleet in each tick "
+        "(vehicles spread over the 10 ms period, in the service's default ticks 2 ms apart).",
+        "",
+        "| vehicles | us per measurement, whole fleet per tick | cores needed at 100 Hz "
+        f"| us per measurement, {ENGINE_SHARE} per tick | cores needed at 100 Hz |",
+        "|---|---|---|---|---|",
+        *(
+            f"| {e['vehicles']} | {e['us_per_msg']:.2f} | {e['cores_at_100hz']:.3f} "
+            f"| {e['us_per_msg_spread']:.2f} | {e['cores_at_100hz_spread']:.3f} |"
+            for e in engine
+        ),
+    ]
 
 
 ANALYSIS = """## Reading
