@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import bisect
 import sys
+import threading
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from importlib import metadata
@@ -25,6 +26,7 @@ from prometheus_client.registry import Collector
 
 from agv_protocol.wire import all_buckets
 from service.fleet.vehicle import REJECT_REASONS
+from service.thread_cpu import ThreadCpu
 
 if TYPE_CHECKING:
     from service.bucket_leases import LeaseState
@@ -170,6 +172,7 @@ class ServiceCollector(Collector):
             "replica": source.replica_id,
             "shard": f"{shard.index}/{shard.replicas}",
         }
+        self._thread_cpu = ThreadCpu()
 
     def collect(self) -> Iterator[Metric]:
         yield from self._build_and_state()
@@ -177,6 +180,23 @@ class ServiceCollector(Collector):
         yield from self._fleet()
         yield from self._jobs_and_storage()
         yield from self._leases()
+        yield from self._threads()
+
+    def _threads(self) -> Iterator[Metric]:
+        """The process's CPU by thread group (service/thread_cpu.py); nothing where /proc has no task list."""
+        seconds = self._thread_cpu.sample(threading.get_native_id())  # collect() runs on the event loop
+        if not seconds:
+            return
+        family = CounterMetricFamily(
+            "agv_fe_thread_cpu_seconds",
+            "CPU time (user + system) of the process's threads by group: event_loop (the ingest loop, the API; near "
+            "one core it limits the replica), the service's named threads, executor, zenoh, python_other, "
+            "native_other",
+            labels=["thread"],
+        )
+        for group in sorted(seconds):
+            family.add_metric([group], round(seconds[group], 3))
+        yield family
 
     def _leases(self) -> Iterator[Metric]:
         """Bucket ownership: what this replica serves (static shard or leases) and, with leases, the hand-overs."""

@@ -140,6 +140,16 @@ def test_promtool_accepts_a_real_services_metrics(scrape):
     assert checked.returncode == 0 and not checked.stdout.strip(), checked.stdout + checked.stderr
 
 
+def test_the_service_reports_its_cpu_by_thread(scrape):
+    """The event loop's thread (here uvicorn's, in the test process), Zenoh's and the service's own threads each
+    have a series, and none is negative."""
+    samples = parse_metrics(scrape).samples
+    cpu = {dict(labels)["thread"]: value for (name, labels), value in samples.items()
+           if name == "agv_fe_thread_cpu_seconds_total"}  # fmt: skip
+    assert {"event_loop", "zenoh", "storage-writer"} <= set(cpu), sorted(cpu)
+    assert cpu["event_loop"] > 0 and min(cpu.values()) >= 0
+
+
 def test_every_alert_watches_series_the_service_exposes(exposed):
     rules = {rule["alert"]: rule for rule in alert_rules()}
     for name, series in REQUIRED_ALERTS.items():
