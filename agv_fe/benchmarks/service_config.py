@@ -47,6 +47,7 @@ from agv_fe.benchmarks.service_load import (
     TARGET_HOLD_S,
     TARGET_P99_MS,
     TARGET_VEHICLES,
+    THREAD_GROUPS,
     _metric,
     _step,
     _sustained,
@@ -286,9 +287,9 @@ def render(
         "",
         "| round | configuration | Zenoh link | storage | estimate history running | warm-up step p99 [ms] "
         "| hold: zero loss | hold p50 [ms] | hold p99 per window [ms] | hold: over 10 ms at the tick / at the "
-        "vehicle-key puts (the service's histograms) | service CPU [cores] | hold: waiting for a core, service / "
-        "generator / receiver [s per s] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "vehicle-key puts (the service's histograms) | service CPU [cores] | of which the event loop / Zenoh's "
+        "threads [cores] | hold: waiting for a core, service / generator / receiver [s per s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         h = r["hold"]
@@ -297,7 +298,7 @@ def render(
             f"| {r['warm']['p99_ms']:.2f} | {'yes' if h['zero_loss'] else 'no'} "
             f"| {h['p50_ms']:.2f} | {', '.join(f'{x:.2f}' for x in h['p99_windows_ms'])} "
             f"| {_share(h.get('over_target_at_tick'))} / {_share(h.get('over_target_on_vehicle_keys'))} "
-            f"| {h['service_cpu']:.2f} | {_waits(h)} |"
+            f"| {h['service_cpu']:.2f} | {_threads(h)} | {_waits(h)} |"
         )
     lines += ["", "```json", json.dumps(runs, indent=1), "```", ""]
     return "\n".join(lines)
@@ -316,6 +317,11 @@ def _streams(configs: tuple[Configuration, ...]) -> str:
 def _share(value: float | None) -> str:
     """A share as a percentage; '-' where nothing was counted (no estimate on a vehicle key, or an older run)."""
     return "-" if value is None else f"{100 * value:.2f} %"
+
+
+def _threads(step: dict[str, Any]) -> str:
+    """The service's event loop and Zenoh's threads, cores ('-': an older run, or a service without the series)."""
+    return " / ".join("-" if not step.get(f"{g}_cpu") else f"{step[f'{g}_cpu']:.2f}" for g in THREAD_GROUPS)
 
 
 def _waits(step: dict[str, Any]) -> str:

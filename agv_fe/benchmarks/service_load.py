@@ -285,6 +285,16 @@ def _cpu_s(pid: int) -> float:
     return total / os.sysconf("SC_CLK_TCK")
 
 
+#: The service's thread groups a step reports the CPU of (service/thread_cpu.py): the event loop (the ingest loop;
+#: one core at most) and Zenoh's threads.
+THREAD_GROUPS = ("event_loop", "zenoh")
+
+
+def _thread_cpu_s(text: str, group: str) -> float:
+    """CPU seconds of a thread group in a /metrics text (0 where the service does not report it)."""
+    return _metric(text, f'agv_fe_thread_cpu_seconds_total{{thread="{group}"}}')
+
+
 def _metric(text: str, name: str) -> float:
     total = 0.0
     for line in text.splitlines():
@@ -349,6 +359,8 @@ def _step(
         "service_cpu": cpu["service_s"] / gen["elapsed_s"],
         "receiver_cpu": cpu["receiver_s"] / gen["elapsed_s"],
         "generator_cpu": gen["cpu_s"] / gen["elapsed_s"],
+        # [cores] the service's event loop and Zenoh's threads, parts of service_cpu
+        **{f"{group}_cpu": cpu[f"{group}_s"] / gen["elapsed_s"] for group in THREAD_GROUPS},
         # [s per s] the time each process waited for a core, beside the CPU time it ran (None: not counted here)
         "service_waited": _per_second(cpu["service_waited_s"], gen["elapsed_s"]),
         "receiver_waited": _per_second(cpu["receiver_waited_s"], gen["elapsed_s"]),
@@ -420,6 +432,7 @@ def _drive(
     generator.start()
     gen = gen_q.get(timeout=duration_s * 10 + 60)
     cpu1, waited1 = _cpu_s(pid), _waited_s(pid)
+    loaded = http.get("/metrics").text  # the service's threads over the generator's run, as its CPU above
     receiver_cpu1 = _cpu_s(receiver.pid) if receiver.pid is not None else 0.0
     receiver_waited1 = _waited_s(receiver.pid) if receiver.pid is not None else None
     generator.join(30)
@@ -432,6 +445,7 @@ def _drive(
         "receiver_s": receiver_cpu1 - receiver_cpu0,
         "service_waited_s": _difference(waited0, waited1),
         "receiver_waited_s": _difference(receiver_waited0, receiver_waited1),
+        **{f"{group}_s": _thread_cpu_s(loaded, group) - _thread_cpu_s(before, group) for group in THREAD_GROUPS},
     }
     return gen, rec, diff, times
 

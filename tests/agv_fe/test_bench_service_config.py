@@ -34,9 +34,14 @@ def test_the_configurations_alternate_and_each_service_runs_with_its_settings(tm
         assert r["hold"]["estimates_received"] == r["hold"]["sent"] > 0
         # each process's wait for a core, counted by this Linux kernel (the run table shows it beside the CPU)
         assert all(r["hold"][f"{who}_waited"] >= 0 for who in ("service", "generator", "receiver"))
+        # the service's event loop and Zenoh's threads ran, each a part of the service's CPU
+        parts = [r["hold"][f"{group}_cpu"] for group in bench.THREAD_GROUPS]
+        assert all(p > 0 for p in parts) and sum(parts) <= r["hold"]["service_cpu"] + 0.05
     text = bench.render("t", bench.HISTORY, runs, 10, "cmd")
     for r in runs:
-        assert f"| {r['hold']['service_cpu']:.2f} | {bench._waits(r['hold'])} |" in text
+        h = r["hold"]
+        split = f"{h['event_loop_cpu']:.2f} / {h['zenoh_cpu']:.2f}"
+        assert f"| {h['service_cpu']:.2f} | {split} | {bench._waits(h)} |" in text
     assert json.loads(text.rsplit("```json\n", 1)[1].split("\n```")[0]) == runs
     on, off = (bench._summary(c.label, runs) for c in bench.HISTORY)
     assert on["runs"] == off["runs"] == 2
