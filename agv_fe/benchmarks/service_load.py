@@ -824,6 +824,16 @@ CPU 0.49-0.66 against 0.59-0.66 cores. No clear gain; the default runtime stays.
 """
 
 
+def _cpu_split(step: dict[str, Any]) -> str:
+    """', of which ...': the service's event loop and Zenoh's threads in a step, and how long the service waited
+    for a core ('' for a step without them)."""
+    if not step.get("event_loop_cpu"):
+        return ""
+    waited = step.get("service_waited")
+    wait = "" if waited is None else f"; it waited {waited:.2f} s a second for a core"
+    return f", of which the event loop {step['event_loop_cpu']:.2f} and Zenoh's threads {step['zenoh_cpu']:.2f}{wait}"
+
+
 def _against_target(
     rows: list[dict[str, Any]], engine: list[dict[str, Any]], hold: dict[str, Any] | None = None
 ) -> str:
@@ -838,7 +848,8 @@ def _against_target(
         behind = " but fell behind" if ok and not _sustained(big) else ""
         parts.append(
             f"{big['vehicles']:,} vehicles at 100 Hz {'ran with zero loss' + behind if ok else 'did not run cleanly'} "
-            f"(p50 {big['p50_ms']:.1f} ms, p99 {big['p99_ms']:.1f} ms, service CPU {big['service_cpu']:.2f} cores)."
+            f"(p50 {big['p50_ms']:.1f} ms, p99 {big['p99_ms']:.1f} ms, service CPU {big['service_cpu']:.2f} cores"
+            f"{_cpu_split(big)})."
         )
     parts.append(
         f"In the sweep, the p99 < {TARGET_P99_MS:.0f} ms latency target held up to {max(fast):,} vehicles."
@@ -856,7 +867,7 @@ def _against_target(
             f"Held at {hold['vehicles']:,} vehicles for {hold.get('duration_s', TARGET_HOLD_S):.0f} s"
             f"{note}, p99 per {STEP_S:.0f} s window was "
             f"{', '.join(f'{x:.1f}' for x in windows)} ms: under {TARGET_P99_MS:.0f} ms in {met} of {len(windows)} "
-            f"windows (p50 {hold['p50_ms']:.1f} ms, service CPU {hold['service_cpu']:.2f} cores)."
+            f"windows (p50 {hold['p50_ms']:.1f} ms, service CPU {hold['service_cpu']:.2f} cores{_cpu_split(hold)})."
         )
     e = next((x for x in engine if big is not None and x["vehicles"] == big["vehicles"]), None)
     if e is not None:

@@ -42,6 +42,7 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
         assert row["estimates_received"] == row["estimates_expected"] == expected
         assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
         assert row["receiver_cpu"] > 0 and row["generator_cpu"] > 0
+        assert 0 < row["event_loop_cpu"] + row["zenoh_cpu"] <= row["service_cpu"] + 0.05
         assert engine["vehicles"] == 10 and engine["us_per_msg"] > 0 and engine["us_per_msg_spread"] > 0
         assert f"{engine['us_per_msg']:.2f} us per measurement" in text
         assert f"| 10 | {engine['us_per_msg']:.2f} | {engine['cores_at_100hz']:.3f} " in text
@@ -105,6 +106,13 @@ def test_the_verdict_says_when_the_latency_target_is_missed():
     behind = bench._against_target([*rows[:2], slow], engine, {**hold, "p99_ms": 2000.0})
     assert "ran with zero loss but fell behind (p50 50.0 ms, p99 165.0 ms" in behind
     assert "for 30 s (falling behind)" in behind
+    # where the service's CPU went, when the step has the thread split (older runs do not)
+    assert "of which" not in held
+    split = {**hold, "event_loop_cpu": 0.46, "zenoh_cpu": 0.28, "service_waited": 0.7}
+    assert (
+        "service CPU 0.50 cores, of which the event loop 0.46 and Zenoh's threads 0.28; it waited 0.70 s a "
+        "second for a core)" in bench._against_target(rows, engine, split)
+    )
 
 
 def test_the_largest_fleet_is_a_lower_bound_when_nothing_failed():
