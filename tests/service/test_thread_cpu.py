@@ -28,6 +28,8 @@ def test_threads_are_grouped_by_what_they_do():
     assert thread_group(101, loop, "storage-writer", "python") == "storage-writer"
     assert thread_group(102, loop, "estimate-history", "python") == "estimate-history"
     assert thread_group(103, loop, "asyncio_0", "python") == "executor"
+    assert thread_group(105, loop, "bucket-locks", "python") == "bucket-locks"
+    assert thread_group(106, loop, "worker-12", "python") == "worker"  # a pool's numbered threads: one series
     assert thread_group(104, loop, "Thread-3 (worker)", "python") == "python_other"
     for comm in ("rx-0", "rx-1", "tx-0", "acc-0", "net-2", "app-0", "Watchdog Confir"):
         assert thread_group(110, loop, None, comm) == "zenoh", comm
