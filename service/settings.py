@@ -84,6 +84,14 @@ class ZenohSettings(_Section):
         "matching listener per key, its changes applied before every tick's publication), so that the service "
         "neither encodes nor sends estimates nobody reads; 'always': every estimate goes to its vehicle's key",
     )
+    runtime_threads: Annotated[int, Field(ge=0, le=64)] = Field(
+        1,
+        description="Zenoh's worker threads in `agv-fe serve`: N runs Zenoh's receiving, sending and accepting work on "
+        "the N threads of its application runtime (ZENOH_RUNTIME handover); 0 keeps Zenoh's own threads (two "
+        "receiving, one each for sending, accepting and the application). One thread measured 0.18 against 0.25-0.29 "
+        "cores of Zenoh's threads at 1,000 vehicles (docs/capacity.md). A ZENOH_RUNTIME environment variable of the "
+        "operator's own wins; it takes effect before the process opens its first Zenoh session",
+    )
     vehicle_publisher: Literal["thread", "process"] = Field(
         "thread",
         description="who puts each vehicle's estimates on its own keys: 'thread', a thread of the service; "

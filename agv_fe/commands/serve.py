@@ -142,13 +142,17 @@ def run(args: argparse.Namespace) -> int:
     from agv_fe.common import CommandError, fail
     from service import logs
     from service.main import create_app
+    from service.transport import apply_runtime_threads
 
     try:
         settings = build_settings(args)
+        # before anything in this process opens Zenoh: its runtimes read their threads once
+        runtime = apply_runtime_threads(settings.zenoh.runtime_threads)
         check_zenoh_config(settings)
     except CommandError as exc:
         return fail(exc)
     logs.configure(args.log_level, args.log_format)
+    logging.getLogger("agv_fe.service").info("Zenoh runtime threads: %s", runtime or "Zenoh's defaults")
     app = create_app(settings)
 
     class Server(uvicorn.Server):

@@ -3,7 +3,9 @@ cannot be designed. (A SIGKILL during a design: tests/faults/test_crash.py.)"""
 
 from __future__ import annotations
 
+import contextlib
 import time
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -175,3 +177,40 @@ def test_samples_arriving_all_the_time_are_stepped_in_ticks_at_most_one_per_inte
     # where the loop that drained whatever waited as soon as a tick ended ran 29
     assert sending_s >= rounds * len(ids) * spacing_s
     assert stepped <= sending_s / interval + 3, (stepped, sending_s)
+
+
+def zenoh_threads(pid: int) -> set[str]:
+    """The names of the process's threads that Zenoh's runtimes run (rx-N, tx-N, acc-N, app-N, net-N)."""
+    names = set()
+    for tid in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(FileNotFoundError):
+            names.add((tid / "comm").read_text().strip())
+    return {n for n in names if n.split("-")[0] in ("rx", "tx", "acc", "app", "net")}
+
+
+@pytest.mark.parametrize(
+    ("threads", "operator", "present", "absent"),
+    [
+        (1, None, {"app-0"}, {"rx-0", "tx-0", "acc-0"}),  # the default: rx, tx, acc on the app runtime's worker
+        (2, None, {"app-0", "app-1"}, {"rx-0", "tx-0", "acc-0"}),
+        (0, None, {"rx-0", "rx-1", "tx-0", "acc-0"}, set()),  # Zenoh's own runtimes
+        (1, "(rx: (worker_threads: 1))", {"rx-0", "tx-0", "acc-0"}, {"rx-1"}),  # the operator's variable wins
+    ],
+)
+def test_zenoh_runs_on_the_threads_its_setting_gives(tmp_path, monkeypatch, threads, operator, present, absent):
+    """`agv-fe serve` sets ZENOH_RUNTIME from zenoh.runtime_threads before it opens Zenoh; the estimates flow
+    whatever threads carry them."""
+    if not Path("/proc/self/task").is_dir():
+        pytest.skip("needs /proc (Linux)")
+    monkeypatch.delenv("ZENOH_RUNTIME", raising=False)
+    settings = make_settings(tmp_path, zenoh={"runtime_threads": threads})
+    env = {} if operator is None else {"ZENOH_RUNTIME": operator}
+    with service_process(settings, tmp_path / "service.log", env=env) as srv:
+        srv.wait_ready()
+        with probe(settings.zenoh.endpoint) as p:
+            for k in range(20):
+                p.put(constant_measurement("threads-1", k))
+            wait_for(lambda: len(p.estimates_of("threads-1")) >= 20, what="estimates")
+            assert srv.process is not None
+            names = zenoh_threads(srv.process.pid)
+    assert present <= names and not (absent & names), sorted(names)

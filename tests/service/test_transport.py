@@ -9,7 +9,13 @@ import zenoh
 
 from agv_protocol.wire import BINARY_ESTIMATE_KIND, EstimateBatch, all_buckets, vehicle_key
 from service.settings import ZenohSettings
-from service.transport import Transport, VehicleEstimates, open_session
+from service.transport import (
+    Transport,
+    VehicleEstimates,
+    apply_runtime_threads,
+    open_session,
+    runtime_threads_value,
+)
 from tests.service.helpers import free_port, wait_for
 
 pytestmark = pytest.mark.network
@@ -105,3 +111,13 @@ def test_a_tick_nobody_subscribes_to_is_not_handed_to_the_publisher_thread(route
     assert vehicles.handed_over > 2 and not vehicles.quiet
     watcher.undeclare()
     wait_for(lambda: vehicles.quiet, what="the subscriber gone, every key unmatched again")
+
+
+def test_the_runtime_threads_setting_becomes_zenohs_variable_unless_the_operator_set_it():
+    environ: dict[str, str] = {}
+    assert apply_runtime_threads(0, environ) is None and environ == {}  # Zenoh's own threads
+    value = apply_runtime_threads(2, environ)
+    assert value == environ["ZENOH_RUNTIME"] == runtime_threads_value(2)
+    assert "(app: (worker_threads: 2)" in value and all(f"{rt}: (handover: app)" in value for rt in ("rx", "tx", "acc"))
+    mine = {"ZENOH_RUNTIME": "(rx: (worker_threads: 4))"}
+    assert apply_runtime_threads(1, mine) == "(rx: (worker_threads: 4))" == mine["ZENOH_RUNTIME"]
