@@ -451,7 +451,9 @@ def _drive(
 
 
 def _difference(before: float | None, after: float | None) -> float | None:
-    return None if before is None or after is None else after - before
+    """A wait for a core over a step. The counts are those of the live threads: a thread that ended took its count
+    with it (Zenoh's blocking threads come and go), so the difference is a lower bound, and never below 0."""
+    return None if before is None or after is None else max(0.0, after - before)
 
 
 def _latencies(rec: dict[str, Any]) -> dict[str, Any]:

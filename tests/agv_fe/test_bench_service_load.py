@@ -146,3 +146,10 @@ def test_the_wait_for_a_core_counts_the_children_that_wait():
     # at least two of them were always ready without a core for the second they all ran: ~2 s; 0.2 leaves room
     assert during - before > 0.2
     assert bench._waited_s(2**22 + 1) is None  # above the largest process id Linux hands out
+
+
+def test_a_wait_for_a_core_is_never_negative():
+    """Threads that ended take their counts with them: a step's difference is a lower bound, at least 0."""
+    assert bench._difference(1.0, 1.5) == 0.5
+    assert bench._difference(1.0, 0.99) == 0.0
+    assert bench._difference(None, 1.0) is None and bench._difference(1.0, None) is None
