@@ -3,8 +3,10 @@ series that never decrease when threads end or their ids are reused."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -37,19 +39,31 @@ def test_threads_are_grouped_by_what_they_do():
     assert thread_group(121, loop, None, "rx-") == "native_other"
 
 
+@contextlib.contextmanager
+def burning_thread(name: str, cpu_s: float) -> Iterator[Callable[[], None]]:
+    """A thread called ``name`` that burns ``cpu_s`` of CPU, then waits; yields a function that ends it (called on
+    the way out too)."""
+    done = threading.Event()
+    worker = threading.Thread(target=lambda: (burn(cpu_s), done.wait(10)), name=name)
+
+    def end() -> None:
+        done.set()
+        worker.join(10)
+
+    worker.start()
+    try:
+        yield end
+    finally:
+        end()
+
+
 @linux_only
 def test_a_named_thread_and_the_main_thread_are_counted_in_their_groups():
     cpu = ThreadCpu()
-    stop = threading.Event()
-    worker = threading.Thread(target=lambda: (burn(0.3), stop.wait(10)), name="storage-writer")
-    worker.start()
-    try:
+    with burning_thread("storage-writer", 0.3):
         burn(0.2)
         time.sleep(0.4)  # the worker has burnt its share by now, and waits
         seconds = cpu.sample()
-    finally:
-        stop.set()
-        worker.join(10)
     assert seconds["storage-writer"] >= 0.2
     assert seconds["event_loop"] >= 0.15
     # the groups are the process's threads: their sum is at most the process's CPU time
@@ -59,14 +73,11 @@ def test_a_named_thread_and_the_main_thread_are_counted_in_their_groups():
 @linux_only
 def test_a_thread_that_ended_keeps_its_time_in_its_group():
     cpu = ThreadCpu()
-    done = threading.Event()
-    worker = threading.Thread(target=lambda: (burn(0.2), done.wait(10)), name="vehicle-estimates")
-    worker.start()
-    time.sleep(0.3)
-    before = cpu.sample()["vehicle-estimates"]
-    done.set()
-    worker.join(10)
-    after = cpu.sample()
+    with burning_thread("vehicle-estimates", 0.2) as end:
+        time.sleep(0.3)
+        before = cpu.sample()["vehicle-estimates"]
+        end()
+        after = cpu.sample()
     assert before >= 0.1
     assert after["vehicle-estimates"] == before
     assert cpu.sample()["vehicle-estimates"] == before
