@@ -129,6 +129,11 @@ class FleetStreamChild:
     def alive(self) -> bool:
         return self._process.is_alive()
 
+    @property
+    def pid(self) -> int | None:
+        """The child's process id (None: not started)."""
+        return self._process.pid
+
     def close(self, timeout_s: float = 5.0) -> None:
         """Ask the child to stop and wait for it (it finishes what it holds); terminate it if it does not."""
         self.shared[len(self.shared) - 1] = 1

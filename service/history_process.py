@@ -28,6 +28,7 @@ from typing import Any
 import pyarrow as pa
 
 from agv_protocol.wire import EstimateBatch
+from service.affinity import background_cpus, set_process_affinity
 from service.fleet_child import POLL_S, FleetStreamChild, child_session, fleet_key, serve_fleet_stream
 from service.history import EstimateHistory, HistoryStats
 from service.settings import HistorySettings, ZenohSettings
@@ -118,8 +119,12 @@ class HistoryProcess(FleetStreamChild):
         self._ids = itertools.count()
 
     def start(self) -> None:
-        """Start the child and wait until it subscribes; raise TransportError if it cannot."""
+        """Start the child and wait until it subscribes; raise TransportError if it cannot. With the service on
+        CPUs of its own (setting ``cpus``), the child runs on the others: no estimate waits for it."""
         self.start_child()
+        background = background_cpus()
+        if background is not None and self.pid is not None:
+            set_process_affinity(background, self.pid)
 
     def append(self, batches: list[EstimateBatch]) -> None:
         """Nothing to do: the child takes the tick from the fleet stream."""

@@ -29,6 +29,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
+from service.affinity import background_cpus, set_process_affinity
 from service.profiles import ProfileSpec
 from synth.gains import ObserverGains
 
@@ -41,13 +42,16 @@ FINAL_STATES = frozenset({"succeeded", "failed", "superseded", "interrupted"})
 PARENT_CHECK_INTERVAL_S = 0.5
 
 
-def exit_with_parent(parent_pid: int) -> None:
-    """Worker initializer: end this worker once ``parent_pid`` is gone (killed, crashed).
+def exit_with_parent(parent_pid: int, cpus: frozenset[int] | None = None) -> None:
+    """Worker initializer: end this worker once ``parent_pid`` is gone (killed, crashed); run it on ``cpus``
+    (None: those it inherited), the CPUs the service leaves to background work (service/affinity.py).
 
     A worker blocks on its call queue, whose write end it holds itself, so it
     would never see its parent die; an orphan is re-parented, which changes
     ``os.getppid()``.
     """
+    if cpus is not None:
+        set_process_affinity(cpus)
 
     def watch() -> None:
         while os.getppid() == parent_pid:
@@ -149,7 +153,7 @@ class SynthesisJobs:
                 self._workers,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=exit_with_parent,
-                initargs=(os.getpid(),),
+                initargs=(os.getpid(), background_cpus()),
             )
         return self._executor
 

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, m
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from agv_protocol.wire import DEFAULT_PREFIX, N_BUCKETS, check_vehicle_id
+from service.affinity import parse_cpu_list
 
 _ENDPOINT = re.compile(r"^(tcp|udp|quic|tls)/[^:/\s]+:\d{1,5}$")
 
@@ -304,6 +305,14 @@ class Settings(BaseSettings):
         None, description="JSON or YAML file of initial profiles, used when the database has none"
     )
     synthesis_workers: Annotated[int, Field(ge=1, le=8)] = Field(1, description="processes running LMI designs")
+    cpus: str | None = Field(
+        None,
+        description="the CPUs `agv-fe serve` runs on, a Linux CPU list ('0', '0-1', '0,2'; unset: all it may use): "
+        "the ingest loop, Zenoh's threads and the service's own threads and processes on cores of their own, the "
+        "LMI design workers on the others (service/affinity.py). At 1,000 vehicles on a 2-core machine shared "
+        "with their simulation, one core of its own took the p99 per window from 120-800 to 12-28 ms "
+        "(docs/capacity.md)",
+    )
     max_profiles: Annotated[int, Field(ge=1, le=10_000)] = Field(
         64, description="profiles the service runs at most: a PUT of one more is refused (409), not a new bank"
     )
@@ -320,6 +329,18 @@ class Settings(BaseSettings):
     shard: ShardSettings = ShardSettings()
     dashboard: DashboardSettings = DashboardSettings()
     history: HistorySettings = HistorySettings()
+
+    @field_validator("cpus")
+    @classmethod
+    def _cpu_list(cls, value: str | None) -> str | None:
+        if value is not None:
+            parse_cpu_list(value)  # the form only: which CPUs exist is known where the service starts
+        return value
+
+    @property
+    def cpu_set(self) -> frozenset[int] | None:
+        """The CPUs of ``cpus`` (None: unset)."""
+        return None if self.cpus is None else parse_cpu_list(self.cpus)
 
     @property
     def database_path(self) -> Path:

@@ -134,6 +134,21 @@ def check_zenoh_config(settings: Any) -> None:
         raise CommandError(str(exc)) from exc
 
 
+def pin_to_cpus(settings: Any) -> None:
+    """Move this process to the CPUs of setting ``cpus`` (service/affinity.py); CommandError naming the setting
+    when a CPU is not one the process may use or the system refuses."""
+    from agv_fe.common import CommandError
+    from service.affinity import pin_process
+
+    cpus = settings.cpu_set
+    if cpus is None:
+        return
+    try:
+        pin_process(cpus)
+    except (ValueError, OSError) as exc:
+        raise CommandError(f"setting cpus ({settings.cpus!r}): {exc}") from exc
+
+
 def run(args: argparse.Namespace) -> int:
     import logging
 
@@ -149,10 +164,14 @@ def run(args: argparse.Namespace) -> int:
         # before anything in this process opens Zenoh: its runtimes read their threads once
         runtime = apply_runtime_threads(settings.zenoh.runtime_threads)
         check_zenoh_config(settings)
+        pin_to_cpus(settings)  # before Zenoh and the service start their threads: they inherit the CPUs
     except CommandError as exc:
         return fail(exc)
     logs.configure(args.log_level, args.log_format)
-    logging.getLogger("agv_fe.service").info("Zenoh runtime threads: %s", runtime or "Zenoh's defaults")
+    log = logging.getLogger("agv_fe.service")
+    log.info("Zenoh runtime threads: %s", runtime or "Zenoh's defaults")
+    if settings.cpus is not None:
+        log.info("running on CPUs %s (setting cpus)", settings.cpus)
     app = create_app(settings)
 
     class Server(uvicorn.Server):

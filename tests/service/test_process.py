@@ -4,12 +4,16 @@ cannot be designed. (A SIGKILL during a design: tests/faults/test_crash.py.)"""
 from __future__ import annotations
 
 import contextlib
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from service.affinity import format_cpu_list, thread_cpu_lists
 from tests.service.helpers import (
     FAST_DESIGN,
     constant_measurement,
@@ -20,6 +24,7 @@ from tests.service.helpers import (
     probe,
     running,
     service_process,
+    settings_env,
     wait_for,
 )
 
@@ -214,3 +219,72 @@ def test_zenoh_runs_on_the_threads_its_setting_gives(tmp_path, monkeypatch, thre
             assert srv.process is not None
             names = zenoh_threads(srv.process.pid)
     assert present <= names and not (absent & names), sorted(names)
+
+
+def test_the_service_runs_its_threads_on_the_cpus_its_setting_gives(tmp_path):
+    """Setting cpus: every thread of `agv-fe serve` (Zenoh's, the event loop's, the vehicle-estimate thread's)
+    runs on the one CPU given, and the estimates flow."""
+    if not Path("/proc/self/task").is_dir():
+        pytest.skip("needs /proc (Linux)")
+    cpu = max(os.sched_getaffinity(0))
+    settings = make_settings(tmp_path, cpus=str(cpu))
+    with service_process(settings, tmp_path / "service.log") as srv:
+        srv.wait_ready()
+        with probe(settings.zenoh.endpoint) as p:
+            for k in range(20):
+                p.put(constant_measurement("pinned-1", k))
+            wait_for(lambda: len(p.estimates_of("pinned-1")) >= 20, what="estimates")
+            assert srv.process is not None
+            lists = thread_cpu_lists(srv.process.pid)
+            names = zenoh_threads(srv.process.pid)
+        assert "running on CPUs" in srv.log()
+    assert lists == [str(cpu)]
+    assert "app-0" in names  # Zenoh's thread was among them
+
+
+def test_a_cpu_the_service_may_not_use_stops_it_with_the_setting_named(tmp_path):
+    allowed = os.sched_getaffinity(0)
+    outside = max(allowed) + 1000
+    settings = make_settings(tmp_path, cpus=f"{min(allowed)},{outside}")
+    done = subprocess.run(
+        [sys.executable, "-m", "agv_fe", "serve"],
+        env=settings_env(settings),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode != 0
+    assert f"setting cpus ('{min(allowed)},{outside}'): CPUs {outside}: this process may run on CPUs" in done.stderr
+
+
+def children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid``."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(stat.parent.name))
+    return found
+
+
+def test_the_history_process_runs_on_the_cpus_the_service_leaves(tmp_path):
+    """With setting cpus and the history in its own process, the service's threads run on its CPU and the history
+    process (the child with a Zenoh session) on the others: no estimate waits for its writes."""
+    if not Path("/proc/self/task").is_dir():
+        pytest.skip("needs /proc (Linux)")
+    allowed = os.sched_getaffinity(0)
+    cpu = min(allowed)
+    settings = make_settings(tmp_path, cpus=str(cpu), history={"writer": "process"})
+    with service_process(settings, tmp_path / "service.log") as srv:
+        srv.wait_ready()
+        with probe(settings.zenoh.endpoint) as p:
+            for k in range(20):
+                p.put(constant_measurement("pinned-2", k))
+            wait_for(lambda: len(p.estimates_of("pinned-2")) >= 20, what="estimates")
+        assert srv.process is not None
+        history = [c for c in children(srv.process.pid) if zenoh_threads(c)]
+        service_lists = thread_cpu_lists(srv.process.pid)
+        history_lists = [thread_cpu_lists(c) for c in history]
+    assert service_lists == [str(cpu)]
+    assert history_lists == [[format_cpu_list(allowed - {cpu} or allowed)]]
