@@ -23,6 +23,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -55,6 +56,7 @@ from agv_fe.benchmarks.service_load import (
 )
 from agv_fe.pg_cluster import PostgresServer
 from agv_protocol.wire import N_BUCKETS
+from service.affinity import format_cpu_list, parse_cpu_list, set_process_affinity, thread_cpu_lists
 
 #: How many times each configuration's service runs, alternating with the others (ABBA: :func:`measure`).
 ROUNDS = 2
@@ -76,12 +78,16 @@ class Configuration:
     leases: bool = False
     #: what the receiver takes: the fleet stream, or every vehicle's own binary key ("vehicle-bin") or JSON key
     stream: str = "fleet"
+    #: the service's CPUs (setting ``cpus``; None: all), the generator and the receiver then on the others
+    cpus: str | None = None
 
 
 _HISTORY_OFF = {"AGV_FE_HISTORY__ENABLED": "false"}
 _HISTORY_PROCESS = {"AGV_FE_HISTORY__WRITER": "process"}
 _TICK_2MS = {"AGV_FE_INGEST__TICK_INTERVAL_S": "0.002"}  # the default since 2026-11-27
 _TICK_1MS = {"AGV_FE_INGEST__TICK_INTERVAL_S": "0.001"}  # the default before
+#: The CPU a service of the 'own core' configurations runs on; the generator and the receiver run on the others.
+OWN_CORE = "0"
 #: The configurations of the default run: the estimate history on (the default) and off.
 HISTORY = (
     Configuration("history on (default)"),
@@ -114,6 +120,29 @@ CONFIGURATIONS = {
         "every vehicle's binary key, put by a thread, history in its own process",
         _HISTORY_PROCESS,
         stream="vehicle-bin",
+    ),
+    "vehicle-bin-zenoh-2": Configuration(
+        "every vehicle's binary key, put by a thread, Zenoh on two threads",
+        {"AGV_FE_ZENOH__RUNTIME_THREADS": "2"},
+        stream="vehicle-bin",
+    ),
+    "vehicle-bin-zenoh-own": Configuration(
+        "every vehicle's binary key, put by a thread, Zenoh's own runtimes",
+        {"AGV_FE_ZENOH__RUNTIME_THREADS": "0"},
+        stream="vehicle-bin",
+    ),
+    "vehicle-bin-own-core": Configuration(
+        f"every vehicle's binary key, the service on CPU {OWN_CORE}", stream="vehicle-bin", cpus=OWN_CORE
+    ),
+    "plain-own-core": Configuration(f"plain TCP, history on, the service on CPU {OWN_CORE}", cpus=OWN_CORE),
+    "tls-history-own-core": Configuration(
+        f"TLS + ACL, history on, the service on CPU {OWN_CORE}", tls=True, cpus=OWN_CORE
+    ),
+    "tls-history-process-own-core": Configuration(
+        f"TLS + ACL, history in its own process, the service on CPU {OWN_CORE}",
+        _HISTORY_PROCESS,
+        tls=True,
+        cpus=OWN_CORE,
     ),
     "vehicle-json-thread": Configuration("every vehicle's JSON key, put by a thread (default)", stream="vehicle"),
     "vehicle-json-process": Configuration(
@@ -151,6 +180,8 @@ def shared_resources(configs: tuple[Configuration, ...]) -> Iterator[Shared]:
 def _service_env(config: Configuration, vehicles: int, shared: Shared) -> tuple[dict[str, str], SecureLink | None]:
     """The settings of one run of ``config`` (a new TLS endpoint and database each run), and its TLS link."""
     env = {"AGV_FE_INGEST__ESTIMATE_EVERY_N": "1", **config.env}
+    if config.cpus is not None:
+        env["AGV_FE_CPUS"] = config.cpus
     link = None
     if config.tls:
         if shared.certs is None:
@@ -162,6 +193,22 @@ def _service_env(config: Configuration, vehicles: int, shared: Shared) -> tuple[
             raise ValueError(f"configuration {config.label!r} runs leases but no PostgreSQL server was started")
         env.update({"AGV_FE_DATABASE__URL": shared.postgres.database(), "AGV_FE_SHARD__MODE": "leases"})
     return env, link
+
+
+@contextlib.contextmanager
+def harness_beside(service_cpus: str | None) -> Iterator[None]:
+    """With the service on ``service_cpus`` (None: nothing to do), this process and the generator and receiver it
+    starts run on the other CPUs (all of them when none is left); its own CPUs come back on the way out. Enter it
+    after the service started: the service would otherwise inherit the harness's CPUs."""
+    if service_cpus is None:
+        yield
+        return
+    before = frozenset(os.sched_getaffinity(0))
+    set_process_affinity((before - parse_cpu_list(service_cpus)) or before)
+    try:
+        yield
+    finally:
+        set_process_affinity(before)
 
 
 def _buckets(http: httpx.Client) -> int:
@@ -177,7 +224,7 @@ def measure_one(
         if shared is None:
             shared = stack.enter_context(shared_resources((config,)))
         env, link = _service_env(config, vehicles, shared)
-        with serving(env, cwd=config.source) as (endpoint, http, proc, _):
+        with serving(env, cwd=config.source) as (endpoint, http, proc, _), harness_beside(config.cpus):
             if config.leases:  # one replica takes every bucket at its first lease rounds
                 wait_for(
                     lambda: _buckets(http) == N_BUCKETS, LEASES_S, what=f"the service to lease {N_BUCKETS} buckets"
@@ -185,6 +232,7 @@ def measure_one(
             clients = link.clients if link is not None else None
             warm = _step(endpoint, http, proc.pid, vehicles, 1, stream=config.stream, arrival="spread", clients=clients)
             hold = _step(endpoint, http, proc.pid, vehicles, 1, hold_s, config.stream, "spread", clients)
+            cpus = {"service": thread_cpu_lists(proc.pid), "harness": format_cpu_list(os.sched_getaffinity(0))}
             metrics = http.get("/metrics").text
             buckets = _buckets(http)
             # the link is TLS only: a plain TCP client gets no session (after the steps, which it cannot disturb)
@@ -201,6 +249,8 @@ def measure_one(
         "acl_rules": link.acl_rules if link is not None else 0,
         "leases": _metric(metrics, "agv_fe_lease_connected") == 1,
         "buckets": buckets,
+        # the CPU lists the service's threads and this process ran on, read after the hold
+        "cpus": cpus,
     }
 
 
@@ -362,6 +412,14 @@ def _setup(configs: tuple[Configuration, ...], runs: list[dict[str, Any]]) -> li
             f"simulator identity, `{FLEET_IDENTITY}`, listed for every vehicle. The generator connects as that "
             "identity, the receiver as the read-only `agv-dashboard`, both with deploy/zenoh/secure/client.json5 "
             "(agv_fe/benchmarks/secure_link.py). Each run checks that a plain TCP client gets no session there.\n"
+        )
+    pinned = sorted({c.cpus for c in configs if c.cpus is not None})
+    if pinned:
+        lines.append(
+            f"A core of its own: the configurations marked 'the service on CPU N' run the service with setting "
+            f"`cpus` = {', '.join(pinned)} (every thread of `agv-fe serve` and the processes it starts on that CPU, "
+            "service/affinity.py), and the generator, the receiver and the benchmark itself on the other CPUs for "
+            "the run's steps; the other configurations leave every process on every CPU.\n"
         )
     if any(c.leases for c in configs):
         lines.append(

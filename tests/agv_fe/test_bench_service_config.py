@@ -1,4 +1,5 @@
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -8,6 +9,7 @@ from agv_fe.benchmarks import service_config as bench
 from agv_fe.benchmarks.harness import free_port, wait_for
 from agv_protocol.wire import N_BUCKETS, fleet_selector, vehicle_key
 from agv_protocol.zenoh_session import TransportError
+from service.affinity import format_cpu_list
 from service.transport import open_session
 from service.zenoh_acl import VehicleGrant, access_control
 
@@ -188,3 +190,21 @@ def test_the_report_documents_how_to_run_everything_on_with_the_configurations_t
     assert command[command.index("--vehicles") + 1] == "1500"
     fleet = [VehicleGrant(v, secure_link.FLEET_IDENTITY) for v in service_load.vehicle_ids(1500)]
     assert f"holds {len(access_control(fleet)['rules']):,}\nrules" in bench.EVERYTHING_ON_SECTION
+
+
+def test_an_own_core_configuration_runs_the_service_on_its_cpu_and_the_harness_beside_it(monkeypatch):
+    """The 'own core' runs: every thread of the service on the configuration's CPU, the benchmark (whose
+    generator and receiver inherit its CPUs) on the others during the steps, and back on all of its own after."""
+    allowed = os.sched_getaffinity(0)
+    if str(min(allowed)) != bench.OWN_CORE:
+        pytest.skip(f"CPU {bench.OWN_CORE} is not this process's")
+    monkeypatch.setattr(service_load, "STEP_S", 2.0)
+    monkeypatch.setattr(service_load, "WARMUP_S", 0.5)
+    config = bench.CONFIGURATIONS["plain-own-core"]
+    run = bench.measure_one(config, vehicles=10, hold_s=2.0)
+    assert run["hold"]["zero_loss"] and run["hold"]["estimates_received"] == run["hold"]["sent"] > 0
+    assert run["cpus"]["service"] == [bench.OWN_CORE]
+    rest = allowed - {int(bench.OWN_CORE)} or allowed
+    assert run["cpus"]["harness"] == format_cpu_list(rest)
+    assert os.sched_getaffinity(0) == allowed
+    assert "A core of its own" in bench.render("t", (config,), [{**run, "round": 1}], 10, "cmd")
