@@ -3,8 +3,9 @@
 On a machine the service shares (with other services, or with a benchmark's 1,000 simulated vehicles), the
 kernel spreads its threads over every core. Each sample then crosses cores between Zenoh's thread, the event loop
 and the thread that puts the vehicles' estimates, and each of them waits for whichever core frees first: at
-1,000 vehicles on the project's 2-core machine the p99 per 10 s window was 120-800 ms with the service's threads
-spread and 12-28 ms with them on one core of their own (docs/capacity.md, "A core of its own").
+1,000 vehicles on their own keys on the project's 2-core machine the p99 per 10 s window was 270-924 ms (falling
+behind) with the service's threads spread and 14-39 ms with them on one core of their own, the generator and
+receiver on the other (docs/capacity.md, "A core of its own").
 
 ``cpus`` takes a Linux CPU list (``0``, ``0-3``, ``0,2``). At start ``agv-fe serve`` moves every thread it has to
 those CPUs (:func:`pin_process`); the threads and processes it starts later inherit them (the vehicle estimates'

@@ -308,10 +308,10 @@ class Settings(BaseSettings):
     cpus: str | None = Field(
         None,
         description="the CPUs `agv-fe serve` runs on, a Linux CPU list ('0', '0-1', '0,2'; unset: all it may use): "
-        "the ingest loop, Zenoh's threads and the service's own threads and processes on cores of their own, the "
-        "LMI design workers on the others (service/affinity.py). At 1,000 vehicles on a 2-core machine shared "
-        "with their simulation, one core of its own took the p99 per window from 120-800 to 12-28 ms "
-        "(docs/capacity.md)",
+        "the ingest loop, Zenoh's threads and the service's own threads on cores of their own, the LMI design "
+        "workers and a history process on the others (service/affinity.py). At 1,000 vehicles on their own keys "
+        "on a 2-core machine shared with their simulation, one core of its own took the p99 per window from "
+        "270-924 ms (falling behind) to 14-39 ms (docs/capacity.md)",
     )
     max_profiles: Annotated[int, Field(ge=1, le=10_000)] = Field(
         64, description="profiles the service runs at most: a PUT of one more is refused (409), not a new bank"
