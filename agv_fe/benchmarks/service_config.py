@@ -144,6 +144,12 @@ CONFIGURATIONS = {
         tls=True,
         cpus=OWN_CORE,
     ),
+    "tls-history-own-core-tick-4ms": Configuration(
+        f"TLS + ACL, history on, the service on CPU {OWN_CORE}, a tick at most every 4 ms",
+        {"AGV_FE_INGEST__TICK_INTERVAL_S": "0.004"},
+        tls=True,
+        cpus=OWN_CORE,
+    ),
     "vehicle-json-thread": Configuration("every vehicle's JSON key, put by a thread (default)", stream="vehicle"),
     "vehicle-json-process": Configuration(
         "every vehicle's JSON key, put by a process", {"AGV_FE_ZENOH__VEHICLE_PUBLISHER": "process"}, stream="vehicle"
