@@ -184,6 +184,18 @@ def test_samples_arriving_all_the_time_are_stepped_in_ticks_at_most_one_per_inte
     assert stepped <= sending_s / interval + 3, (stepped, sending_s)
 
 
+def estimates_flow(srv: Any, vehicle: str, samples: int = 20) -> int:
+    """Wait until the started service is ready, send ``samples`` measurements of ``vehicle`` and wait for every
+    estimate of them; return the service's process id."""
+    srv.wait_ready()
+    with probe(srv.settings.zenoh.endpoint) as p:
+        for k in range(samples):
+            p.put(constant_measurement(vehicle, k))
+        wait_for(lambda: len(p.estimates_of(vehicle)) >= samples, what="estimates")
+    assert srv.process is not None
+    return int(srv.process.pid)
+
+
 def zenoh_threads(pid: int) -> set[str]:
     """The names of the process's threads that Zenoh's runtimes run (rx-N, tx-N, acc-N, app-N, net-N)."""
     names = set()
@@ -211,35 +223,8 @@ def test_zenoh_runs_on_the_threads_its_setting_gives(tmp_path, monkeypatch, thre
     settings = make_settings(tmp_path, zenoh={"runtime_threads": threads})
     env = {} if operator is None else {"ZENOH_RUNTIME": operator}
     with service_process(settings, tmp_path / "service.log", env=env) as srv:
-        srv.wait_ready()
-        with probe(settings.zenoh.endpoint) as p:
-            for k in range(20):
-                p.put(constant_measurement("threads-1", k))
-            wait_for(lambda: len(p.estimates_of("threads-1")) >= 20, what="estimates")
-            assert srv.process is not None
-            names = zenoh_threads(srv.process.pid)
+        names = zenoh_threads(estimates_flow(srv, "threads-1"))
     assert present <= names and not (absent & names), sorted(names)
-
-
-def test_the_service_runs_its_threads_on_the_cpus_its_setting_gives(tmp_path):
-    """Setting cpus: every thread of `agv-fe serve` (Zenoh's, the event loop's, the vehicle-estimate thread's)
-    runs on the one CPU given, and the estimates flow."""
-    if not Path("/proc/self/task").is_dir():
-        pytest.skip("needs /proc (Linux)")
-    cpu = max(os.sched_getaffinity(0))
-    settings = make_settings(tmp_path, cpus=str(cpu))
-    with service_process(settings, tmp_path / "service.log") as srv:
-        srv.wait_ready()
-        with probe(settings.zenoh.endpoint) as p:
-            for k in range(20):
-                p.put(constant_measurement("pinned-1", k))
-            wait_for(lambda: len(p.estimates_of("pinned-1")) >= 20, what="estimates")
-            assert srv.process is not None
-            lists = thread_cpu_lists(srv.process.pid)
-            names = zenoh_threads(srv.process.pid)
-        assert "running on CPUs" in srv.log()
-    assert lists == [str(cpu)]
-    assert "app-0" in names  # Zenoh's thread was among them
 
 
 def test_a_cpu_the_service_may_not_use_stops_it_with_the_setting_named(tmp_path):
@@ -268,23 +253,23 @@ def children(pid: int) -> list[int]:
     return found
 
 
-def test_the_history_process_runs_on_the_cpus_the_service_leaves(tmp_path):
-    """With setting cpus and the history in its own process, the service's threads run on its CPU and the history
-    process (the child with a Zenoh session) on the others: no estimate waits for its writes."""
+@pytest.mark.parametrize("writer", ["thread", "process"])
+def test_the_service_runs_on_the_cpus_its_setting_gives_and_its_history_process_on_the_rest(tmp_path, writer):
+    """Setting cpus: every thread of `agv-fe serve` (Zenoh's, the event loop's, the vehicle-estimate thread's)
+    runs on the one CPU given and the estimates flow; a history in its own process (the child with a Zenoh
+    session) runs on the CPUs left over: no estimate waits for its writes."""
     if not Path("/proc/self/task").is_dir():
         pytest.skip("needs /proc (Linux)")
     allowed = os.sched_getaffinity(0)
     cpu = min(allowed)
-    settings = make_settings(tmp_path, cpus=str(cpu), history={"writer": "process"})
+    settings = make_settings(tmp_path, cpus=str(cpu), history={"writer": writer})
     with service_process(settings, tmp_path / "service.log") as srv:
-        srv.wait_ready()
-        with probe(settings.zenoh.endpoint) as p:
-            for k in range(20):
-                p.put(constant_measurement("pinned-2", k))
-            wait_for(lambda: len(p.estimates_of("pinned-2")) >= 20, what="estimates")
-        assert srv.process is not None
-        history = [c for c in children(srv.process.pid) if zenoh_threads(c)]
-        service_lists = thread_cpu_lists(srv.process.pid)
-        history_lists = [thread_cpu_lists(c) for c in history]
+        pid = estimates_flow(srv, "pinned-1")
+        service_lists = thread_cpu_lists(pid)
+        names = zenoh_threads(pid)
+        history_lists = [thread_cpu_lists(c) for c in children(pid) if zenoh_threads(c)]
+        assert "running on CPUs" in srv.log()
     assert service_lists == [str(cpu)]
-    assert history_lists == [[format_cpu_list(allowed - {cpu} or allowed)]]
+    assert "app-0" in names  # Zenoh's thread was among them
+    rest = format_cpu_list(allowed - {cpu} or allowed)
+    assert history_lists == ([[rest]] if writer == "process" else [])
