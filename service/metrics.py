@@ -12,6 +12,7 @@ collectors. Several services in one process (the tests) each have their own.
 from __future__ import annotations
 
 import bisect
+import os
 import sys
 import threading
 from collections import Counter
@@ -25,6 +26,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.registry import Collector
 
 from agv_protocol.wire import all_buckets
+from service.affinity import format_cpu_list
 from service.fleet.vehicle import REJECT_REASONS
 from service.thread_cpu import ThreadCpu
 
@@ -171,6 +173,8 @@ class ServiceCollector(Collector):
             "zenoh": _version("eclipse-zenoh"),
             "replica": source.replica_id,
             "shard": f"{shard.index}/{shard.replicas}",
+            # the CPUs the process runs on (setting cpus, or all it may use; '' where the system does not say)
+            "cpus": format_cpu_list(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "",
         }
         self._thread_cpu = ThreadCpu()
 
@@ -269,7 +273,7 @@ class ServiceCollector(Collector):
         labels = self.build_labels
         build = GaugeMetricFamily(
             "agv_fe_build_info",
-            "the running build: package, Python, numpy and Zenoh versions, replica",
+            "the running build: package, Python, numpy and Zenoh versions, replica, shard, the CPUs it runs on",
             labels=list(labels),
         )
         build.add_metric(list(labels.values()), 1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -11,6 +12,7 @@ from prometheus_client import CollectorRegistry
 
 from agv_protocol.wire import Alarm, Measurement, all_buckets, shard_buckets
 from edge_client.library import paper_1
+from service.affinity import format_cpu_list
 from service.app import Service
 from service.fleet import EngineConfig, FleetEngine, FleetEvent
 from service.history import EstimateHistory
@@ -234,6 +236,7 @@ def test_a_real_service_exposes_its_series_the_process_and_the_end_to_end_delay(
             assert any(sample == name for sample, _ in scrape.samples), name
         build = [dict(labels) for name, labels in scrape.samples if name == "agv_fe_build_info"]
         assert len(build) == 1 and build[0]["replica"] == "replica-0" and build[0]["shard"] == "0/1"
+        assert build[0]["cpus"] == format_cpu_list(os.sched_getaffinity(0))  # this process's: no cpus setting
         assert scrape.value("process_resident_memory_bytes") > 0 and scrape.value("process_cpu_seconds_total") > 0
         assert scrape.types["python_gc_collections_total"] == "counter"
         assert scrape.value("agv_fe_estimates_total") == n + 1

@@ -269,6 +269,12 @@ def test_the_service_runs_on_the_cpus_its_setting_gives_and_its_history_process_
         names = zenoh_threads(pid)
         history_lists = [thread_cpu_lists(c) for c in children(pid) if zenoh_threads(c)]
         assert "running on CPUs" in srv.log()
+        build = [
+            dict(labels)
+            for name, labels in parse_metrics(srv.get("/metrics").text).samples
+            if name == "agv_fe_build_info"
+        ]
+        assert [b["cpus"] for b in build] == [str(cpu)]  # what an operator sees on /metrics
     assert service_lists == [str(cpu)]
     assert "app-0" in names  # Zenoh's thread was among them
     rest = format_cpu_list(allowed - {cpu} or allowed)
