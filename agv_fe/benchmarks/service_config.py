@@ -447,7 +447,10 @@ of a core, the same CPU as plain TCP). **The estimate history is what misses the
 p99 median 22.6 ms (plain TCP) and 55.9 ms (TLS), worst 210 and 256 ms, 1 and 0 of 6 windows under 10 ms;
 with PostgreSQL leases too, 63.0 / 345 ms. At 1,000 vehicles the history's cost was 6.0 against 4.0 ms
 (table above). The target (issue 28): 1,500 vehicles on the fleet stream with TLS and the estimate history
-on, zero loss and p99 < 10 ms in every 10 s window of the hold: **not met**. The comparison alternates today's
+on, zero loss and p99 < 10 ms in every 10 s window of the hold: **not met**, nor since (latest, 2026-11-28 on
+an Intel Xeon: zero loss, p99 per window median 127.9 ms with every process spread over both cores, 12.6 ms
+with the service on a core of its own and windows of 11.1-96.8 ms,
+[service_config_own_core_tls_1500.md](service_config_own_core_tls_1500.md)). The comparison alternates today's
 plain service with three secured ones, two rounds each, in one run (about 10 minutes; run it with nothing
 else on the machine):
 
