@@ -63,7 +63,11 @@ def set_process_affinity(cpus: frozenset[int], pid: int | None = None) -> None:
     inherit it); threads that end meanwhile are skipped."""
     if pid is None:
         os.sched_setaffinity(0, cpus)
-    for entry in Path(f"/proc/{'self' if pid is None else pid}/task").iterdir():
+    try:
+        tasks = list(Path(f"/proc/{'self' if pid is None else pid}/task").iterdir())
+    except FileNotFoundError:  # the process ended: whoever watches it sees that
+        return
+    for entry in tasks:
         try:
             os.sched_setaffinity(int(entry.name), cpus)
         except ProcessLookupError:  # the thread ended since the listing
@@ -83,8 +87,9 @@ def pin_process(cpus: frozenset[int]) -> None:
 
 
 def background_cpus() -> frozenset[int] | None:
-    """The CPUs for background work (the LMI design workers): those the process could use before
-    :func:`pin_process` that the pin left out, or all of them when it left none; None when it was not pinned."""
+    """The CPUs for background work (the LMI design workers, a history process): those the process could use
+    before :func:`pin_process` that the pin left out, or all of them when it left none; None when it was not
+    pinned."""
     if _before_pin is None or _pinned is None:
         return None
     return (_before_pin - _pinned) or _before_pin

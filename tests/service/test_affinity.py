@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from service.affinity import format_cpu_list, parse_cpu_list, pin_process
+from service.affinity import format_cpu_list, parse_cpu_list, pin_process, set_process_affinity
 from service.settings import Settings
 
 LINUX = pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs /proc (Linux)")
@@ -100,3 +100,12 @@ def test_a_pinned_process_moves_every_thread_and_leaves_the_rest_to_its_design_w
     rest = [cpu for cpu in allowed if cpu != first] or allowed  # a 1-CPU machine: the workers share it
     assert seen["background"] == rest
     assert seen["worker"] == rest
+
+
+@LINUX
+def test_moving_a_process_that_ended_does_nothing():
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    gone = int(done.stdout)  # ended and reaped: no /proc entry (unless the id was reused meanwhile)
+    if Path(f"/proc/{gone}").exists():
+        pytest.skip("the process id was reused")
+    set_process_affinity(frozenset(os.sched_getaffinity(0)), gone)
