@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -184,16 +185,18 @@ def test_samples_arriving_all_the_time_are_stepped_in_ticks_at_most_one_per_inte
     assert stepped <= sending_s / interval + 3, (stepped, sending_s)
 
 
-def estimates_flow(srv: Any, vehicle: str, samples: int = 20) -> int:
+@contextlib.contextmanager
+def estimates_flowing(srv: Any, vehicle: str, samples: int = 20) -> Iterator[int]:
     """Wait until the started service is ready, send ``samples`` measurements of ``vehicle`` and wait for every
-    estimate of them; return the service's process id."""
+    estimate of them; yield the service's process id while the sending session is still connected (Zenoh's
+    runtimes start threads of their own when a session goes)."""
     srv.wait_ready()
     with probe(srv.settings.zenoh.endpoint) as p:
         for k in range(samples):
             p.put(constant_measurement(vehicle, k))
         wait_for(lambda: len(p.estimates_of(vehicle)) >= samples, what="estimates")
-    assert srv.process is not None
-    return int(srv.process.pid)
+        assert srv.process is not None
+        yield int(srv.process.pid)
 
 
 def zenoh_threads(pid: int) -> set[str]:
@@ -222,8 +225,11 @@ def test_zenoh_runs_on_the_threads_its_setting_gives(tmp_path, monkeypatch, thre
     monkeypatch.delenv("ZENOH_RUNTIME", raising=False)
     settings = make_settings(tmp_path, zenoh={"runtime_threads": threads})
     env = {} if operator is None else {"ZENOH_RUNTIME": operator}
-    with service_process(settings, tmp_path / "service.log", env=env) as srv:
-        names = zenoh_threads(estimates_flow(srv, "threads-1"))
+    with (
+        service_process(settings, tmp_path / "service.log", env=env) as srv,
+        estimates_flowing(srv, "threads-1") as pid,
+    ):
+        names = zenoh_threads(pid)
     assert present <= names and not (absent & names), sorted(names)
 
 
@@ -264,10 +270,10 @@ def test_the_service_runs_on_the_cpus_its_setting_gives_and_its_history_process_
     cpu = min(allowed)
     settings = make_settings(tmp_path, cpus=str(cpu), history={"writer": writer})
     with service_process(settings, tmp_path / "service.log") as srv:
-        pid = estimates_flow(srv, "pinned-1")
-        service_lists = thread_cpu_lists(pid)
-        names = zenoh_threads(pid)
-        history_lists = [thread_cpu_lists(c) for c in children(pid) if zenoh_threads(c)]
+        with estimates_flowing(srv, "pinned-1") as pid:
+            service_lists = thread_cpu_lists(pid)
+            names = zenoh_threads(pid)
+            history_lists = [thread_cpu_lists(c) for c in children(pid) if zenoh_threads(c)]
         assert "running on CPUs" in srv.log()
         build = [
             dict(labels)
