@@ -71,6 +71,7 @@ def test_the_bridge_turns_can_frames_into_measurements_and_estimates_come_back(
     y, u = _drive()
     vehicle = open_session(router.client())  # the test's eyes on the measurements the bridge sends
     counter = Counter(vehicle)
+    counter.routed(router)  # the bridge's first sample, seq 0, must reach it
     bus = can.Bus(interface="virtual", channel=channel)
     extra = ["--duration", "5", "--wait", "60", "--log", str(tmp_path / "back.jsonl")]
     args = [*_documented_command(tmp_path, channel, router.endpoint), *extra]

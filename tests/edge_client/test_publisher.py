@@ -7,7 +7,14 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from agv_protocol.wire import FLAG_SEQUENCE_RESTART, GroundTruth, Measurement, fleet_selector, parse_vehicle_key
+from agv_protocol.wire import (
+    FLAG_SEQUENCE_RESTART,
+    GroundTruth,
+    Measurement,
+    fleet_selector,
+    parse_vehicle_key,
+    vehicle_key,
+)
 from edge_client.fleet_mix import DEFAULT_MIX, build_fleet
 from edge_client.publisher import FleetPublisher, PublisherOptions
 from edge_client.sources import SimulatedSource
@@ -15,6 +22,10 @@ from edge_client.transport import ChannelSubscription, Subscription, TransportOp
 from tests.edge_client.conftest import free_port
 
 pytestmark = pytest.mark.network
+
+
+#: The vehicle of :meth:`Counter.routed`'s probe: ground truth only, which the service does not subscribe to.
+ROUTE_PROBE = "route-probe"
 
 
 class Counter:
@@ -38,6 +49,24 @@ class Counter:
         t = GroundTruth.decode(rx.payload)
         with self.lock:
             self.truth[t.vehicle].append(t)
+
+    def routed(self, router, timeout_s=10.0):
+        """Wait until the router routes to this counter: a ground truth put from another session on a probe
+        vehicle's key arrives (the measurement subscription, declared first on the same link, is in place then),
+        so that a test that starts a sender right after sees its first sample."""
+        sender = open_session(router.client())
+        try:
+            put = sender.declare_publisher(vehicle_key(ROUTE_PROBE, "truth"))
+            truth = GroundTruth(vehicle=ROUTE_PROBE, seq=0, t_ns=0, vx=0.0, vy=0.0, r=0.0, torque_fault=0.0,
+                                steer_fault=0.0).encode()  # fmt: skip
+            deadline = time.monotonic() + timeout_s
+            while not self.truth[ROUTE_PROBE]:
+                assert time.monotonic() < deadline, "the router did not route to the counter"
+                put.put(truth)
+                time.sleep(0.05)
+            put.undeclare()
+        finally:
+            close_session(sender)
 
     def close(self):
         for sub in self.subs:

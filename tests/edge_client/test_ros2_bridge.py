@@ -76,6 +76,7 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
     y, u = _drive()
     vehicle = open_session(router.client())  # the ROS 2 nodes' side, and the test's eyes on the measurements
     counter = Counter(vehicle)
+    counter.routed(router)  # the bridge's first sample, seq 0, must reach it
     publishers = {
         topic: vehicle.declare_publisher(topic_key(0, topic, kind, ts.hash_rihs01(kind)))
         for topic, kind in TOPICS.items()
