@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -163,13 +164,23 @@ class LiveSource(OneVehicleSource):
         return ", ".join(columns)
 
     def prepare(self) -> None:
-        """Wait (at most ``wait_s``) until every column has been received fresh: the grid starts there, with seq 0."""
-        if not self._first.wait(self.wait_s):
-            missing = self.hold.sample(self._clock()).stale
-            raise RecordingError(
-                f"no instant within {self.wait_s:g} s at which every signal was fresher than max_age_s = "
-                f"{self.hold.max_age_ns / 1e9:g} s; missing or stale: {self.describe_missing(missing)}"
-            )
+        """Wait (at most ``wait_s``) until every column is fresh now: the grid starts there, with seq 0.
+
+        An instant that has passed does not count: when every column came while the publisher was still starting
+        and one has gone stale since, this waits for the next fresh instant, so that seq 0, sampled right after,
+        is a measurement."""
+        deadline = time.monotonic() + self.wait_s
+        while True:
+            if self._first.wait(max(deadline - time.monotonic(), 0.0)):
+                if self.hold.sample(self._clock()).values is not None:
+                    return
+                self._first.clear()  # received() sets it again at the next message that leaves every column fresh
+            if time.monotonic() >= deadline:
+                missing = self.hold.sample(self._clock()).stale
+                raise RecordingError(
+                    f"no instant within {self.wait_s:g} s at which every signal was fresher than max_age_s = "
+                    f"{self.hold.max_age_ns / 1e9:g} s; missing or stale: {self.describe_missing(missing)}"
+                )
 
     def next_tick(self) -> Tick:
         sample = self.hold.sample(self._clock())
