@@ -15,6 +15,9 @@ from typing import Any
 from agv_fe.common import CommandError
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+#: A live bridge waits at most this long for a subscriber of its measurements before its first sample [s]: it keeps
+#: no buffer, so a sample sent before Zenoh has learned the service's subscription from the router is lost.
+BRIDGE_LINK_WAIT_S = 2.0
 
 
 def add_transport_arguments(parser: argparse.ArgumentParser) -> None:
@@ -172,7 +175,12 @@ def run_bridge(
     from edge_client.transport import close_session
 
     options = PublisherOptions(
-        truth_rate_hz=0.0, buffer_s=0.0, prefix=args.prefix, warmup_s=0.0, estimate_encoding=args.estimates
+        truth_rate_hz=0.0,
+        buffer_s=0.0,
+        prefix=args.prefix,
+        warmup_s=0.0,
+        estimate_encoding=args.estimates,
+        link_wait_s=BRIDGE_LINK_WAIT_S,
     )
     progress = ProgressPrinter()
     try:
@@ -202,6 +210,8 @@ def print_bridge_report(lines: list[str], report: Any) -> None:
         f"sent {report.sent} measurements in {report.elapsed_s:.2f} s; estimates received {report.estimates}, "
         f"alarms {report.alarms}; round trip p50 {report.rtt_p50_ms:.2f} ms, p99 {report.rtt_p99_ms:.2f} ms"
     )
+    if report.lost:
+        print(f"lost {report.lost} measurements at ticks when no subscriber was reachable")
     last = report.vehicles[0].last_estimate
     if last is not None:
         print(

@@ -62,6 +62,8 @@ if TYPE_CHECKING:
 
 #: Publish times are remembered for this many recent samples per vehicle (for the round trip).
 LATENCY_RING = 4096
+#: How often the wait for a subscriber before the first tick looks at the matching status [s].
+LINK_POLL_S = 0.001
 #: Alarm events kept per vehicle for the summary (later ones are only counted).
 MAX_ALARM_EVENTS = 200
 
@@ -74,7 +76,12 @@ class PublisherOptions:
     it). Estimates arrive on zenoh's threads; at the default 5 ms a receiving thread can hold the
     interpreter for up to 5 ms after the pacing loop's deadline. 0.5 ms bounds that wait.
     estimate_encoding : which of each vehicle's estimate keys to subscribe to: 'json' (``.../estimate``) or
-    'binary' (``.../estimate.bin``, docs/protocol.md); the service makes only the encodings someone reads."""
+    'binary' (``.../estimate.bin``, docs/protocol.md); the service makes only the encodings someone reads.
+    link_wait_s : before the first tick, wait at most this long until a subscriber can receive every vehicle's
+    measurements [s]. Zenoh learns the subscribers from the router a few milliseconds after the publishers are
+    declared; until then the matching status says none, and a publisher without a buffer (a live bridge) would lose
+    its first samples to that moment. After the wait the run starts whatever the status (a sample nobody can
+    receive is then buffered or lost, as always)."""
 
     truth_rate_hz: float = 10.0
     buffer_s: float = 2.0
@@ -82,6 +89,7 @@ class PublisherOptions:
     prefix: str = DEFAULT_PREFIX
     gil_switch_interval_s: float | None = 0.0005
     estimate_encoding: Literal["json", "binary"] = "json"
+    link_wait_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.estimate_encoding not in ("json", "binary"):
@@ -90,6 +98,8 @@ class PublisherOptions:
             raise ValueError(f"truth_rate_hz must be in [0, 1000], got {self.truth_rate_hz}")
         if not 0 <= self.buffer_s <= 600:
             raise ValueError(f"buffer_s must be in [0, 600], got {self.buffer_s}")
+        if not 0 <= self.link_wait_s <= 600:
+            raise ValueError(f"link_wait_s must be in [0, 600], got {self.link_wait_s}")
         if self.gil_switch_interval_s is not None and not 1e-5 <= self.gil_switch_interval_s <= 0.1:
             raise ValueError(f"gil_switch_interval_s must be in [1e-5, 0.1], got {self.gil_switch_interval_s}")
 
@@ -485,6 +495,7 @@ class FleetPublisher:
         drain_s: float,
     ) -> PublishReport:
         progress_ns = round(progress_period_s * 1e9)
+        self._wait_for_link()
         self.source.prepare()
         self.start_wall_ns = time.time_ns()
         start = self.pacer.start()
@@ -530,6 +541,12 @@ class FleetPublisher:
             period_ns=self.period_ns,
             vehicles=vehicles,
         )
+
+    def _wait_for_link(self) -> None:
+        """Wait at most ``options.link_wait_s`` until some subscriber can receive every vehicle's measurements."""
+        deadline = time.monotonic() + self.options.link_wait_s
+        while not self.links.matched.all() and time.monotonic() < deadline:
+            time.sleep(LINK_POLL_S)
 
     def close(self) -> None:
         """Undeclare subscriptions, publishers and tokens (the session stays open: its owner closes it)."""

@@ -118,7 +118,7 @@ def test_the_bridge_turns_can_frames_into_measurements_and_estimates_come_back(
     assert 35 <= stale <= 60, out  # 0.5 s without the speed frame, less the 0.1 s it may be held
     meas = counter.meas[VEHICLE]
     seqs = [m.seq for m in meas]
-    assert seqs[0] == 0 and seqs == sorted(seqs) and len(meas) > 300
+    assert seqs[0] == 0 and seqs == sorted(seqs) and len(meas) > 300, (seqs[:3], out)
     assert len(meas) == seqs[-1] + 1 - stale  # every tick sent but the stale ones: a gap the service counts
     # every value sent is one the frames carried, in the protocol's units (km/h and deg/s undone by the mapping)
     assert all(m.vx_mps in decoded["vx"] and m.r_radps in decoded["r"] for m in meas)

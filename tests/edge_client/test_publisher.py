@@ -167,3 +167,48 @@ def test_peer_mode_without_a_router():
         counter.close()
         close_session(listener)
         close_session(session)
+
+
+def test_a_publisher_without_a_buffer_waits_for_its_subscriber_and_loses_no_first_sample(router):
+    """A live bridge keeps no buffer: a sample put while the matching status says nobody subscribes is lost (as
+    right after its session opens, before Zenoh has learned the router's subscribers). With ``link_wait_s`` the
+    run starts once the subscriber is known, here 0.3 s after the run was called: seq 0 arrives, nothing is lost."""
+    session = open_session(router.client())
+    listener = open_session(router.client())
+    counter: list[Counter] = []
+    try:
+        source = fleet_source(2, 0.05)
+        options = PublisherOptions(truth_rate_hz=0.0, buffer_s=0.0, link_wait_s=10.0)
+        with FleetPublisher(session, source, options) as publisher:
+            timer = threading.Timer(0.3, lambda: counter.append(Counter(listener)))
+            timer.start()
+            report = publisher.run(0.05, drain_s=0.5)
+            timer.join()
+        assert report.lost == 0 and report.sent == 10
+        with counter[0].lock:
+            assert all([m.seq for m in counter[0].meas[v]] == [0, 1, 2, 3, 4] for v in source.vehicle_ids)
+    finally:
+        for c in counter:
+            c.close()
+        close_session(session)
+        close_session(listener)
+
+
+def test_the_wait_for_a_subscriber_is_bounded(router):
+    """Nobody subscribes: the run starts after ``link_wait_s`` and counts its samples lost."""
+    started = time.monotonic()
+    session = open_session(router.client())
+    try:
+        source = fleet_source(1, 0.05)
+        options = PublisherOptions(truth_rate_hz=0.0, buffer_s=0.0, link_wait_s=0.3)
+        with FleetPublisher(session, source, options) as publisher:
+            report = publisher.run(0.05, drain_s=0.0)
+    finally:
+        close_session(session)
+    assert report.lost == 5 and report.sent == 0
+    assert time.monotonic() - started >= 0.3
+
+
+def test_publisher_options_refuse_a_wait_out_of_range():
+    with pytest.raises(ValueError, match="link_wait_s"):
+        PublisherOptions(link_wait_s=-1.0)
