@@ -134,6 +134,18 @@ CONFIGURATIONS = {
     "vehicle-bin-own-core": Configuration(
         f"every vehicle's binary key, the service on CPU {OWN_CORE}", stream="vehicle-bin", cpus=OWN_CORE
     ),
+    "vehicle-bin-own-core-history-off": Configuration(
+        f"every vehicle's binary key, history off, the service on CPU {OWN_CORE}",
+        _HISTORY_OFF,
+        stream="vehicle-bin",
+        cpus=OWN_CORE,
+    ),
+    "vehicle-bin-own-core-history-process": Configuration(
+        f"every vehicle's binary key, history in its own process, the service on CPU {OWN_CORE}",
+        _HISTORY_PROCESS,
+        stream="vehicle-bin",
+        cpus=OWN_CORE,
+    ),
     "plain-own-core": Configuration(f"plain TCP, history on, the service on CPU {OWN_CORE}", cpus=OWN_CORE),
     "tls-history-own-core": Configuration(
         f"TLS + ACL, history on, the service on CPU {OWN_CORE}", tls=True, cpus=OWN_CORE
@@ -238,7 +250,11 @@ def measure_one(
             clients = link.clients if link is not None else None
             warm = _step(endpoint, http, proc.pid, vehicles, 1, stream=config.stream, arrival="spread", clients=clients)
             hold = _step(endpoint, http, proc.pid, vehicles, 1, hold_s, config.stream, "spread", clients)
-            cpus = {"service": thread_cpu_lists(proc.pid), "harness": format_cpu_list(os.sched_getaffinity(0))}
+            cpus = {
+                "service": thread_cpu_lists(proc.pid, background=False),
+                "service_background": thread_cpu_lists(proc.pid, background=True),
+                "harness": format_cpu_list(os.sched_getaffinity(0)),
+            }
             metrics = http.get("/metrics").text
             buckets = _buckets(http)
             # the link is TLS only: a plain TCP client gets no session (after the steps, which it cannot disturb)
@@ -424,7 +440,8 @@ def _setup(configs: tuple[Configuration, ...], runs: list[dict[str, Any]]) -> li
         lines.append(
             f"A core of its own: the configurations marked 'the service on CPU N' run the service with setting "
             f"`cpus` = {', '.join(pinned)} (every thread of `agv-fe serve` and the processes it starts on that CPU, "
-            "service/affinity.py), and the generator, the receiver and the benchmark itself on the other CPUs for "
+            "but the estimate history's writer, which runs on the others: service/affinity.py), and the generator, "
+            "the receiver and the benchmark itself on the other CPUs for "
             "the run's steps; the other configurations leave every process on every CPU.\n"
         )
     if any(c.leases for c in configs):
@@ -539,6 +556,9 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="with --baseline: both services behind the TLS + ACL link of the 'tls' configurations",
     )
+    parser.add_argument(
+        "--cpus", metavar="LIST", help="with --baseline: both services on these CPUs (setting cpus), the harness beside"
+    )
     parser.add_argument("--out", type=Path, required=True, help="the report to write")
     parser.add_argument("--rounds", type=int, default=ROUNDS)
     parser.add_argument("--vehicles", type=int, default=TARGET_VEHICLES, help="the fleet (default %(default)s)")
@@ -566,11 +586,12 @@ def _chosen(
     if not (source / "agv_fe").is_dir():
         parser.error(f"{source} is not a checkout of this project (no agv_fe/ in it)")
     configs = (
-        Configuration(label, env, source, stream=args.stream, tls=args.tls),
-        Configuration(args.label, env, stream=args.stream, tls=args.tls),
+        Configuration(label, env, source, stream=args.stream, tls=args.tls, cpus=args.cpus),
+        Configuration(args.label, env, stream=args.stream, tls=args.tls, cpus=args.cpus),
     )
     stream = "" if args.stream == "fleet" else f" --stream {args.stream}"
-    options = f"{stream}{' --tls' if args.tls else ''} --label '{args.label}'"
+    cpus = "" if args.cpus is None else f" --cpus {args.cpus}"
+    options = f"{stream}{' --tls' if args.tls else ''}{cpus} --label '{args.label}'"
     return configs, f"Service capacity: {label} against {args.label}", f"--baseline DIR '{label}'{options}"
 
 
