@@ -250,11 +250,7 @@ def measure_one(
             clients = link.clients if link is not None else None
             warm = _step(endpoint, http, proc.pid, vehicles, 1, stream=config.stream, arrival="spread", clients=clients)
             hold = _step(endpoint, http, proc.pid, vehicles, 1, hold_s, config.stream, "spread", clients)
-            cpus = {
-                "service": thread_cpu_lists(proc.pid, background=False),
-                "service_background": thread_cpu_lists(proc.pid, background=True),
-                "harness": format_cpu_list(os.sched_getaffinity(0)),
-            }
+            cpus = {"service": thread_cpu_lists(proc.pid), "harness": format_cpu_list(os.sched_getaffinity(0))}
             metrics = http.get("/metrics").text
             buckets = _buckets(http)
             # the link is TLS only: a plain TCP client gets no session (after the steps, which it cannot disturb)
@@ -440,8 +436,7 @@ def _setup(configs: tuple[Configuration, ...], runs: list[dict[str, Any]]) -> li
         lines.append(
             f"A core of its own: the configurations marked 'the service on CPU N' run the service with setting "
             f"`cpus` = {', '.join(pinned)} (every thread of `agv-fe serve` and the processes it starts on that CPU, "
-            "but the estimate history's writer, which runs on the others: service/affinity.py), and the generator, "
-            "the receiver and the benchmark itself on the other CPUs for "
+            "service/affinity.py), and the generator, the receiver and the benchmark itself on the other CPUs for "
             "the run's steps; the other configurations leave every process on every CPU.\n"
         )
     if any(c.leases for c in configs):
