@@ -109,7 +109,9 @@ def test_a_failed_first_design_is_named_by_ready_logged_and_listed_in_jobs(tmp_p
 
         body = wait_for(van_failed, what="van's design to fail and default's to succeed")
         answer = srv.get("/ready")
-        assert answer.status_code == 503 and answer.json() == body  # it stays so
+        # it stays so; the storage's pending writes are whatever the writer has not stored yet at each request
+        steady = lambda ready: {k: v for k, v in ready.items() if k != "storage"}  # noqa: E731
+        assert answer.status_code == 503 and steady(answer.json()) == steady(body)
         van = body["missing_gains"]["van"]
         assert van["error"] == "infeasible" and "unobservable" in van["reason"]
         assert body["profiles"]["van"] is None and body["profiles"]["default"] is not None
