@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edge_client.scenario import Scenario, ScenarioSignals
-from synth.model import FloatArray, continuous_dynamics
+from synth.model import FloatArray, continuous_dynamics, model_demand
 from synth.params import VehicleParams
 
 #: The tyre model of eq. (2) divides by v_x; below this speed the plant holds v_x here.
@@ -212,15 +212,17 @@ class PlantSimulator:
         )
         dt = self.sample_period_s / self.substeps
         state = self.state
+        # the model's input: the demand with the load transfer's steering angle (none without a CG height)
+        u_model = model_demand(x[:, [0, 2]], u, p)
         if p.steer_time_constant_s == 0.0:
             for _ in range(self.substeps):
-                k1 = dynamics_with_pose(state, u, wind, f, p)
-                k2 = dynamics_with_pose(state + 0.5 * dt * k1, u, wind, f, p)
-                k3 = dynamics_with_pose(state + 0.5 * dt * k2, u, wind, f, p)
-                k4 = dynamics_with_pose(state + dt * k3, u, wind, f, p)
+                k1 = dynamics_with_pose(state, u_model, wind, f, p)
+                k2 = dynamics_with_pose(state + 0.5 * dt * k1, u_model, wind, f, p)
+                k3 = dynamics_with_pose(state + 0.5 * dt * k2, u_model, wind, f, p)
+                k4 = dynamics_with_pose(state + dt * k3, u_model, wind, f, p)
                 state = state + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         else:
-            state = np.asarray(self._integrate_with_steering_lag(state, u, wind, f, dt), dtype=float)
+            state = np.asarray(self._integrate_with_steering_lag(state, u_model, wind, f, dt), dtype=float)
         state[:, 0] = np.maximum(state[:, 0], MIN_SPEED_MPS)
         self.state = state
         self.k += 1

@@ -255,6 +255,7 @@ class _Prepared:
     v_x: FloatArray  # smoothed, floored at 1 m/s
     v_x_raw: FloatArray
     r: FloatArray
+    accel: FloatArray  # dv_x/dt, the same fit's derivative
     torque: FloatArray
     steer: FloatArray
     moving: np.ndarray  # v_x above min_speed
@@ -285,6 +286,8 @@ def _prepare(drive: Drive, s: float, options: CalibrationOptions) -> _Prepared:
     window = min(21, v_raw.size - (1 - v_raw.size % 2))
     v_x = scipy.signal.savgol_filter(v_raw, window, 2) if window >= 5 else v_raw.copy()
     v_x = np.maximum(v_x, 1.0)
+    # dv_x/dt of the same fit: the longitudinal acceleration that moves load between the axles
+    accel = scipy.signal.savgol_filter(v_raw, window, 2, deriv=1, delta=s) if window >= 5 else np.gradient(v_raw, s)
     r = drive.y[:, 1].astype(float)
     moving = v_x >= options.min_speed_mps
     hard = np.abs(v_x * scipy.signal.savgol_filter(r, window, 2) if window >= 5 else v_x * r)
@@ -300,6 +303,7 @@ def _prepare(drive: Drive, s: float, options: CalibrationOptions) -> _Prepared:
         v_x=v_x,
         v_x_raw=v_raw,
         r=r,
+        accel=np.asarray(accel, dtype=float),
         torque=drive.u[:, 0].astype(float),
         steer=drive.u[:, 1].astype(float),
         moving=moving,
@@ -348,7 +352,8 @@ def _simulate_lateral(
     tau: float | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(v_y, r, delta) of eqs. (1)-(2) driven by the measured v_x and the road-wheel angle delta: delta_d + offset
-    through the steering actuator's lag (synth.model.lagged_steer), RK4 with the inputs held over each sample.
+    (+ the load transfer's angle, with a centre-of-gravity height) through the steering actuator's lag
+    (synth.model.lagged_steer), RK4 with the inputs held over each sample.
 
     v_y starts at 0 and r at the measured value; the first second is not fitted.
     """
@@ -361,7 +366,7 @@ def _simulate_lateral(
     s = p.s
     v_x = p.v_x.tolist()
     lag = params.model_copy(update={"steer_time_constant_s": tau})
-    delta = lagged_steer(p.steer + steer_offset, lag)
+    delta = lagged_steer(p.steer + steer_offset + _load_transfer_steer(p, params, C_f, C_r), lag)
     steer = delta.tolist()
     n = len(v_x)
     vy_out = [0.0] * n
@@ -385,6 +390,18 @@ def _simulate_lateral(
         vy += s / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
         r += s / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
     return np.array(vy_out), np.array(r_out), delta
+
+
+def _load_transfer_steer(p: _Prepared, params: VehicleParams, C_f: float, C_r: float) -> FloatArray | float:
+    """The load transfer's steering angle (synth.model.load_transfer_steer_rad) over a recording, with the
+    stiffnesses being fitted and the measured acceleration (the effective mass is not known yet); 0 without a
+    centre-of-gravity height."""
+    if params.cg_height_m == 0.0:
+        return 0.0
+    gain = params.model_copy(
+        update={"front_cornering_stiffness_npr": C_f, "rear_cornering_stiffness_npr": C_r}
+    ).load_transfer_gain
+    return -gain * p.accel * (p.v_x * p.r)
 
 
 def _fit_lateral(

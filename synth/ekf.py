@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike
 
 from synth.augmented import AugmentedEstimate, AugmentedModel, difference_coordinates, fault_chain_matrix
 from synth.fuzzy import NTSModel
-from synth.model import FloatArray, continuous_dynamics, continuous_matrices
+from synth.model import FloatArray, continuous_dynamics, continuous_matrices, model_demand
 from synth.options import NoiseModel
 from synth.params import OperatingBounds, VehicleParams
 
@@ -196,7 +196,7 @@ class AugmentedEKF:
             x_{k|k} and the in-domain flags.
         """
         y = np.atleast_2d(np.asarray(y, dtype=float))
-        u = np.atleast_2d(np.asarray(u, dtype=float))
+        u = model_demand(y, np.atleast_2d(np.asarray(u, dtype=float)), self.params)  # the load transfer's angle added
         demand = u
         if self.params.steer_lag_factor != 0.0:
             # the actuator's lagged road-wheel angle is the model's steering input (synth.model.lagged_steer);

@@ -144,6 +144,52 @@ def longitudinal_resistance_n(x: ArrayLike, steer_rad: ArrayLike, p: VehiclePara
     return resistance
 
 
+def load_transfer_steer_rad(v_x: ArrayLike, r: ArrayLike, torque_nm: ArrayLike, p: VehicleParams) -> FloatArray:
+    """The steering angle equivalent to the longitudinal load transfer, -G a_x a_y [rad] (docs/math.md 12.4).
+
+    Braking moves load from the rear axle to the front one, by M_v a_x h / (l_f + l_r); with each axle's
+    cornering stiffness following its load, the front grips more and the rear less, and the vehicle turns as if
+    steered by -G a_x a_y more (G: :attr:`VehicleParams.load_transfer_gain`, its understeer gradient's change
+    per m/s^2 of a_x). a_x = (T_d / R_w - C_x v_x^2 - F_r) / m_eff is the acceleration the demanded torque
+    gives, a_y = v_x r the lateral one: known signals only, so the model's input stays known. Zero without a
+    centre-of-gravity height.
+
+    Parameters
+    ----------
+    v_x, r : (...) array_like
+        Measured (or, in a simulation, true) speed [m/s] and yaw rate [rad/s].
+    torque_nm : (...) array_like
+        Demanded drive torque T_d [N m].
+    p : VehicleParams
+        The vehicle.
+
+    Returns
+    -------
+    (...) ndarray
+        The angle to add to the steering demand [rad].
+    """
+    v_x = np.asarray(v_x, dtype=float)
+    gain = p.load_transfer_gain
+    if gain == 0.0:
+        return np.zeros(np.broadcast_shapes(v_x.shape, np.shape(r), np.shape(torque_nm)))
+    a_x = (np.asarray(torque_nm, dtype=float) / p.wheel_radius_m - p.longitudinal_drag_coeff * v_x**2
+           - p.rolling_resistance_n) / p.effective_mass_kg  # fmt: skip
+    return np.asarray(-gain * a_x * (v_x * np.asarray(r, dtype=float)), dtype=float)
+
+
+def model_demand(y: ArrayLike, u_d: ArrayLike, p: VehicleParams) -> FloatArray:
+    """The demand the model takes, [T_d, delta_d + the load transfer's angle] (:func:`load_transfer_steer_rad`),
+    from the measurement y = [v_x, r] and the demand u_d = [T_d, delta_d], (..., 2) each; ``u_d`` itself (as an
+    array) without a centre-of-gravity height."""
+    u_d = np.asarray(u_d, dtype=float)
+    if p.cg_height_m == 0.0:
+        return u_d
+    y = np.asarray(y, dtype=float)
+    out = u_d.copy()
+    out[..., 1] += load_transfer_steer_rad(y[..., 0], y[..., 1], u_d[..., 0], p)
+    return out
+
+
 def continuous_dynamics(x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike, p: VehicleParams) -> FloatArray:
     """dx/dt of eqs. (1), (2) and (5): the plant as physics, not as a matrix form.
 

@@ -46,7 +46,7 @@ from synth.augmented import N_STATES, VY_INDEX, AugmentedEstimate, front_force_b
 from synth.errors import BadParameters, check_shape
 from synth.fuzzy import RULE_CORNERS
 from synth.gains import ObserverGains
-from synth.model import FloatArray
+from synth.model import FloatArray, model_demand
 from synth.options import SwitchingRule
 
 #: Index of the steering fault delta_f (at sample k) in the augmented state.
@@ -176,6 +176,8 @@ class RuntimeGains:
     steer_lag: float = 0.0
     #: c of the actuator's mean angle over a sample, delta_k + c (delta_d,k - delta_k) (steer_lag_mean_factor)
     steer_lag_mean: float = 1.0
+    #: the model's steering input carries the load transfer's angle (cg_height_m, synth.model.model_demand)
+    load_transfer: bool = False
 
     @property
     def state_size(self) -> int:
@@ -250,6 +252,7 @@ class RuntimeGains:
             front_force_max=front_force_bound_n(aug.nts) if cornering else np.inf,
             steer_lag=gains.params.steer_lag_factor,
             steer_lag_mean=gains.params.steer_lag_mean_factor,
+            load_transfer=gains.params.cg_height_m != 0.0,
         )
         if not rest or rule is None:
             return one_set
@@ -386,7 +389,9 @@ def initial_observer_state(
     z0 = x0 + y @ rt.E.T
     if rt.steer_lag == 0.0:
         return z0
-    steer0 = np.zeros(nv) if u0 is None else np.atleast_2d(np.asarray(u0, dtype=float))[:, 1]
+    if u0 is None:
+        return np.column_stack([z0, np.zeros(nv)])
+    steer0 = model_demand(y, np.atleast_2d(np.asarray(u0, dtype=float)), rt.gains.params)[:, 1]
     return np.column_stack([z0, steer0])
 
 
@@ -437,6 +442,8 @@ def observer_step(
     nv = y.shape[0]
     if y.shape != (nv, 2) or u.shape != (nv, 2) or z.shape != (nv, rt.state_size):
         _check_batch(rt, z, y, u)
+    if rt.load_transfer:  # the model's input: the demand with the load transfer's steering angle
+        u = model_demand(y, u, rt.gains.params)
     Phi, x, in_domain, vy_in_bounds = _features(rt, z, y, u)
     z_rows, x_rows = _gain_products(rt, Phi, x, fast, mixed)
     n, k = rt.n, rt.K_rows.size

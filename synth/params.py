@@ -18,6 +18,8 @@ FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
 #: The default bound of the applied road-wheel angle |delta| [rad].
 STEER_MAX_DEFAULT_RAD = 0.3
+#: g [m/s^2], for the load transfer (VehicleParams.load_transfer_gain).
+STANDARD_GRAVITY_MPS2 = 9.80665
 #: The former name of ``effective_mass_kg``, still accepted on input.
 LEGACY_INERTIA_FIELD = "longitudinal_inertia_kgm2"
 
@@ -70,6 +72,12 @@ class VehicleParams(BaseModel):
         0.0,
         description="tau_delta, time constant of the steering actuator: the road-wheel angle follows the demand "
         "(and a steering fault) through a first-order lag; 0 = the paper's ideal actuator [s]",
+    )
+    cg_height_m: Annotated[float, Field(ge=0, le=5.0, allow_inf_nan=False)] = Field(
+        0.0,
+        description="h, height of the centre of gravity above the road: braking moves load to the front axle "
+        "and stiffens it against the rear, accelerating the reverse, which the model takes as an equivalent "
+        "steering angle (docs/math.md 12.4); 0 = not modelled, as in the paper [m]",
     )
     torque_fault_gain: PositiveFloat = Field(1.0, description="b_T, actuator gain of the torque fault (eq. 5) [-]")
     steer_fault_gain: PositiveFloat = Field(1.0, description="b_delta, actuator gain of the steering fault (eq. 5) [-]")
@@ -124,9 +132,21 @@ class VehicleParams(BaseModel):
             for name in ("wheel_radius_m", "rolling_resistance_n", "cornering_drag"):
                 del data[name]
             data[LEGACY_INERTIA_FIELD] = data.pop("effective_mass_kg")
-        if data["steer_time_constant_s"] == 0.0:
-            del data["steer_time_constant_s"]
+        for name in ("steer_time_constant_s", "cg_height_m"):
+            if data[name] == 0.0:
+                del data[name]
         return data
+
+    @property
+    def load_transfer_gain(self) -> float:
+        """G = M_v h / (g (l_f + l_r)) (1 / (2 C_f) + 1 / (2 C_r)) [rad s^4/m^2]: the change of the understeer
+        gradient per m/s^2 of longitudinal acceleration when each axle's cornering stiffness follows its load
+        (docs/math.md 12.4); 0 without a centre-of-gravity height."""
+        if self.cg_height_m == 0.0:
+            return 0.0
+        wheelbase = self.front_axle_distance_m + self.rear_axle_distance_m
+        compliance = 0.5 / self.front_cornering_stiffness_npr + 0.5 / self.rear_cornering_stiffness_npr
+        return self.mass_kg * self.cg_height_m / (STANDARD_GRAVITY_MPS2 * wheelbase) * compliance
 
     @property
     def steer_lag_mean_factor(self) -> float:

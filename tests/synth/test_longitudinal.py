@@ -283,7 +283,7 @@ def test_the_paper_profile_keeps_the_designs_made_before_the_physical_fields():
     new fields did not exist: its stored gains keep their versions."""
     p = VehicleParams()
     legacy_params = {k: v for k, v in p.model_dump().items() if k not in ("wheel_radius_m", "rolling_resistance_n",
-                     "cornering_drag", "steer_time_constant_s", "effective_mass_kg")}  # fmt: skip
+                     "cornering_drag", "steer_time_constant_s", "cg_height_m", "effective_mass_kg")}  # fmt: skip
     legacy_params["longitudinal_inertia_kgm2"] = 443.0
     bounds = {k: v for k, v in OperatingBounds().model_dump().items() if k not in ("steer_max_rad",
               "front_lateral_force_max_n")}  # fmt: skip
