@@ -176,7 +176,8 @@ def reference_values(parameter_set: int) -> dict[str, float]:
     * ``mass_kg`` m, ``yaw_inertia_kgm2`` I_z, ``front_axle_distance_m`` a,
       ``rear_axle_distance_m`` b, ``wheel_radius_m`` R_w: the MB's p.m, p.I_z,
       p.a, p.b, p.R_w (a, b and I_z refer to the sprung mass's CG, the MB's
-      reference point for the planar motion).
+      reference point for the planar motion); ``cg_height_m`` h, the MB's p.h_cg
+      (the whole vehicle's centre of gravity, which the load transfer moves).
     * ``effective_mass_kg`` = m + 4 I_y_w / R_w^2: each wheel obeys
       I_y_w dω_i/dt = -R_w F_x,i + T_i and the T_i sum to T. Rolling at a
       settled slip, dω_i/dt = a_x / R_w, so sum F_x,i = T / R_w - 4 I_y_w a_x / R_w^2;
@@ -200,6 +201,7 @@ def reference_values(parameter_set: int) -> dict[str, float]:
         "yaw_inertia_kgm2": float(p.I_z),
         "front_axle_distance_m": float(p.a),
         "rear_axle_distance_m": float(p.b),
+        "cg_height_m": float(p.h_cg),
         # K_y = p_ky1 F_z: the slope of the lateral magic formula at α = 0, γ = 0
         "front_cornering_stiffness_npr": float(abs(p.tire.p_ky1) * front_load),
         "rear_cornering_stiffness_npr": float(abs(p.tire.p_ky1) * rear_load),
@@ -210,11 +212,13 @@ def base_profile(parameter_set: int) -> dict[str, dict[str, float]]:
     """A ``--params`` profile with only what a vehicle engineer reads off the data sheet.
 
     ``{"params": {mass_kg, yaw_inertia_kgm2, front_axle_distance_m,
-    rear_axle_distance_m, wheel_radius_m}}``; cornering stiffnesses and the
-    longitudinal inertia are left for a calibration to find.
+    rear_axle_distance_m, wheel_radius_m, cg_height_m}}``; cornering stiffnesses
+    and the longitudinal inertia are left for a calibration to find.
     """
     ref = reference_values(parameter_set)
-    names = ("mass_kg", "yaw_inertia_kgm2", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m")
+    names = (
+        "mass_kg", "yaw_inertia_kgm2", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m", "cg_height_m"
+    )  # fmt: skip
     return {"params": {name: ref[name] for name in names}}
 
 
@@ -313,8 +317,9 @@ class _DriveBuilder:
     """Appends manoeuvres to a speed and yaw-rate reference; :meth:`build` cuts it at ``limit_s``.
 
     Lateral manoeuvres run at constant speed and straight stretches carry the
-    speed changes, so the tyres never combine hard braking with hard cornering.
-    The planner bounds the yaw acceleration by min(MAX_YAW_ACCEL, MAX_LATERAL_JERK / v).
+    speed changes, except :meth:`turn_changing_speed`, which brakes or
+    accelerates in a turn. The planner bounds the yaw acceleration by
+    min(MAX_YAW_ACCEL, MAX_LATERAL_JERK / v).
     """
 
     limit_s: float
@@ -361,6 +366,25 @@ class _DriveBuilder:
         shape = np.minimum(_smoothstep(tau / ramp), _smoothstep((tau[-1] - tau) / ramp))
         self._append(np.full(tau.size, speed), yaw_rate_radps * shape)
 
+    def turn_changing_speed(self, lateral_accel_mps2: float, target_mps: float, peak_accel_mps2: float) -> None:
+        """Brake (or accelerate) in a turn: the turn ramped in at the current speed to ``lateral_accel_mps2``
+        (signed), the speed changed to ``target_mps`` at peak |a_x| ``peak_accel_mps2`` with a_y held (the
+        radius tightening when braking, opening when accelerating), the turn ramped out at the new speed."""
+        start = self.current_speed_mps
+        self.turn_in(lateral_accel_mps2 / start)
+        duration = max(1.5 * abs(target_mps - start) / peak_accel_mps2, SAMPLE_PERIOD_S)
+        tau = self._tau(duration + SAMPLE_PERIOD_S)
+        speed = start + (target_mps - start) * _smoothstep(tau / duration)
+        self._append(speed, lateral_accel_mps2 / speed)
+        self.turn_in(0.0, lateral_accel_mps2 / target_mps)
+
+    def turn_in(self, yaw_rate_radps: float, from_radps: float = 0.0) -> None:
+        """The yaw rate ramped from ``from_radps`` to ``yaw_rate_radps`` at the current speed."""
+        speed = self.current_speed_mps
+        ramp = max(1.5 * abs(yaw_rate_radps - from_radps) / self.yaw_accel_limit(speed), 0.3)
+        tau = self._tau(ramp)
+        self._append(np.full(tau.size, speed), from_radps + (yaw_rate_radps - from_radps) * _smoothstep(tau / ramp))
+
     def sine(self, yaw_rate_radps: float, period_s: float, periods: int) -> None:
         """A lane change (``periods`` = 1) or a slalom of whole periods P, peak yaw rate ``yaw_rate_radps``.
 
@@ -385,6 +409,43 @@ class _DriveBuilder:
             yaw_rate = np.concatenate([yaw_rate, np.zeros(n - yaw_rate.size)])
         accel = np.gradient(speed, SAMPLE_PERIOD_S)
         return Drive(name=name, speed_mps=speed, accel_mps2=accel, curvature_1pm=yaw_rate / speed)
+
+
+def combined_drive(
+    seed: int,
+    duration_s: float,
+    *,
+    speed_range_mps: tuple[float, float] = (10.0, 22.0),
+    lateral_accel_mps2: tuple[float, float] = (2.0, 4.5),
+    max_accel_mps2: float = 3.5,
+    specific_power_w_per_kg: float = 45.0,
+) -> Drive:
+    """A seeded drive of braking and accelerating in turns (:meth:`_DriveBuilder.turn_changing_speed`), both ways,
+    the speed kept in ``speed_range_mps``, |a_y| drawn in ``lateral_accel_mps2``, the peak |a_x| in [0.4, 1] of
+    ``max_accel_mps2`` (accelerating also under ``specific_power_w_per_kg`` / v), straight cruises between. The
+    first 2 s are a straight cruise. Deterministic for a seed."""
+    low, high = speed_range_mps
+    if not MIN_DRIVE_SPEED_MPS <= low < high - 3.0:
+        raise MultibodyError(
+            f"speed_range_mps must satisfy {MIN_DRIVE_SPEED_MPS} <= low < high - 3, got {speed_range_mps}"
+        )
+    rng = np.random.default_rng(seed)
+    builder = _DriveBuilder(limit_s=duration_s, current_speed_mps=float(rng.uniform(low, high)))
+    builder.cruise(2.0)
+    while not builder.full:
+        speed = builder.current_speed_mps
+        braking = speed - low > high - speed
+        if braking:
+            target = float(rng.uniform(low, speed - 0.5 * (speed - low)))
+        else:
+            target = float(rng.uniform(speed + 0.5 * (high - speed), high))
+        peak = float(rng.uniform(0.4, 1.0) * max_accel_mps2)
+        if not braking:
+            peak = min(peak, specific_power_w_per_kg / target)
+        lateral = float(rng.uniform(*lateral_accel_mps2) * rng.choice([-1.0, 1.0]))
+        builder.turn_changing_speed(lateral, target, peak)
+        builder.cruise(float(rng.uniform(1.0, 3.0)))
+    return builder.build(f"combined_{seed}")
 
 
 def random_drive(

@@ -87,6 +87,11 @@ QUICK_HEALTHY_SEEDS = (1, 2, 3, 4)
 URBAN_EVERY = 3
 URBAN_SPEED_MPS = (6.0, 12.0)
 URBAN_YAW_RATE_RADPS = 0.65
+#: The healthy seeds one after the urban ones (seed % URBAN_EVERY == 1) brake and accelerate in turns
+#: (mb.combined_drive: |a_y| to COMBINED_LATERAL_ACCEL_MPS2, |a_x| to COMBINED_ACCEL_MPS2, 10 to 22 m/s), where
+#: the load moves between the axles (docs/math.md 12.4).
+COMBINED_LATERAL_ACCEL_MPS2 = (2.0, 4.5)
+COMBINED_ACCEL_MPS2 = 3.5
 QUICK_HEALTHY_DURATION_S = 30.0
 #: Fault runs: seeds of the drive and of the sensor noise, distinct from the healthy and calibration seeds.
 FAULT_SEEDS = (1001, 1002, 1003)
@@ -349,7 +354,12 @@ def sensitivity_jobs(parameter_set: int, plan: Plan) -> list[mb.MultibodyJob]:
 
 
 def healthy_drive(seed: int, duration_s: float) -> mb.Drive:
-    """The healthy random drive of ``seed``: in town for every URBAN_EVERY-th seed, else on open roads."""
+    """The healthy random drive of ``seed``: in town for every URBAN_EVERY-th seed, braking and accelerating in
+    turns for the seeds after those, else on open roads."""
+    if seed % URBAN_EVERY == 1:
+        return mb.combined_drive(
+            seed, duration_s, lateral_accel_mps2=COMBINED_LATERAL_ACCEL_MPS2, max_accel_mps2=COMBINED_ACCEL_MPS2
+        )
     if seed % URBAN_EVERY == 0:
         return mb.random_drive(
             seed,
@@ -1451,8 +1461,10 @@ def _healthy_section(result: dict[str, Any]) -> list[str]:
         f"{driving['speed_range_mps'][0]:.1f} to {driving['speed_range_mps'][1]:.1f} m/s, peak |a_y| "
         f"{driving['peak_lateral_accel_mps2']:.2f} m/s^2 ({driving['seconds_above_5_mps2']:.0f} s above 5 m/s^2). "
         f"Every {_ordinal(URBAN_EVERY)} drive is in town ({URBAN_SPEED_MPS[0]:g} to {URBAN_SPEED_MPS[1]:g} m/s, "
-        f"yaw rates to {URBAN_YAW_RATE_RADPS:g} rad/s: corners tighter than the calibration drive's), the others "
-        "on open roads (8 to 22 m/s, 0.5 rad/s). "
+        f"yaw rates to {URBAN_YAW_RATE_RADPS:g} rad/s: corners tighter than the calibration drive's), each "
+        f"drive after those brakes and accelerates in turns (|a_y| {COMBINED_LATERAL_ACCEL_MPS2[0]:g} to "
+        f"{COMBINED_LATERAL_ACCEL_MPS2[1]:g} m/s^2 with |a_x| to {COMBINED_ACCEL_MPS2:g} m/s^2, 10 to 22 m/s: the "
+        "load transfer, docs/math.md 12.4), the others on open roads (8 to 22 m/s, 0.5 rad/s). "
         "Raised: times a level went from OK to WARN or higher / reached FAULT, after the warm-up. Judged by the "
         "levels: the share of samples after the warm-up, which runs again after each sample outside the certified "
         "domain (docs/math.md section 8); peaks and RMS are taken over those. Held peak: the "

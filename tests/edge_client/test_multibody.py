@@ -165,8 +165,10 @@ def test_reference_values(parameter_set):
         "front_axle_distance_m",
         "rear_axle_distance_m",
         "wheel_radius_m",
+        "cg_height_m",
     }
     assert profile["params"]["yaw_inertia_kgm2"] == p.I_z
+    assert profile["params"]["cg_height_m"] == p.h_cg
     assert profile["params"]["wheel_radius_m"] == p.R_w
 
 
