@@ -618,6 +618,16 @@ ANALYSIS = """* **Against the paper's design.** The stability-only gains amplify
 
 ## History of the cost ratio
 
+* 2026-11-27 22:39 UTC (commit b6e154e): the first run on an Intel Xeon 2-core machine
+  (every earlier one ran on an AMD EPYC), idle (load 1.0): settled 9.2, 1 in 100 8.1, 1 in 10 7.7, all
+  on the fast set 8.9, one gain set 11.2. The EKF's step took 7 % longer than on the EPYC (725 against
+  674 us), the observer's 52 % (78.6 against 51.7 us settled): its feature matrix Phi, about twenty
+  numpy calls on 1,000-element rows, took 46.7 against 24.5 us (the split table). Measured here
+  (2026-11-27, `timeit`): one `np.multiply` of two 1,000-element rows 1.3 us, of a 5 x 1,000 block by a row
+  4.2 us; the observer's step is bound by per-call cost, the EKF's by its 3 x 3 and 5 x 5 products. The
+  target of 10 is met on the EPYC (the run below), not on this machine.
+* 2026-11-27 07:14 UTC (commit 0812cad, AMD EPYC, idle): settled 13.0, 1 in 100 10.7, 1 in 10 10.3,
+  all on the fast set 12.7, one gain set 15.6.
 * 2026-11-24 23:56 UTC (commit 6f55360, machine load not recorded): settled 13.2, 1 in 100 on the
   fast set 10.7, 1 in 10 10.1, all on the fast set 12.8, one gain set 15.8.
 * Commit be07ab9 (2026-11-24, docs/switched-gains.md): settled 10.4, 1 in 100 8.5, 1 in 10 7.9,
