@@ -230,6 +230,12 @@ def calibrate(
         f"cornering stiffnesses fitted where |a_y| <= {options.linear_lateral_accel_mps2:.2f} m/s^2 "
         f"(the tyres' linear range); the recordings reach {peak_ay:.1f} m/s^2",
     ]
+    if params.cg_height_m == 0.0:
+        notes.append(
+            "no centre-of-gravity height (cg_height_m) in the base: the model leaves out the load that braking and "
+            "accelerating move between the axles, so braking hard in a turn reads as a steering fault "
+            "(docs/math.md 12.4); give the data sheet's height"
+        )
     return CalibrationResult(
         params=params,
         bounds=bounds,

@@ -63,6 +63,11 @@ def test_a_given_parameter_is_kept_not_identified(healthy):
     assert res.estimates["effective_mass_kg"].value == pytest.approx(1290.0, rel=0.01)
 
 
+def test_a_base_without_a_cg_height_is_told_what_the_model_then_leaves_out(result):
+    assert "cg_height_m" not in BASE and result.params.cg_height_m == 0.0
+    assert sum("no centre-of-gravity height (cg_height_m)" in note for note in result.notes) == 1
+
+
 def _refusal(drives, base=BASE) -> str:
     with pytest.raises(CalibrationRefused) as info:
         calibrate(drives, base)
