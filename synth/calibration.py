@@ -212,6 +212,7 @@ def calibrate(
     noise = _sensor_noise(prepared)
     fixed = VehicleParams.model_validate({**base, "cornering_drag": True})
     lateral = _fit_lateral(prepared, fixed, "yaw_inertia_kgm2" not in base, noise, options)
+    _check_load_transfer(prepared, fixed, lateral, noise, options)
     params_lat = fixed.model_copy(update=lateral.params)
     sims = [_simulate_lateral(p, params_lat, lateral.steer_offset) for p in prepared]
     longitudinal = _fit_longitudinal(prepared, sims, params_lat, base, noise, options)
@@ -222,7 +223,7 @@ def calibrate(
     for name, limit in options.max_relative_ci.items():
         est = estimates.get(name)
         if est is not None and est.identified and est.relative_half_width > limit:
-            raise CalibrationRefused(_unidentified(name, est, limit))
+            raise CalibrationRefused(_unidentified(name, est, limit, params))
     residuals = {**lateral.residuals, **longitudinal.residuals}
     bounds = operating_bounds(prepared, sims, params, lateral.steer_offset)
     peak_ay = max(float(np.max(np.abs(p.v_x * p.r), initial=0.0)) for p in prepared)
@@ -408,6 +409,42 @@ def _load_transfer_steer(p: _Prepared, params: VehicleParams, C_f: float, C_r: f
         update={"front_cornering_stiffness_npr": C_f, "rear_cornering_stiffness_npr": C_r}
     ).load_transfer_gain
     return -gain * p.accel * (p.v_x * p.r)
+
+
+def _check_load_transfer(
+    prepared: Sequence[_Prepared],
+    params: VehicleParams,
+    lateral: _LateralFit,
+    noise: dict[str, float],
+    options: CalibrationOptions,
+) -> None:
+    """With a centre-of-gravity height, a lateral fit that cannot identify the stiffnesses is fitted again
+    without the load transfer: if that one identifies them, the recordings do not show the load transfer the
+    stated height predicts (the fit, whose gain G follows the stiffnesses, traded stiffness for the term), and
+    the refusal says so rather than asking for more turns (docs/math.md 12.4)."""
+    if params.cg_height_m == 0.0:
+        return
+    names = ("front_cornering_stiffness_npr", "rear_cornering_stiffness_npr")
+    limits = {name: options.max_relative_ci.get(name, math.inf) for name in names}
+    if all(lateral.estimates[name].relative_half_width <= limits[name] for name in names):
+        return
+    plain = _fit_lateral(
+        prepared,
+        params.model_copy(update={"cg_height_m": 0.0}),
+        "yaw_inertia_kgm2" in lateral.params,
+        noise,
+        options,
+    )
+    if any(plain.estimates[name].relative_half_width > limits[name] for name in names):
+        return  # not identifiable either way: the general refusal says what to record
+    with_h, without = lateral.estimates[names[0]], plain.estimates[names[0]]
+    raise CalibrationRefused(
+        f"the recordings do not show the load transfer that cg_height_m = {params.cg_height_m:g} m predicts: "
+        f"with it the front cornering stiffness is {with_h.value:.4g} N/rad "
+        f"(+-{100 * with_h.relative_half_width:.0f} %), without it {without.value:.4g} N/rad "
+        f"(+-{100 * without.relative_half_width:.0f} %). Check the height against the data sheet, or leave "
+        "cg_height_m out of the base to calibrate without the term"
+    )
 
 
 def _fit_lateral(
@@ -794,11 +831,17 @@ def _log_estimate(log_value: float, var: float) -> Estimate:
     return Estimate(math.exp(log_value), math.exp(log_value - 1.96 * sd), math.exp(log_value + 1.96 * sd))
 
 
-def _unidentified(name: str, est: Estimate, limit: float) -> str:
+def _unidentified(name: str, est: Estimate, limit: float, params: VehicleParams) -> str:
+    turns = "add turns entered and left briskly, lane changes or a slalom"
+    if params.cg_height_m == 0.0:
+        turns += (
+            "; if the drives brake or accelerate in turns, give the data sheet's cg_height_m (the load "
+            "transfer then explains what the stiffnesses cannot)"
+        )
     why = {
         "effective_mass_kg": "drive with firmer accelerations and braking",
-        "front_cornering_stiffness_npr": "add turns entered and left briskly, lane changes or a slalom",
-        "rear_cornering_stiffness_npr": "add turns entered and left briskly, lane changes or a slalom",
+        "front_cornering_stiffness_npr": turns,
+        "rear_cornering_stiffness_npr": turns,
         "yaw_inertia_kgm2": "give yaw_inertia_kgm2 in the base profile, or add brisk steering changes",
     }[name]
     return (

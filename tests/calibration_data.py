@@ -15,6 +15,7 @@ from edge_client.recording import write_recording
 from edge_client.scenario import Manoeuvre, Scenario, SensorNoise, SpeedPoint
 from edge_client.simulation import simulate_plant
 from synth.calibration import Drive
+from synth.params import VehicleParams
 
 #: A physical car with everything calibration identifies switched on.
 CAR = REFERENCE_CAR
@@ -23,16 +24,20 @@ BASE = {
     name: getattr(CAR, name)
     for name in ("mass_kg", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m", "yaw_inertia_kgm2")
 }
+#: A saloon's centre-of-gravity height.
+CG_HEIGHT_M = 0.55
 NOISE = SensorNoise(vx_sigma_mps=0.05, r_sigma_radps=0.005)
 
 
-def simulated_drive(name: str, duration_s: float, speeds, manoeuvres, seed: int = 3) -> Drive:
+def simulated_drive(
+    name: str, duration_s: float, speeds, manoeuvres, seed: int = 3, vehicle: VehicleParams = CAR
+) -> Drive:
     """The car driven by the project's plant (RK4, 1 ms) through a speed profile and open-loop manoeuvres."""
     scenario = Scenario(
         name=name,
         duration_s=duration_s,
         initial_speed_mps=speeds[0][1],
-        vehicle=CAR,
+        vehicle=vehicle,
         speed_profile=[SpeedPoint(t_s=t, speed_mps=v) for t, v in speeds],
         manoeuvres=manoeuvres,
         noise=NOISE,
@@ -45,6 +50,17 @@ def simulated_drive(name: str, duration_s: float, speeds, manoeuvres, seed: int 
 @lru_cache(maxsize=1)
 def healthy_drive() -> Drive:
     """A minute of ordinary driving: speed changes between 9 and 20 m/s, turns, lane changes, slaloms."""
+    return _healthy(CAR)
+
+
+@lru_cache(maxsize=1)
+def healthy_drive_with_load_transfer() -> Drive:
+    """The same minute by the car with a centre-of-gravity height (CG_HEIGHT_M): braking in its turns moves load
+    between the axles (docs/math.md 12.4)."""
+    return _healthy(CAR.model_copy(update={"cg_height_m": CG_HEIGHT_M}))
+
+
+def _healthy(vehicle: VehicleParams) -> Drive:
     speeds = [(0, 10), (7, 18), (12, 18), (18, 9), (24, 9), (30, 20), (38, 20), (44, 12), (50, 12), (56, 17), (60, 17)]
     manoeuvres = [
         Manoeuvre(kind="slalom", start_s=1, duration_s=5, amplitude_rad=0.03),
@@ -53,7 +69,7 @@ def healthy_drive() -> Drive:
         Manoeuvre(kind="turn", start_s=39, duration_s=4, amplitude_rad=-0.03, ramp_s=0.4),
         Manoeuvre(kind="slalom", start_s=50, duration_s=6, amplitude_rad=0.035),
     ]
-    return simulated_drive("healthy", 60.0, speeds, manoeuvres)
+    return simulated_drive("healthy", 60.0, speeds, manoeuvres, vehicle=vehicle)
 
 
 def csv_text(drive: Drive) -> str:

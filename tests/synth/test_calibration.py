@@ -9,7 +9,14 @@ import pytest
 from edge_client.scenario import Manoeuvre
 from synth.calibration import CalibrationRefused, Drive, calibrate
 from synth.params import VehicleParams
-from tests.calibration_data import BASE, CAR, healthy_drive, simulated_drive
+from tests.calibration_data import (
+    BASE,
+    CAR,
+    CG_HEIGHT_M,
+    healthy_drive,
+    healthy_drive_with_load_transfer,
+    simulated_drive,
+)
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +79,29 @@ def _refusal(drives, base=BASE) -> str:
     with pytest.raises(CalibrationRefused) as info:
         calibrate(drives, base)
     return info.value.reason
+
+
+def test_a_vehicle_whose_braking_in_turns_moves_load_is_calibrated_with_its_cg_height():
+    """The car with a CG height, braking in its turns: given the height, the stiffnesses come back; without it,
+    the refusal names the height as what would explain the data."""
+    drive = healthy_drive_with_load_transfer()
+    res = calibrate([drive], {**BASE, "cg_height_m": CG_HEIGHT_M})
+    assert res.params.cg_height_m == CG_HEIGHT_M
+    assert res.estimates["front_cornering_stiffness_npr"].value == pytest.approx(80000.0, rel=0.05)
+    assert res.estimates["rear_cornering_stiffness_npr"].value == pytest.approx(50000.0, rel=0.05)
+    assert not any("no centre-of-gravity height" in note for note in res.notes)
+    reason = _refusal([drive])
+    assert "cannot identify front_cornering_stiffness_npr" in reason and "give the data sheet's cg_height_m" in reason
+
+
+def test_a_stated_cg_height_the_recordings_do_not_show_is_refused_as_such(healthy):
+    """The car without load transfer and a base stating a height: the fit with the term trades stiffness for it
+    (docs/math.md 12.4); the refusal says the height is what does not fit, with both fits' figures."""
+    reason = _refusal([healthy], {**BASE, "cg_height_m": CG_HEIGHT_M})
+    assert reason.startswith("the recordings do not show the load transfer that cg_height_m = 0.55 m predicts")
+    assert "leave cg_height_m out of the base" in reason
+    without = float(reason.split("without it ")[1].split(" N/rad")[0])
+    assert without == pytest.approx(80000.0, rel=0.05)
 
 
 def test_refuses_too_little_driving(healthy):
