@@ -190,6 +190,51 @@ def model_demand(y: ArrayLike, u_d: ArrayLike, p: VehicleParams) -> FloatArray:
     return out
 
 
+def payload_torque(
+    v_x: ArrayLike, torque_nm: ArrayLike, payload_kg: ArrayLike, p: VehicleParams
+) -> tuple[FloatArray, FloatArray]:
+    """The drive torque the profile's vehicle would need to move as the vehicle with a payload does, and the
+    ratio rho = m_eff / (m_eff + payload) a torque fault is seen through (docs/math.md 12.5).
+
+    A payload of Delta kg at the centre of gravity adds Delta to the effective mass and, with the rolling
+    resistance proportional to the weight, F_r Delta / M_v to it: the vehicle's dv_x/dt - v_y r is then
+    rho (T / R_w - C_x v_x^2 - F_r kappa) / m_eff with kappa = (M_v + Delta) / M_v. The model's eq. (1) gives the
+    same acceleration with the torque
+
+        T_model = rho T + R_w ((1 - rho) C_x v_x^2 + (1 - rho kappa) F_r),
+
+    and a torque fault T_f of the vehicle appears in the model as rho T_f: an observer fed T_model estimates
+    rho T_f, which divided by rho is the fault again. Known signals only, so the model's input stays known and
+    the design's certificate holds. Left out: the cornering drag's share (its factor 1 - rho kappa is under
+    1 % for any payload when m_eff is within 5 % of M_v) and the payload's effect on the lateral dynamics.
+
+    Parameters
+    ----------
+    v_x : (...) array_like
+        Measured speed [m/s].
+    torque_nm : (...) array_like
+        Demanded drive torque T_d [N m].
+    payload_kg : (...) array_like
+        The payload [kg], >= 0.
+    p : VehicleParams
+        The vehicle without payload (the profile).
+
+    Returns
+    -------
+    torque : (...) ndarray
+        T_model [N m].
+    rho : (...) ndarray
+        m_eff / (m_eff + payload).
+    """
+    payload = np.asarray(payload_kg, dtype=float)
+    v_x = np.asarray(v_x, dtype=float)
+    m_eff = p.effective_mass_kg
+    rho = m_eff / (m_eff + payload)
+    kappa = (p.mass_kg + payload) / p.mass_kg
+    drag = (1.0 - rho) * p.longitudinal_drag_coeff * v_x**2 + (1.0 - rho * kappa) * p.rolling_resistance_n
+    return np.asarray(rho * np.asarray(torque_nm, dtype=float) + p.wheel_radius_m * drag, dtype=float), rho
+
+
 def continuous_dynamics(x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike, p: VehicleParams) -> FloatArray:
     """dx/dt of eqs. (1), (2) and (5): the plant as physics, not as a matrix form.
 

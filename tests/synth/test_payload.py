@@ -1,0 +1,79 @@
+"""A payload as the model's equivalent drive torque (synth.model.payload_torque, docs/math.md 12.5)."""
+
+import numpy as np
+import pytest
+
+from synth.design import synthesize
+from synth.model import continuous_dynamics, payload_torque, rk4_step
+from synth.observer import FuzzyObserver
+from synth.options import DesignOptions
+from synth.params import VehicleParams
+
+PROFILE = VehicleParams(rolling_resistance_n=180.0, longitudinal_drag_coeff=0.45, effective_mass_kg=1340.0)
+PAYLOAD_KG = 240.0
+
+
+def loaded(p: VehicleParams, payload_kg: float) -> VehicleParams:
+    """The vehicle carrying ``payload_kg`` at its centre of gravity, rolling resistance proportional to weight
+    (the lateral mass and inertia kept: the term is longitudinal)."""
+    return p.model_copy(
+        update={
+            "effective_mass_kg": p.effective_mass_kg + payload_kg,
+            "rolling_resistance_n": p.rolling_resistance_n * (p.mass_kg + payload_kg) / p.mass_kg,
+        }
+    )
+
+
+@pytest.mark.parametrize("fault_nm", [0.0, -150.0])
+def test_the_model_fed_the_payload_torque_accelerates_as_the_loaded_vehicle(fault_nm):
+    heavy = loaded(PROFILE, PAYLOAD_KG)
+    x = np.array([[8.0, 0.1, 0.05], [25.0, -0.2, -0.1], [15.0, 0.0, 0.0]])
+    u = np.array([[900.0, 0.02], [-1500.0, -0.01], [0.0, 0.0]])
+    f = np.array([fault_nm, 0.0])
+    truth = continuous_dynamics(x, u, 0.0, f, heavy)[:, 0]
+    torque, rho = payload_torque(x[:, 0], u[:, 0], PAYLOAD_KG, PROFILE)
+    model = continuous_dynamics(x, np.column_stack([torque, u[:, 1]]), 0.0, rho * f, PROFILE)[:, 0]
+    np.testing.assert_allclose(model, truth, rtol=1e-12, atol=1e-12)
+    assert rho == pytest.approx(1340.0 / 1580.0)
+    unchanged, one = payload_torque(x[:, 0], u[:, 0], 0.0, PROFILE)
+    np.testing.assert_array_equal(unchanged, u[:, 0])
+    assert one == 1.0
+
+
+def _accelerating(p: VehicleParams, fault_nm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The loaded vehicle accelerating and braking at 1.5 m/s^2 (period 8 s), a torque fault from 3 s; noise-free
+    (y, u) per sample."""
+    s = p.sample_period_s
+    n = round(16.0 / s)
+    x = np.array([12.0, 0.0, 0.0])
+    y, u = np.zeros((n, 2)), np.zeros((n, 2))
+    for k in range(n):
+        t = k * s
+        a_cmd = 1.5 * np.sign(np.sin(2 * np.pi * t / 8.0))
+        torque = p.wheel_radius_m * (p.effective_mass_kg * a_cmd + p.longitudinal_drag_coeff * x[0] ** 2)
+        torque += p.wheel_radius_m * p.rolling_resistance_n
+        y[k], u[k] = x[[0, 2]], [torque, 0.0]
+        x = rk4_step(x, u[k], 0.0, np.array([fault_nm if t >= 3.0 else 0.0, 0.0]), p, s)
+    return y, u
+
+
+def test_an_observer_told_the_payload_reads_the_torque_fault_and_only_it():
+    gains = synthesize(PROFILE, options=DesignOptions())
+    heavy = loaded(PROFILE, PAYLOAD_KG)
+    late = slice(round(8.0 / PROFILE.sample_period_s), None)
+
+    def torque_fault(y: np.ndarray, u: np.ndarray, payload_kg: float) -> np.ndarray:
+        torque, rho = payload_torque(y[:, 0], u[:, 0], payload_kg, PROFILE)
+        model_u = np.column_stack([torque, u[:, 1]])
+        obs = FuzzyObserver(gains, y[:1], None, model_u[:1])
+        est = np.array([obs.step(y[k : k + 1], model_u[k : k + 1]).faults[0, 0] for k in range(len(y))])
+        return est / rho
+
+    y, u = _accelerating(heavy, 0.0)
+    told = torque_fault(y, u, PAYLOAD_KG)[late]
+    blind = torque_fault(y, u, 0.0)[late]
+    # without the payload, accelerating reads as a torque fault of about Delta R_w a_x (here ~ 110 N m peaks)
+    assert np.abs(blind).max() > 60.0
+    assert np.abs(told).max() < 0.05 * np.abs(blind).max()
+    y, u = _accelerating(heavy, -200.0)
+    assert np.median(torque_fault(y, u, PAYLOAD_KG)[late]) == pytest.approx(-200.0, rel=0.03)
