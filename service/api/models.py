@@ -158,6 +158,7 @@ class VehicleStatus(BaseModel):
                     "seconds_since_seen": 0.004,
                     "gain_version": "3f9a1c0b7d2e",
                     "gain_set": None,
+                    "payload_kg": 0.0,
                     "counters": _COUNTERS_EXAMPLE,
                     "rejected": _REJECTED_EXAMPLE,
                 }
@@ -183,6 +184,11 @@ class VehicleStatus(BaseModel):
         None,
         description="switched designs: the gain set of the latest estimate (fast after a start or a large "
         "innovation, quiet once settled); null for one gain set or before the first estimate",
+    )
+    payload_kg: float = Field(
+        0.0,
+        description="what the vehicle carries [kg] (PUT /vehicles/{id}/payload): its model's drive torque follows "
+        "it, so that a load does not read as a torque fault; 0 for the profile's vehicle as calibrated",
     )
     counters: dict[str, int] = Field(
         description="accepted samples, estimates computed and published, missing samples, gaps, observer restarts"
@@ -263,6 +269,17 @@ class EstimateHistory(BaseModel):
     vehicle: str
     gain_version: str | None
     estimates: list[EstimateRow] = Field(description="oldest first")
+
+
+class PayloadReport(BaseModel):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"payload_kg": 120.0}]})
+
+    payload_kg: float = Field(
+        ge=0.0,
+        allow_inf_nan=False,
+        description="the load the vehicle carries now [kg], at most its profile's vehicle mass (mass_kg); 0 when "
+        "unloaded",
+    )
 
 
 class VehicleAssignment(BaseModel):

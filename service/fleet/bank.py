@@ -20,8 +20,9 @@ from service.fleet.alarms import Detector, EffectivenessLevels, FaultLevels, Lev
 from service.profiles import ProfileSpec
 from synth.effectiveness import EffectivenessEstimator
 from synth.gains import ObserverGains
-from synth.model import FloatArray
+from synth.model import FloatArray, payload_torque
 from synth.observer import RuntimeGains, initial_observer_state, observer_step, switched_step
+from synth.params import VehicleParams
 
 #: The estimate rows kept per sample have the record's float columns (agv_protocol.wire.ESTIMATE_COLUMNS);
 #: the first _N_STATE are the observer's state and total faults, v_x, v_y, r, T_f, delta_f.
@@ -32,6 +33,9 @@ FAULTS = slice(STATE_COLUMNS.index("torque_fault"), STATE_COLUMNS.index("steer_f
 #: The effectiveness stage's columns: biases [T, delta] and effectiveness [T, delta].
 BIASES = slice(ESTIMATE_COLUMNS.index("torque_bias"), ESTIMATE_COLUMNS.index("steer_bias") + 1)
 ALPHAS = slice(ESTIMATE_COLUMNS.index("torque_alpha"), ESTIMATE_COLUMNS.index("steer_alpha") + 1)
+#: The torque columns a payload's ratio rho scales back from the model's frame: the total fault and its bias.
+_TORQUE_FAULT = STATE_COLUMNS.index("torque_fault")
+_TORQUE_BIAS = ESTIMATE_COLUMNS.index("torque_bias")
 _INITIAL_CAPACITY = 64
 
 
@@ -87,6 +91,9 @@ class ProfileBank:
         self.estimates = np.zeros(cap, dtype=np.int64)
         self.published = np.zeros(cap, dtype=np.int64)
         self.phase = np.zeros(cap, dtype=np.int64)
+        # each row's payload [kg] (synth.model.payload_torque) and how many used rows carry one
+        self.payload_kg = np.zeros(cap)
+        self.loaded_rows = 0
         a = spec.alarms
         # the fault channels' detectors and warm-up rule (shared with `agv-fe replay`)
         self.faults = FaultLevels(cap, a, spec.params.sample_period_s)
@@ -188,7 +195,14 @@ class ProfileBank:
         self.needs_init[slot] = True
         self.warm[slot] = np.nan
 
+    def set_payload(self, slot: int, payload_kg: float) -> None:
+        """The row's vehicle carries ``payload_kg`` (>= 0, finite) from its next sample on: the model's torque and
+        the reported torque fault follow it (docs/math.md 12.5)."""
+        self.loaded_rows += int(payload_kg > 0.0) - int(self.payload_kg[slot] > 0.0)
+        self.payload_kg[slot] = payload_kg
+
     def _clear_row(self, slot: int) -> None:
+        self.set_payload(slot, 0.0)
         self.needs_init[slot] = True
         self.warm[slot] = np.nan
         self.last_values[slot] = np.nan
@@ -232,6 +246,7 @@ class ProfileBank:
         self.estimates = pad(self.estimates, 0)
         self.published = pad(self.published, 0)
         self.phase = pad(self.phase, 0)
+        self.payload_kg = pad(self.payload_kg, 0.0)
         self.faults.grow(capacity)
         self.domain.grow(capacity)
         self.effectiveness.grow(capacity)
@@ -271,6 +286,9 @@ class ProfileBank:
         rt = self.runtime
         if rt is None:
             raise RuntimeError(f"profile {self.name!r} has no active gains")
+        rho = None
+        if self.loaded_rows:  # a payload: the model's torque, and its ratio to scale the torque faults back
+            u, rho = self._payload_input(slots, y, u, rt.gains.params)
         restarted = self.needs_init[slots]
         if restarted.any():
             rows = slots[restarted]
@@ -280,6 +298,8 @@ class ProfileBank:
             x0[:, 0] = y[restarted, 0]
             x0[:, 2] = y[restarted, 1]
             x0[has_warm] = warm[has_warm]
+            if rho is not None:  # the last estimate's torque fault in the model's frame
+                x0[:, 3] *= rho[restarted]
             self.z[rows] = initial_observer_state(rt, y[restarted], x0, u[restarted])
             self.switch_stat[rows] = 0.0
             self.fast_left[rows] = rt.start_samples
@@ -304,6 +324,11 @@ class ProfileBank:
         finite: np.ndarray = np.asarray(np.isfinite(values).all(axis=1) & np.isfinite(z_next).all(axis=1))
         if self.stage is not None:
             values = self._second_stage(self.stage, slots, values, finite, res.fast if rt.switched else None, y, u)
+        if rho is not None:
+            values = values.copy() if values.base is not None else values  # not the step's own arrays
+            values[:, _TORQUE_FAULT] /= rho
+            if self.stage is not None:
+                values[:, _TORQUE_BIAS] /= rho
         self.z[slots] = z_next
         good, values_good, in_domain, seq_good, t_good = slots, values, res.in_domain, seq, t_ns
         if not finite.all():
@@ -331,6 +356,19 @@ class ProfileBank:
             restarted=restarted,
             fast=res.fast if rt.switched else None,
         )
+
+    def _payload_input(
+        self, slots: np.ndarray, y: FloatArray, u: FloatArray, params: VehicleParams
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """The demand with the model's torque for the rows' payloads (synth.model.payload_torque), and rho; rho is
+        None when none of these rows carries one."""
+        payload = self.payload_kg[slots]
+        if not payload.any():
+            return u, None
+        torque, rho = payload_torque(y[:, 0], u[:, 0], payload, params)
+        model_u = u.copy()
+        model_u[:, 0] = torque
+        return model_u, rho
 
     def _second_stage(
         self,

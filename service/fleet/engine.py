@@ -41,6 +41,7 @@ its last-seen time change.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -251,6 +252,7 @@ class FleetEngine:
             existing.bank.release(existing.slot)
             existing.bank = bank
             existing.slot = bank.allocate()
+            bank.set_payload(existing.slot, existing.payload_kg)
             self._stagger(existing)
             return existing
         vehicle = Vehicle(
@@ -267,6 +269,24 @@ class FleetEngine:
         self._by_key[vehicle.meas_key] = vehicle
         if self.events.wants("vehicle"):
             self.events.publish(FleetEvent("vehicle", vehicle_id, {"event": "registered", "profile": profile}))
+        return vehicle
+
+    def set_payload(self, vehicle_id: str, payload_kg: float) -> Vehicle:
+        """The vehicle carries ``payload_kg`` from its next sample on (docs/math.md 12.5).
+
+        Raises UnknownVehicle, or ValueError for a payload that is not finite, negative, or more than the
+        profile's vehicle mass (``mass_kg``): a load the model cannot stand for."""
+        vehicle = self.vehicle(vehicle_id)
+        limit = vehicle.bank.spec.params.mass_kg
+        if not (math.isfinite(payload_kg) and 0.0 <= payload_kg <= limit):
+            raise ValueError(
+                f"payload_kg must be finite, >= 0 and at most the vehicle's mass ({limit:g} kg, profile "
+                f"{vehicle.profile!r}), got {payload_kg!r}"
+            )
+        vehicle.payload_kg = float(payload_kg)
+        vehicle.bank.set_payload(vehicle.slot, vehicle.payload_kg)
+        if self.events.wants("vehicle"):
+            self.events.publish(FleetEvent("vehicle", vehicle_id, {"event": "payload", "payload_kg": payload_kg}))
         return vehicle
 
     def adopt(self, vehicles: Iterable[tuple[str, str, int]], latched: Iterable[AlarmRecord]) -> list[str]:
@@ -1003,6 +1023,7 @@ class FleetEngine:
                     else round(now_mono - vehicle.last_seen_mono, 3),
                     "gain_version": vehicle.bank.version,
                     "gain_set": gain_set[i],
+                    "payload_kg": vehicle.payload_kg,
                     "counters": counters,
                     "rejected": dict(vehicle.rejected),
                 }

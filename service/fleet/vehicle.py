@@ -42,6 +42,7 @@ class Vehicle:
         "last_seq",
         "last_seq_t_ns",
         "meas_key",
+        "payload_kg",
         "payload_len",
         "pending",
         "registered_t_ns",
@@ -75,6 +76,8 @@ class Vehicle:
         self.alive: bool | None = None
         #: registered through the API before its first measurement: not STALE until it has sent one
         self.announced = False
+        #: what it carries [kg] (PUT /vehicles/{id}/payload): the model's torque follows it
+        self.payload_kg = 0.0
 
     @property
     def profile(self) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import math
 
@@ -20,10 +21,11 @@ from agv_protocol.wire import (
     vehicle_key,
 )
 from edge_client.library import paper_1
-from service.fleet import EngineConfig, FleetEngine
+from service.fleet import EngineConfig, FleetEngine, UnknownVehicle
 from service.fleet.vehicle import REJECT_REASONS
 from service.profiles import ProfileSpec
 from synth.observer import FuzzyObserver
+from synth.params import VehicleParams
 from tests.service.helpers import FAST_DESIGN, PERIOD_NS, T0_NS, as_array, constant_measurement, plant_measurements
 from tests.tolerances import AMPLIFIED_ROUNDING_ATOL, AMPLIFIED_ROUNDING_RTOL, BATCH_EQUALITY_ATOL
 
@@ -479,6 +481,48 @@ def test_counters_follow_a_vehicle_that_moves_to_another_profile(fast_gains):
     assert (counters["accepted"], counters["estimates"], counters["published"]) == (9, 9, 5)
     newcomer = engine.register("w", "default")  # the freed row starts from zero
     assert newcomer.slot == 0 and newcomer.counters["accepted"] == 0
+
+
+def test_a_reported_payload_keeps_a_loaded_vehicles_accelerations_from_reading_as_a_torque_fault(fast_gains):
+    """The profile's vehicle carrying 100 kg more (the project's plant, no fault): told the payload, the observer
+    reads no torque fault; not told, it reads the accelerations as one (docs/math.md 12.5)."""
+    p = VehicleParams()
+    heavy = p.model_copy(update={"effective_mass_kg": p.effective_mass_kg + 100.0})
+    samples = plant_measurements(["v"], 900, scenario=paper_1().model_copy(update={"vehicle": heavy, "faults": ()}))
+    engine = make_engine(fast_gains)
+    engine.register("told", "default")
+    assert engine.set_payload("told", 100.0).payload_kg == 100.0
+    engine.register("blind", "default")
+    torque: dict[str, list[float]] = {"told": [], "blind": []}
+    for (m,) in samples:
+        for e in decoded(engine.process(pairs([dataclasses.replace(m, vehicle_id=v) for v in torque]))):
+            torque[e.vehicle].append(e.torque_fault)
+    told, blind = (np.abs(np.array(torque[v][300:])) for v in ("told", "blind"))
+    assert len(told) == len(blind) == 600
+    assert blind.mean() > 3.0 and told.max() < 0.05 * blind.mean()
+    assert engine.vehicle_status(engine.vehicles["told"])["payload_kg"] == 100.0
+    assert engine.vehicle_status(engine.vehicles["blind"])["payload_kg"] == 0.0
+
+
+def test_a_payload_follows_its_vehicle_to_another_profile_and_a_bad_one_is_refused(fast_gains):
+    engine = make_engine(fast_gains)
+    engine.add_profile("other", engine.banks["default"].spec)
+    engine.activate("other", fast_gains)
+    vehicle = engine.register("v", "default")
+    engine.set_payload("v", 250.0)
+    assert engine.banks["default"].loaded_rows == 1
+    moved = engine.register("v", "other")
+    assert moved.bank.payload_kg[moved.slot] == 250.0 and engine.banks["other"].loaded_rows == 1
+    assert engine.banks["default"].loaded_rows == 0 and vehicle.payload_kg == 250.0
+    mass = engine.banks["other"].spec.params.mass_kg
+    for bad in (-1.0, math.nan, math.inf, mass + 1.0):
+        with pytest.raises(ValueError, match="payload_kg must be finite, >= 0 and at most the vehicle's mass"):
+            engine.set_payload("v", bad)
+    assert vehicle.payload_kg == 250.0
+    with pytest.raises(UnknownVehicle):
+        engine.set_payload("nobody", 10.0)
+    engine.set_payload("v", 0.0)
+    assert engine.banks["other"].loaded_rows == 0
 
 
 def test_the_fleet_status_list_agrees_with_each_vehicles_own_state(fast_gains):

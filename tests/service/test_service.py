@@ -250,6 +250,22 @@ def test_rest_errors_say_what_is_wrong(server):
     assert server.get("/health").json()["status"] == "ok"
 
 
+def test_a_vehicles_payload_is_reported_shown_and_checked(server):
+    assert server.http.put("/vehicles/loaded-1", json={"profile": "default"}, headers=server.auth).status_code == 200
+    assert server.http.put("/vehicles/loaded-1/payload", json={"payload_kg": 80.0}).status_code == 401
+    r = server.http.put("/vehicles/loaded-1/payload", json={"payload_kg": 80.0}, headers=server.auth)
+    assert r.status_code == 200 and r.json()["payload_kg"] == 80.0
+    assert server.get("/vehicles/loaded-1").json()["payload_kg"] == 80.0
+    for body in ({"payload_kg": -5}, {"payload_kg": "nan"}, {"payload_kg": 80.0, "unit": "lb"}, {}):
+        r = server.http.put("/vehicles/loaded-1/payload", json=body, headers=server.auth)
+        assert r.status_code == 422, body
+    r = server.http.put("/vehicles/loaded-1/payload", json={"payload_kg": 1e6}, headers=server.auth)
+    assert r.status_code == 422 and "at most the vehicle's mass" in r.json()["detail"]
+    r = server.http.put("/vehicles/nobody/payload", json={"payload_kg": 1.0}, headers=server.auth)
+    assert r.status_code == 404 and "nobody" in r.json()["detail"]
+    assert server.get("/vehicles/loaded-1").json()["payload_kg"] == 80.0  # the refusals changed nothing
+
+
 def test_replicas_lists_the_live_ones_by_their_liveliness_tokens(server):
     answer = server.get("/replicas").json()
     assert answer == {"replica": "replica-0", "replicas": ["replica-0"], "lease_replicas": None} | {

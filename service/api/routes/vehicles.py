@@ -19,7 +19,14 @@ from fastapi.responses import StreamingResponse
 
 from agv_protocol.wire import VEHICLE_ID_PATTERN, EstimateRow, Level
 from service.api.deps import STORAGE_UNAVAILABLE, Operator, ServiceDep, profile_bank
-from service.api.models import AlarmInfo, EstimateHistory, VehicleAssignment, VehicleDetail, VehicleStatus
+from service.api.models import (
+    AlarmInfo,
+    EstimateHistory,
+    PayloadReport,
+    VehicleAssignment,
+    VehicleDetail,
+    VehicleStatus,
+)
 from service.app import Service
 from service.fleet import UnknownProfile, UnknownVehicle, Vehicle
 from service.fleet.listing import vehicle_page
@@ -243,4 +250,30 @@ async def assign_vehicle(
     rows = [(vehicle.id, vehicle.profile, vehicle.registered_t_ns)]
     service.store(f"vehicle {vehicle.id}", partial(Storage.put_vehicles, rows=rows))
     await service.stored(f"the registration of {vehicle.id!r}")
+    return VehicleStatus(**service.engine.vehicle_status(vehicle))
+
+
+@router.put(
+    "/{vehicle_id}/payload",
+    response_model=VehicleStatus,
+    responses={
+        401: {"description": "missing or invalid token"},
+        404: {"description": "no such vehicle"},
+        422: {"description": "a payload that is negative, not finite, or more than the vehicle's mass"},
+    },
+    summary="report what the vehicle carries now: its model's drive torque follows the load (docs/math.md 12.5)",
+)
+async def put_payload(
+    service: ServiceDep, vehicle_id: VehicleId, body: PayloadReport, _operator: Operator
+) -> VehicleStatus:
+    """A load is more mass to accelerate: without it, the observer reads every acceleration of a loaded vehicle as
+    a torque fault. From the next sample on, the vehicle's observer takes the torque that moves the profile's
+    vehicle as the loaded one moves, and reports the torque fault at the vehicle's scale. Held in memory: after a
+    restart of the service, or when another replica takes the vehicle over, report it again."""
+    try:
+        vehicle = service.engine.set_payload(vehicle_id, body.payload_kg)
+    except UnknownVehicle as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail=str(exc.args[0])) from exc
+    except ValueError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, detail=str(exc)) from exc
     return VehicleStatus(**service.engine.vehicle_status(vehicle))
