@@ -151,6 +151,30 @@ def vehicle_parameters(parameter_set: int) -> Any:
     return p
 
 
+def loaded_parameters(parameter_set: int, payload_kg: float) -> Any:
+    """The MB parameters of ``parameter_set`` carrying ``payload_kg`` [kg] spread like its body: the sprung mass
+    grows by the payload at the same centre of gravity, and its inertias (and the vehicle's yaw inertia) with
+    it in proportion (the same radii of gyration). The set's own parameters for no payload.
+
+    Raises :class:`MultibodyError` for a payload that is negative or not finite.
+    """
+    if not (math.isfinite(payload_kg) and payload_kg >= 0.0):
+        raise MultibodyError(f"payload_kg must be finite and >= 0, got {payload_kg!r}")
+    p = vehicle_parameters(parameter_set)
+    if payload_kg == 0.0:
+        return p
+    body = (p.m_s + payload_kg) / p.m_s
+    return dataclasses.replace(
+        p,
+        m=p.m + payload_kg,
+        m_s=p.m_s + payload_kg,
+        I_z=p.I_z * (p.m + payload_kg) / p.m,
+        I_Phi_s=p.I_Phi_s * body,
+        I_y_s=p.I_y_s * body,
+        I_xz_s=p.I_xz_s * body,
+    )
+
+
 # --------------------------------------------------------------------------- reference values
 
 
@@ -752,7 +776,7 @@ class MultibodyRun:
             writer.writerows([repr(float(v)) for v in row] for row in table)
 
 
-def initial_state(parameter_set: int, speed_mps: float) -> FloatArray:
+def initial_state(parameter_set: int, speed_mps: float, payload_kg: float = 0.0) -> FloatArray:
     """The MB state (29,) of ``init_mb`` at ``speed_mps``, straight, with the sprung mass at rest on its springs.
 
     ``init_mb`` leaves the sprung mass at z = 0 and zero pitch while the
@@ -761,7 +785,7 @@ def initial_state(parameter_set: int, speed_mps: float) -> FloatArray:
     z_S = z_u - z_s + (a or -b) theta is zero: theta = (z_r - z_f) / (a + b),
     z_s = z_f + a theta (then camber and suspension forces are static).
     """
-    p = vehicle_parameters(parameter_set)
+    p = loaded_parameters(parameter_set, payload_kg)
     x = np.array(_library().init_mb([0.0, 0.0, 0.0, speed_mps, 0.0, 0.0, 0.0], p), dtype=float)
     x[_PITCH] = (x[_Z_REAR] - x[_Z_FRONT]) / (p.a + p.b)
     x[_Z] = x[_Z_FRONT] + p.a * x[_PITCH]
@@ -830,8 +854,10 @@ def simulate(
     noise: SensorNoise = SensorNoise(),
     driver: DriverTuning = DriverTuning(),
     steer_gain_per_s: float = STEER_SERVO_GAIN_PER_S,
+    payload_kg: float = 0.0,
 ) -> MultibodyRun:
-    """Simulate the MB of ``parameter_set`` along ``drive`` with ``faults``; ``seed`` drives the sensor noise.
+    """Simulate the MB of ``parameter_set`` along ``drive`` with ``faults``; ``seed`` drives the sensor noise;
+    the vehicle carries ``payload_kg`` (:func:`loaded_parameters`).
 
     A :class:`Drive` is followed by the closed-loop driver; an
     :class:`OpenLoopDemand` is applied as it is. At each sample t_k the
@@ -839,7 +865,7 @@ def simulate(
     integrated to t_k+1 with the inputs held (see the module docstring).
     """
     lib = _library()
-    p = vehicle_parameters(parameter_set)
+    p = loaded_parameters(parameter_set, payload_kg)
     if not steer_gain_per_s > 0:
         raise MultibodyError(f"steer_gain_per_s must be positive, got {steer_gain_per_s}")
     n = drive.n_samples
@@ -850,7 +876,7 @@ def simulate(
     demand = _Driver(p, driver, drive).command if isinstance(drive, Drive) else _table_demand(drive.u)
     accel_per_torque = 1.0 / (p.m * p.R_w)
 
-    x = initial_state(parameter_set, drive.initial_speed_mps)
+    x = initial_state(parameter_set, drive.initial_speed_mps, payload_kg)
     states = np.zeros((n, 29))
     derivatives = np.zeros((n, 29))
     y = np.zeros((n, 2))
@@ -899,6 +925,7 @@ class MultibodyJob:
     noise: SensorNoise = SensorNoise()
     driver: DriverTuning = DriverTuning()
     steer_gain_per_s: float = STEER_SERVO_GAIN_PER_S
+    payload_kg: float = 0.0
 
 
 def run_job(job: MultibodyJob) -> MultibodyRun:
@@ -911,6 +938,7 @@ def run_job(job: MultibodyJob) -> MultibodyRun:
         noise=job.noise,
         driver=job.driver,
         steer_gain_per_s=job.steer_gain_per_s,
+        payload_kg=job.payload_kg,
     )
 
 

@@ -18,9 +18,10 @@ from numpy.typing import NDArray
 from edge_client.plant import PlantSimulator
 from edge_client.scenario import Scenario
 from synth.gains import ObserverGains
-from synth.model import FloatArray
+from synth.model import FloatArray, payload_torque
 from synth.observer import FuzzyObserver
 from synth.options import EffectivenessOptions
+from synth.params import VehicleParams
 
 
 class EstimatorOutput(Protocol):
@@ -89,6 +90,53 @@ def ekf_factory(gains_or_options: ObserverGains) -> EstimatorFactory:
 
     def make(y0: FloatArray, x_hat0: FloatArray | None, u0: FloatArray | None = None) -> BatchEstimator:
         return AugmentedEKF(g.params, g.bounds, g.options.noise, g.options.fault_order, y0, x_hat0)
+
+    return make
+
+
+@dataclass(frozen=True)
+class _PayloadOutput:
+    state: FloatArray
+    faults: FloatArray
+    in_domain: NDArray[np.bool_]
+    certified: NDArray[np.bool_]
+
+
+class _PayloadEstimator:
+    """An estimator fed the payload torque (synth.model.payload_torque), its torque fault scaled back by rho."""
+
+    def __init__(
+        self,
+        inner_factory: EstimatorFactory,
+        params: VehicleParams,
+        payload_kg: float,
+        y0: FloatArray,
+        x_hat0: FloatArray | None,
+        u0: FloatArray | None,
+    ) -> None:
+        self._params, self._payload = params, payload_kg
+        model_u0 = None if u0 is None else self._model_demand(np.asarray(y0, float), np.asarray(u0, float))[0]
+        self._inner = inner_factory(y0, x_hat0, model_u0)
+
+    def _model_demand(self, y: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray]:
+        torque, rho = payload_torque(y[:, 0], u[:, 0], self._payload, self._params)
+        return np.column_stack([torque, u[:, 1]]), rho
+
+    def step(self, y: FloatArray, u: FloatArray) -> EstimatorOutput:
+        y = np.asarray(y, dtype=float)
+        model_u, rho = self._model_demand(y, np.asarray(u, dtype=float))
+        out = self._inner.step(y, model_u)
+        faults = np.array(out.faults, dtype=float)
+        faults[:, 0] /= rho
+        return _PayloadOutput(out.state, faults, out.in_domain, out.certified)
+
+
+def payload_factory(factory: EstimatorFactory, params: VehicleParams, payload_kg: float) -> EstimatorFactory:
+    """``factory``'s estimator for vehicles carrying ``payload_kg`` more than ``params`` (the profile) states, as
+    the service runs it once the payload is reported (PUT /vehicles/{id}/payload, docs/math.md 12.5)."""
+
+    def make(y0: FloatArray, x_hat0: FloatArray | None, u0: FloatArray | None = None) -> BatchEstimator:
+        return _PayloadEstimator(factory, params, payload_kg, y0, x_hat0, u0)
 
     return make
 

@@ -28,6 +28,7 @@ multi-body data can be passed (``parameter_sets``); the default is (1, 3).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -43,7 +44,13 @@ from numpy.typing import NDArray
 from agv_fe.benchmarks import report_header
 from edge_client import multibody as mb
 from edge_client.faults import CHANNEL_INDEX, BiasFault, Channel, Fault, LossOfEffectivenessFault, SinusoidalFault
-from edge_client.simulation import EstimatorFactory, effectiveness_factory, ekf_factory, observer_factory
+from edge_client.simulation import (
+    EstimatorFactory,
+    effectiveness_factory,
+    ekf_factory,
+    observer_factory,
+    payload_factory,
+)
 from service.calibration import (
     CHANNELS,
     UNITS,
@@ -917,6 +924,7 @@ class SetRuns:
     healthy: list[mb.MultibodyRun]
     faults: list[mb.MultibodyRun]
     sensitivity: list[mb.MultibodyRun]
+    payload: list[mb.MultibodyRun]  # the loaded healthy drives, then the loaded fault run
 
 
 def evaluate_set(
@@ -970,15 +978,148 @@ def evaluate_set(
         "primary": sensitivity_row(parameter_set, runs.calibration, report, healthy["calibrated"]),
         "random": sensitivity_figures(parameter_set, runs.sensitivity, runs.healthy),
     }
+    print(f"  set {parameter_set}: a payload, calibrated empty ...", flush=True)
     result = {
         "parameter_set": parameter_set,
         "calibration": calibration,
         "healthy": healthy,
         "faults": faults,
         "sensitivity": sensitivity,
+        "payload": payload_figures(parameter_set, report, runs.payload, plan),
     }
     result["must_show"] = must_show(result)
     return result
+
+
+# --------------------------------------------------------------------------- a payload, calibrated empty
+#
+# A load is more mass to accelerate, so an observer that does not know it reads every acceleration as a torque
+# fault; told the payload (PUT /vehicles/{id}/payload), it takes the torque that moves the profile's vehicle as
+# the loaded one moves (synth.model.payload_torque, docs/math.md 12.5). Each set drives the first PAYLOAD_DRIVES
+# healthy drives of the plan with PAYLOAD_SHARE of its mass on board, and one torque-bias run; the calibrated
+# observer estimates them without the payload and told it.
+
+#: The payload, a share of the vehicle's mass (the MB's m): a tenth, a typical delivery load.
+PAYLOAD_SHARE = 0.10
+#: How many of the plan's healthy drives run loaded (all of them in quick mode, where there are few).
+PAYLOAD_DRIVES = 6
+#: The fault run: the first fault case (torque bias +10 %) on the plan's first fault seed.
+PAYLOAD_FAULT_CASE = 0
+
+
+def payload_kg(parameter_set: int) -> float:
+    """The payload of ``parameter_set`` [kg]."""
+    return PAYLOAD_SHARE * float(mb.vehicle_parameters(parameter_set).m)
+
+
+def payload_jobs(parameter_set: int, plan: Plan, nominal_torque_nm: float) -> list[mb.MultibodyJob]:
+    """The loaded healthy drives, then the loaded fault run."""
+    load = payload_kg(parameter_set)
+    healthy = [
+        dataclasses.replace(job, payload_kg=load)
+        for job in healthy_jobs(parameter_set, plan)[: 1 if plan.quick else PAYLOAD_DRIVES]
+    ]
+    case = FAULT_CASES[PAYLOAD_FAULT_CASE]
+    seed = plan.fault_seeds[0]
+    fault = mb.MultibodyJob(
+        drive=fault_drive(case, seed, parameter_set, plan),
+        parameter_set=parameter_set,
+        faults=case.faults(nominal_torque_nm, plan.fault_onset_s),
+        seed=seed,
+        payload_kg=load,
+    )
+    return [*healthy, fault]
+
+
+def payload_figures(
+    parameter_set: int, report: CalibrationReport, runs: Sequence[mb.MultibodyRun], plan: Plan
+) -> dict[str, Any]:
+    """Alarms on the loaded healthy drives without the payload and told it, and the told observer's delays on
+    the loaded fault run."""
+    load = payload_kg(parameter_set)
+    alarms = report.profile.alarms
+    period = report.profile.params.sample_period_s
+    estimators = {
+        "blind": observer_factory(report.gains),
+        "told": payload_factory(observer_factory(report.gains), report.gains.params, load),
+    }
+    healthy, fault = list(runs[:-1]), runs[-1]
+    out: dict[str, Any] = {
+        "payload_kg": load,
+        "share_of_mass": PAYLOAD_SHARE,
+        "driving": driving_figures(healthy),
+    }
+    for name, factory in estimators.items():
+        out[name] = healthy_figures(healthy, estimate_runs(factory, healthy, alarms), alarms, period)
+    case = FAULT_CASES[PAYLOAD_FAULT_CASE]
+    (told_fault,) = estimate_runs(estimators["told"], [fault], alarms)
+    seeds = [fault_run_figures(case, fault, told_fault, alarms, plan.fault_onset_s)]
+    out["fault"] = {"label": case.label, "seeds": seeds, "meets_target": meets(case, seeds)}
+    return out
+
+
+def payload_must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
+    """The loaded drives: told the payload, no alarm and the torque bias detected in time; without it, shown."""
+    load = result["payload"]
+    counts = {
+        name: ", ".join(
+            f"{SYMBOLS[c]} {load[name]['channels'][c]['warn_raised']} WARN / "
+            f"{load[name]['channels'][c]['fault_raised']} FAULT"
+            for c in CHANNELS
+        )
+        for name in ("blind", "told")
+    }
+    what = f"{load['payload_kg']:.0f} kg payload ({100 * load['share_of_mass']:g} % of the mass), calibrated empty"
+    minutes = f"{load['driving']['minutes']:.0f} min"
+    told_quiet = all(
+        load["told"]["channels"][c]["warn_raised"] == 0 and load["told"]["channels"][c]["fault_raised"] == 0
+        for c in CHANNELS
+    )
+    fault = load["fault"]
+    case = FAULT_CASES[PAYLOAD_FAULT_CASE]
+    return [
+        {
+            "target": f"payload reported, healthy driving ({what}): no WARN and no FAULT",
+            "figure": f"{minutes}: {counts['told']}",
+            "passed": told_quiet,
+        },
+        {
+            "target": f"payload not reported, healthy driving ({what}): what the report prevents",
+            "figure": f"{minutes}: {counts['blind']}",
+            "passed": None,
+        },
+        {
+            "target": f"payload reported, {fault['label']} ({what}): {_target_text(case)}",
+            "figure": _delays_text(fault["seeds"], case),
+            "passed": bool(fault["meets_target"]),
+        },
+    ]
+
+
+def _payload_section(result: dict[str, Any]) -> list[str]:
+    """The report's table of the loaded drives for one set."""
+    load = result["payload"]
+    lines = [
+        f"### Set {result['parameter_set']}: a payload, calibrated empty\n",
+        f"The first {load['driving']['drives']} healthy drives again ({load['driving']['minutes']:.0f} min), the "
+        f"vehicle carrying {load['payload_kg']:.0f} kg ({100 * load['share_of_mass']:g} % of its mass) spread like "
+        "its body (`multibody.loaded_parameters`); the observer calibrated empty, without the payload and told it "
+        "(`PUT /vehicles/{id}/payload`; `edge_client.simulation.payload_factory` here). Held peak / WARN as in "
+        "the healthy-driving table.\n",
+        "| observer | T_f WARN / FAULT | T_f held peak / WARN | delta_f WARN / FAULT | delta_f held peak / WARN |",
+        "|---|---|---|---|---|",
+    ]
+    for name, label in (("blind", "payload not reported"), ("told", "payload reported")):
+        cells = []
+        for c in ("torque", "steer"):
+            ch = load[name]["channels"][c]
+            cells += [
+                f"{ch['warn_raised']} / {ch['fault_raised']}",
+                f"{ch['held_peak_abs_estimate'] / ch['warn_threshold']:.2f}",
+            ]
+        lines.append(f"| {label} | {' | '.join(cells)} |")
+    lines.append("")
+    return lines
 
 
 def refused_set(parameter_set: int, reason: str) -> dict[str, Any]:
@@ -1039,6 +1180,7 @@ def must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
             if s["other_channel_level"] != "OK"
         ]
     lines += effectiveness_must_show(result)
+    lines += payload_must_show(result)
     lines.append(
         {
             "target": "the other channel stays OK after the warm-up in every fault case and seed (calibrated observer)",
@@ -1192,13 +1334,15 @@ def measure(plan: Plan) -> dict[str, Any]:
         except SynthesisError as exc:  # CalibrationRefused, Infeasible, ...: the product's answer, reported
             refused[s] = f"{type(exc).__name__}: {exc}"
     jobs: list[mb.MultibodyJob] = []
-    spans: dict[int, tuple[int, int, int]] = {}
+    spans: dict[int, tuple[int, int, int, int]] = {}
     for s in reports:
         start = len(jobs)
         jobs += healthy_jobs(s, plan)
         middle = len(jobs)
         jobs += fault_jobs(s, reports[s].nominal_torque_nm, plan)
-        spans[s] = (start, middle, len(jobs))
+        loaded = len(jobs)
+        jobs += payload_jobs(s, plan, reports[s].nominal_torque_nm)
+        spans[s] = (start, middle, loaded, len(jobs))
     simulated_s = sum(job.drive.n_samples for job in jobs) * mb.SAMPLE_PERIOD_S
     print(f"  simulating {len(jobs)} drives ({simulated_s / 60:.0f} min) in {plan.workers} processes ...", flush=True)
     simulated = mb.simulate_many(jobs, plan.workers)
@@ -1208,12 +1352,13 @@ def measure(plan: Plan) -> dict[str, Any]:
         if s in refused:
             results.append(refused_set(s, refused[s]))
             continue
-        start, middle, end = spans[s]
+        start, middle, loaded, end = spans[s]
         runs = SetRuns(
             calibration=cal_run,
             healthy=simulated[start:middle],
-            faults=simulated[middle:end],
+            faults=simulated[middle:loaded],
             sensitivity=random_runs[s],
+            payload=simulated[loaded:end],
         )
         results.append(evaluate_set(s, reports[s], runs, paper_gains, plan))
     return {
@@ -1311,6 +1456,7 @@ def render(document: dict[str, Any]) -> str:
         lines += _healthy_section(result)
         lines += _sensitivity_section(result)
         lines += _fault_section(result, plan)
+        lines += _payload_section(result)
     lines += _how_measured(plan)
     return "\n".join(lines) + "\n"
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,6 +27,7 @@ if TYPE_CHECKING:
     from edge_client.recording import Recording
     from edge_client.simulation import EstimatorFactory
     from service.profiles import AlarmThresholds, InputLimits
+    from synth.gains import ObserverGains
     from synth.model import FloatArray
 
 #: The fault channels, in the order of the level columns (torque_level, steer_level).
@@ -61,6 +63,15 @@ def register(sub: Any) -> None:
         help="estimate each actuator's effectiveness beside its bias (synth.effectiveness), as the profile's "
         "'effectiveness' section sets it (enabled there too): torque_fault_hat and steer_fault_hat are then the "
         "total faults, and the columns torque_bias_hat, steer_bias_hat, torque_alpha_hat, steer_alpha_hat follow",
+    )
+    parser.add_argument(
+        "--payload-kg",
+        type=float,
+        default=0.0,
+        metavar="KG",
+        help="the vehicle carried this payload over the recording (at most the profile's mass_kg): the model's "
+        "drive torque follows it, as in the service after PUT /vehicles/{id}/payload (docs/math.md 12.5); "
+        "with the observer or the EKF, not with --effectiveness",
     )
     add_design_arguments(parser, default_design="robust")
     add_estimator_argument(parser)
@@ -111,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
             factory = effectiveness_factory(gains, options)
         else:
             factory = estimator_factory(args, gains)
+        factory = _with_payload(factory, args.payload_kg, gains, effectiveness)
     except CommandError as exc:
         return fail(exc)
     result = replay(recording, factory, x0, profile.alarms, profile.params.sample_period_s)
@@ -208,6 +220,24 @@ def replay(
             max(levels.steer.level[0], effectiveness.steer.level[0]),
         )
     return Replay(x_hat, f_hat, in_domain, level, restarts, bias, alpha)
+
+
+def _with_payload(
+    factory: EstimatorFactory, payload_kg: float, gains: ObserverGains, effectiveness: bool
+) -> EstimatorFactory:
+    """``factory`` for a vehicle carrying ``payload_kg`` (itself for none); a bad payload is a CommandError."""
+    if payload_kg == 0.0:
+        return factory
+    limit = gains.params.mass_kg
+    if not (math.isfinite(payload_kg) and 0.0 <= payload_kg <= limit):
+        raise CommandError(
+            f"--payload-kg must be finite, >= 0 and at most the profile's mass_kg ({limit:g}), got {payload_kg}"
+        )
+    if effectiveness:
+        raise CommandError("--payload-kg runs with the observer or the EKF, not with the effectiveness stage")
+    from edge_client.simulation import payload_factory
+
+    return payload_factory(factory, gains.params, payload_kg)
 
 
 def level_summary(t: FloatArray, levels: np.ndarray, profile: VehicleProfileFile) -> list[str]:

@@ -90,9 +90,12 @@ def test_must_show_has_a_line_per_target_matching_the_json(outcome, figures):
         "torque loss of effectiveness: alpha_hat within 3 %",
         "steering (shown) loss of effectiveness, effectiveness stage",
         "steering (shown) loss of effectiveness: alpha_hat within 3 %",
+        "payload reported, healthy driving",
+        "payload not reported, healthy driving",
+        f"payload reported, {bench.FAULT_CASES[0].label} (",
     ]
     for target in targets:
-        matching = [row for row in rows if target in row]
+        matching = [row for row in rows if row.startswith(f"| {SET} | {target}")]
         assert len(matching) == 1, (target, rows)
     for row, line in zip(rows, figures["must_show"], strict=True):
         verdict = row.rstrip(" |").rsplit("|", 1)[1].strip()
@@ -424,3 +427,29 @@ def test_the_effectiveness_stage_is_measured_beside_the_additive_design(figures)
         (line,) = [m for m in result["must_show"] if m["target"].startswith("torque loss of effectiveness: alpha")]
         alphas = [s["alpha_after_ramp"] for s in result["faults"]["torque_loss"]["effectiveness"]["seeds"]]
         assert line["passed"] is all(abs(a - bench.LOSS_ALPHA_MIN) <= 0.03 * bench.LOSS_ALPHA_MIN for a in alphas)
+
+
+def test_a_payload_calibrated_empty_is_driven_without_it_and_told_it(outcome, figures):
+    """The loaded drives: the vehicle's mass plus a tenth (the MB's own parameters), the same drives estimated
+    blind and told; told, no alarm and the torque bias found in time (the plan's must-show), blind shown."""
+    _, text, _ = outcome
+    load = figures["payload"]
+    assert load["payload_kg"] == pytest.approx(0.1 * mb.vehicle_parameters(SET).m)
+    assert load["driving"]["drives"] == 1 and load["fault"]["label"] == bench.FAULT_CASES[0].label
+    for name in ("blind", "told"):
+        for c in ("torque", "steer"):
+            assert _is_count(load[name]["channels"][c]["warn_raised"])
+    # the not-told torque channel reads the accelerations: its held peak well above the told one's
+    held = {name: load[name]["channels"]["torque"]["held_peak_abs_estimate"] for name in ("blind", "told")}
+    assert held["blind"] > 2.0 * held["told"]
+    lines = [m for m in figures["must_show"] if "payload" in m["target"]]
+    assert [m["passed"] for m in lines][1] is None and len(lines) == 3
+    assert lines[0]["passed"] == all(
+        load["told"]["channels"][c][k] == 0 for c in ("torque", "steer") for k in ("warn_raised", "fault_raised")
+    )
+    assert lines[2]["passed"] == load["fault"]["meets_target"]
+    assert f"### Set {SET}: a payload, calibrated empty" in text
+    loaded = mb.loaded_parameters(SET, 100.0)
+    assert loaded.m == pytest.approx(mb.vehicle_parameters(SET).m + 100.0) and loaded.a == mb.vehicle_parameters(SET).a
+    with pytest.raises(mb.MultibodyError, match="payload_kg must be finite"):
+        mb.loaded_parameters(SET, -1.0)

@@ -446,3 +446,31 @@ def test_outside_the_certified_domain_the_replay_holds_the_levels_as_the_engine_
     assert first_warn is not None and first_warn >= outside[-1] + alarms.warmup_s + alarms.raise_after_s - 0.011
     assert first_held(rows, "torque_fault_hat", alarms.torque_warn_nm, alarms) < outside[-1]  # the old rule's
     assert_the_engine_gives_the_replay(body, gains, recording, rows)
+
+
+def test_a_recording_of_a_loaded_vehicle_replays_with_its_payload(tmp_path, capsys, gains_file):
+    """The default vehicle carrying 100 kg, speeding up and slowing down, no fault: --payload-kg reads no torque
+    fault where the replay without it reads the accelerations as one; a payload heavier than the vehicle is
+    refused."""
+    from edge_client.scenario import SpeedPoint
+
+    p = VehicleParams()
+    scenario = Scenario(
+        name="loaded",
+        duration_s=14.0,
+        initial_speed_mps=10.0,
+        vehicle=p.model_copy(update={"effective_mass_kg": p.effective_mass_kg + 100.0}),
+        speed_profile=[SpeedPoint(t_s=t, speed_mps=v) for t, v in ((0, 10), (4, 16), (8, 9), (12, 14), (14, 14))],
+        noise=REALISTIC_NOISE,
+        seed=5,
+    )
+    recording = record(tmp_path / "loaded.csv", scenario)
+    torque = {}
+    for name, extra in (("blind", ()), ("told", ("--payload-kg", "100"))):
+        out = tmp_path / f"{name}.csv"
+        code, _, err = replay(capsys, recording, out, "--gains", str(gains_file), *extra)
+        assert code == 0, err
+        torque[name] = np.array([float(r["torque_fault_hat"]) for r in read_rows(out)])[300:]
+    assert np.sqrt(np.mean(torque["blind"] ** 2)) > 3.0 * np.sqrt(np.mean(torque["told"] ** 2))
+    code, _, err = replay(capsys, recording, tmp_path / "x.csv", "--gains", str(gains_file), "--payload-kg", "5000")
+    assert code != 0 and "--payload-kg must be finite, >= 0 and at most the profile's mass_kg" in err
