@@ -290,6 +290,8 @@ class Service:
                 self.engine.register(vehicle_id, profile_name, registered)
             elif profile_name in self.failed_profiles:  # kept for its profile, not moved to the default one
                 self.engine.hold(vehicle_id, profile_name, registered)
+        for problem in self.engine.load_payloads(storage.payloads()):
+            log.warning(problem)
         latched = [AlarmRecord.from_dict(r) for r in storage.latched_alarms() if bucket_of(r["vehicle"]) in served]
         self.engine.alarms.load(latched)
 

@@ -182,6 +182,9 @@ class BucketHandover:
         rows = [row for row in database.db.vehicles() if bucket_of(row[0]) in wanted]
         latched = [AlarmRecord.from_dict(r) for r in database.db.latched_alarms() if bucket_of(r["vehicle"]) in wanted]
         adopted = self.engine.adopt(rows, latched)
+        loads = database.db.payloads()
+        for problem in self.engine.load_payloads({v: loads[v] for v in adopted if v in loads}):
+            log.warning(problem)
         transport.add_buckets(buckets)
         self.buckets = list(transport.buckets)
         self._announce(buckets, [], len(adopted), len(latched))

@@ -53,6 +53,11 @@ CREATE TABLE IF NOT EXISTS vehicles (
     profile TEXT NOT NULL,
     registered_t_ns INTEGER NOT NULL
 );
+CREATE TABLE IF NOT EXISTS vehicle_payloads (
+    id TEXT PRIMARY KEY,
+    payload_kg REAL NOT NULL,
+    updated_t_ns INTEGER NOT NULL
+);
 CREATE TABLE IF NOT EXISTS alarms (
     id TEXT PRIMARY KEY,
     vehicle TEXT NOT NULL,
@@ -216,6 +221,18 @@ class Storage(ABC):
                 "INSERT INTO vehicles (id, profile, registered_t_ns) VALUES (?, ?, ?) "
                 "ON CONFLICT(id) DO UPDATE SET profile = excluded.profile",
                 list(rows),
+            )
+
+    def payloads(self) -> dict[str, float]:
+        """Each vehicle's last reported payload [kg] (PUT /vehicles/{id}/payload); vehicles never loaded are absent."""
+        return {r[0]: float(r[1]) for r in self._rows("SELECT id, payload_kg FROM vehicle_payloads ORDER BY id")}
+
+    def put_payload(self, vehicle_id: str, payload_kg: float, t_ns: int) -> None:
+        with self.transaction() as db:
+            db.execute(
+                "INSERT INTO vehicle_payloads (id, payload_kg, updated_t_ns) VALUES (?, ?, ?) "
+                "ON CONFLICT(id) DO UPDATE SET payload_kg = excluded.payload_kg, updated_t_ns = excluded.updated_t_ns",
+                (vehicle_id, payload_kg, t_ns),
             )
 
     # ------------------------------------------------------------------ alarms

@@ -289,6 +289,18 @@ class FleetEngine:
             self.events.publish(FleetEvent("vehicle", vehicle_id, {"event": "payload", "payload_kg": payload_kg}))
         return vehicle
 
+    def load_payloads(self, payloads: dict[str, float]) -> list[str]:
+        """The stored payloads of the vehicles served here (others are skipped); returns why any was refused (a
+        profile whose vehicle is now lighter than its payload), that vehicle then running unloaded."""
+        refused = []
+        for vehicle_id, payload_kg in payloads.items():
+            if vehicle_id in self.vehicles:
+                try:
+                    self.set_payload(vehicle_id, payload_kg)
+                except ValueError as exc:
+                    refused.append(f"{vehicle_id}: stored payload not applied: {exc}")
+        return refused
+
     def adopt(self, vehicles: Iterable[tuple[str, str, int]], latched: Iterable[AlarmRecord]) -> list[str]:
         """Serve vehicles another replica served until now (bucket leases): their registry rows and latched
         alarms, as the shared database has them. Each observer starts at the vehicle's next measurement (as after

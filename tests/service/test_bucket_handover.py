@@ -57,6 +57,8 @@ def test_a_bucket_gained_is_served_from_the_registry_and_a_bucket_lost_is_droppe
     path = tmp_path / "fleet.sqlite3"
     database = Database(path)
     database.db.put_vehicles([(v, "default", 1) for v in taken + elsewhere])
+    database.db.put_payload(taken[1], 70.0, 2)  # its payload is adopted with it
+    database.db.put_payload(elsewhere[0], 50.0, 2)
     latched = stale_record(taken[0], 8)
     database.db.record_alarm_changes([(latched.to_dict(), latched.event("raised", 8).model_dump())])
     engine = make_engine(fast_gains)
@@ -86,6 +88,7 @@ def test_a_bucket_gained_is_served_from_the_registry_and_a_bucket_lost_is_droppe
         await handover.gain([bucket])
         assert handover.buckets == sorted([*mine, bucket]) == transport.buckets
         assert sorted(engine.vehicles) == sorted(taken)  # not the vehicle of the bucket still elsewhere
+        assert [engine.vehicles[v].payload_kg for v in taken] == [0.0, 70.0]
         assert [(a.vehicle, a.kind) for a in engine.alarms.latched()] == [(taken[0], "stale")]
         assert [key for key, _ in measured(taken[1], 1)] == [vehicle_key(taken[1], "meas")]
         gained = wait_for(lambda: announcements(1), what="the announcement of the bucket gained")

@@ -93,7 +93,7 @@ def test_resynthesis_under_load_misses_no_sample_and_infeasible_designs_keep_the
         assert all(srv.vehicle(v)["counters"]["accepted"] == n for v in ids)
 
 
-def test_restart_keeps_gains_alarms_and_vehicles_without_resynthesis(tmp_path):
+def test_restart_keeps_gains_alarms_vehicles_and_payloads_without_resynthesis(tmp_path):
     alarms = {"torque_warn_nm": 10.0, "torque_fault_nm": 20.0, "raise_after_s": 0.2, "warmup_s": 1.0}
     settings = make_settings(tmp_path, {"default": {"design": FAST_DESIGN, "alarms": alarms}})
     with running(settings) as srv, probe(settings.zenoh.endpoint) as p:
@@ -103,6 +103,8 @@ def test_restart_keeps_gains_alarms_and_vehicles_without_resynthesis(tmp_path):
         alarm = wait_for(lambda: [a for a in srv.get("/alarms").json() if a["kind"] == "torque_fault"], what="alarm")[0]
         acked = srv.http.post(f"/alarms/{alarm['id']}/ack", headers=srv.auth, json={"by": "night shift"})
         assert acked.status_code == 200
+        loaded = srv.http.put("/vehicles/keep-1/payload", json={"payload_kg": 95.0}, headers=srv.auth)
+        assert loaded.status_code == 200 and loaded.json()["payload_kg"] == 95.0
         jobs_before = srv.get("/jobs").json()
     # the process is gone; a new one reads the same data directory
     with running(settings) as srv:
@@ -111,6 +113,7 @@ def test_restart_keeps_gains_alarms_and_vehicles_without_resynthesis(tmp_path):
         latched = {a["id"]: a for a in srv.get("/alarms").json()}
         assert latched[alarm["id"]]["acknowledged"] and latched[alarm["id"]]["acknowledged_by"] == "night shift"
         assert srv.vehicle("keep-1")["profile"] == "default"
+        assert srv.vehicle("keep-1")["payload_kg"] == 95.0  # the stored payload applies again
 
 
 def test_two_replicas_share_the_fleet_each_vehicle_handled_by_exactly_one(tmp_path):

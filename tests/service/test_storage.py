@@ -76,6 +76,15 @@ def test_what_is_stored_is_read_back_by_another_connection(open_db: Open) -> Non
     assert db.alarm("al-1") == acked and db.alarm("al-2") is None
 
 
+def test_a_payload_is_stored_per_vehicle_and_replaced_by_the_next(open_db: Open) -> None:
+    db = open_db()
+    assert db.payloads() == {}
+    db.put_payload("v1", 120.5, 1)
+    db.put_payload("v2", 0.0, 2)
+    db.put_payload("v1", 80.25, 3)
+    assert open_db().payloads() == {"v1": 80.25, "v2": 0.0}
+
+
 def test_nanosecond_time_stamps_keep_every_digit(open_db: Open) -> None:
     t_ns = 1_764_000_000_123_456_789  # 2025 in nanoseconds: beyond 32 bits, within 64
     db = open_db()

@@ -268,12 +268,16 @@ async def put_payload(
 ) -> VehicleStatus:
     """A load is more mass to accelerate: without it, the observer reads every acceleration of a loaded vehicle as
     a torque fault. From the next sample on, the vehicle's observer takes the torque that moves the profile's
-    vehicle as the loaded one moves, and reports the torque fault at the vehicle's scale. Held in memory: after a
-    restart of the service, or when another replica takes the vehicle over, report it again."""
+    vehicle as the loaded one moves, and reports the torque fault at the vehicle's scale. Stored: after a restart
+    of the service, and on the replica that takes the vehicle over, it applies again."""
+    service.require_storage()
     try:
         vehicle = service.engine.set_payload(vehicle_id, body.payload_kg)
     except UnknownVehicle as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, detail=str(exc.args[0])) from exc
     except ValueError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, detail=str(exc)) from exc
+    write = partial(Storage.put_payload, vehicle_id=vehicle.id, payload_kg=vehicle.payload_kg, t_ns=time.time_ns())
+    service.store(f"the payload of {vehicle.id}", write)
+    await service.stored(f"the payload of {vehicle.id!r}")
     return VehicleStatus(**service.engine.vehicle_status(vehicle))
