@@ -170,6 +170,8 @@ class FleetEngine:
         #: registered vehicles of a profile that could not be loaded: (profile, registration time [ns]); their
         #: samples are rejected as no_gains, not taken by the default profile
         self.held: dict[str, tuple[str, int]] = {}
+        #: the stored payloads of held vehicles [kg], applied when their profile runs
+        self.held_payloads: dict[str, float] = {}
         self._clock_ns = clock_ns
         self._monotonic = monotonic
         self.started_mono = monotonic()
@@ -213,7 +215,9 @@ class FleetEngine:
     def release_held(self, profile: str) -> list[Vehicle]:
         """Register the held vehicles of ``profile``, which runs now."""
         ids = [vehicle_id for vehicle_id, (name, _) in self.held.items() if name == profile]
-        return [self.register(vehicle_id, profile, self.held[vehicle_id][1]) for vehicle_id in ids]
+        released = [self.register(vehicle_id, profile, self.held[vehicle_id][1]) for vehicle_id in ids]
+        self.load_payloads({v: self.held_payloads.pop(v) for v in ids if v in self.held_payloads})
+        return released
 
     def update_profile_spec(self, name: str, spec: ProfileSpec) -> None:
         self.bank(name).set_spec(spec)
@@ -290,11 +294,14 @@ class FleetEngine:
         return vehicle
 
     def load_payloads(self, payloads: dict[str, float]) -> list[str]:
-        """The stored payloads of the vehicles served here (others are skipped); returns why any was refused (a
-        profile whose vehicle is now lighter than its payload), that vehicle then running unloaded."""
+        """The stored payloads of the vehicles served here (others are skipped; a held vehicle's waits for its
+        profile); returns why any was refused (a profile whose vehicle is now lighter than its payload), that
+        vehicle then running unloaded."""
         refused = []
         for vehicle_id, payload_kg in payloads.items():
-            if vehicle_id in self.vehicles:
+            if vehicle_id in self.held:
+                self.held_payloads[vehicle_id] = payload_kg
+            elif vehicle_id in self.vehicles:
                 try:
                     self.set_payload(vehicle_id, payload_kg)
                 except ValueError as exc:

@@ -678,3 +678,59 @@ def test_the_tick_fast_path_gives_what_one_by_one_sequencing_gives(fast_gains, m
     rejected = fast_run[2]
     assert all(rejected[r] > 0 for r in ("duplicate", "out_of_order", "non_finite", "out_of_range"))
     assert fast_run[1]["gaps"] > 0 and fast_run[1]["restarts"] > 0
+
+
+def test_a_payload_with_the_effectiveness_stage_scales_the_torque_bias_and_total_not_alpha(robust_gains_default):
+    """With the stage on, a loaded vehicle's row steps the stage on the payload torque too: its estimates are the
+    offline stage's on that torque, the torque bias and total fault divided by rho, alpha as it is."""
+    from synth.effectiveness import EffectivenessObserver
+    from synth.model import payload_torque
+    from tests.synth.test_effectiveness import OPTIONS, torque_loss_scenario
+    from tests.tolerances import STAGE_BATCH_ATOL
+
+    p = VehicleParams()
+    scenario = torque_loss_scenario()
+    loaded = p.model_copy(update={"effective_mass_kg": p.effective_mass_kg + 90})
+    heavy = scenario.model_copy(update={"vehicle": loaded})
+    samples = plant_measurements(["v"], 1500, scenario=heavy)
+    clock = FakeClock()
+    engine = FleetEngine(EngineConfig(), clock_ns=clock.ns, monotonic=clock.monotonic)
+    spec = ProfileSpec.model_validate({"design": {"design": "robust"}, "effectiveness": OPTIONS.model_dump()})
+    engine.add_profile("default", spec)
+    engine.activate("default", robust_gains_default)
+    engine.register("v", "default")
+    engine.set_payload("v", 90.0)
+    got = [e for (m,) in samples for e in decoded(engine.process(pairs([m])))]
+    assert [e.seq for e in got] == list(range(1500))
+    y = np.array([[m.vx_mps, m.r_radps] for (m,) in samples])
+    u = np.array([[m.torque_nm, m.steer_rad] for (m,) in samples])
+    torque, rho = payload_torque(y[:, 0], u[:, 0], 90.0, robust_gains_default.params)
+    model_u = np.column_stack([torque, u[:, 1]])
+    offline = EffectivenessObserver(robust_gains_default, OPTIONS, y[:1], None, model_u[:1])
+    expected = [offline.step(y[k : k + 1], model_u[k : k + 1]) for k in range(1500)]
+    bias = np.vstack([s.bias for s in expected])
+    total = np.vstack([s.faults for s in expected])
+    bias[:, 0] /= rho
+    total[:, 0] /= rho
+    np.testing.assert_allclose([[e.torque_bias, e.steer_bias] for e in got], bias, atol=STAGE_BATCH_ATOL)
+    np.testing.assert_allclose([[e.torque_fault, e.steer_fault] for e in got], total, atol=STAGE_BATCH_ATOL)
+    alpha = np.vstack([s.alpha for s in expected])
+    np.testing.assert_allclose([[e.torque_alpha, e.steer_alpha] for e in got], alpha, atol=STAGE_BATCH_ATOL)
+    assert float(rho) == pytest.approx(p.effective_mass_kg / (p.effective_mass_kg + 90.0))
+
+
+def test_a_held_vehicles_stored_payload_applies_when_its_profile_runs(fast_gains):
+    engine = make_engine(fast_gains)
+    engine.hold("later-1", "late", 5)
+    assert engine.load_payloads({"later-1": 40.0, "nobody": 10.0}) == []
+    assert engine.held_payloads == {"later-1": 40.0}
+    engine.add_profile("late", engine.banks["default"].spec)
+    engine.activate("late", fast_gains)
+    (released,) = engine.release_held("late")
+    assert released.payload_kg == 40.0 and released.bank.payload_kg[released.slot] == 40.0
+    assert engine.held_payloads == {}
+    # a stored payload heavier than the vehicle is reported, not applied
+    mass = engine.banks["default"].spec.params.mass_kg
+    engine.register("v", "default")
+    (problem,) = engine.load_payloads({"v": mass + 1.0})
+    assert problem.startswith("v: stored payload not applied") and engine.vehicles["v"].payload_kg == 0.0
