@@ -524,6 +524,7 @@ class DashboardHub:
             },
             "effectiveness": vehicle.bank.stage is not None,
             "truth": trace is not None and trace.has_truth,
+            "payload_kg": vehicle.payload_kg,
         }
 
     def _latched(self) -> list[dict[str, Any]]:

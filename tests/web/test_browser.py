@@ -144,7 +144,15 @@ def test_a_vehicle_view_plots_live_estimates_with_thresholds_and_ground_truth(se
         expect(legend).to_contain_text(label)
     expect(page.locator('figure[data-plot="vx"] .u-legend')).to_contain_text("measured")
     expect(page.locator("#vehicle-alarms .alarm")).to_have_count(1)
+    expect(page.locator('#vehicle-facts [data-fact="payload"] dd')).to_have_text("none reported")
     page.screenshot(path=str(output_dir / "vehicle.png"), full_page=True)
+
+
+def test_a_reported_payload_shows_in_the_vehicle_view(server, page):
+    reported = server.http.put("/vehicles/agv-stale/payload", json={"payload_kg": 35.0}, headers=server.auth)
+    assert reported.status_code == 200
+    page.goto(server.url + "/#/vehicle/agv-stale")
+    expect(page.locator('#vehicle-facts [data-fact="payload"] dd')).to_have_text("35 kg", timeout=UI_TIMEOUT_MS)
 
 
 def test_acknowledging_an_alarm_changes_its_state_in_every_open_page(server, page, page_problems, browser_context):

@@ -259,6 +259,7 @@ export class VehicleView {
       ['gains', 'Gains', shortHash(status.gain_version)],
       ['seen', 'Last seen', seen === null ? 'never' : age(nowS - seen)],
       ['seq', 'Last sample', status.last_seq === null ? '–' : `#${status.last_seq}`],
+      ['payload', 'Payload', status.payload_kg > 0 ? `${status.payload_kg} kg` : 'none reported'],
       ['truth', 'Ground truth', status.truth ? 'shown' : 'none published'],
       ['torque', 'Torque thresholds', `WARN ${t.torque_warn_nm} / FAULT ${t.torque_fault_nm} N m`],
       ['steer', 'Steering thresholds', `WARN ${t.steer_warn_rad} / FAULT ${t.steer_fault_rad} rad`],
