@@ -83,7 +83,7 @@ BUCKET_PATTERN = re.compile(r"^b[0-9a-f]{2}$")
 #: A shard bucket's name in a JSON message.
 Bucket = Annotated[str, Field(pattern=BUCKET_PATTERN.pattern)]
 
-Kind = Literal["meas", "truth", "estimate", "estimate.bin", "alarm", "alive"]
+Kind = Literal["meas", "truth", "estimate", "estimate.bin", "alarm", "alive", "payload"]
 KINDS: tuple[Kind, ...] = get_args(Kind)
 
 
@@ -802,6 +802,19 @@ class OwnershipChange(_Json):
     buckets: list[Bucket] = Field(description="every bucket it serves after the change")
     vehicles: int = Field(ge=0, description="vehicles of the buckets taken over (as registered) or handed over")
     t_ns: int = Field(description="when the change happened [ns since the epoch, service clock]")
+
+
+class PayloadReport(_Json):
+    """What a vehicle carries now, reported by the vehicle itself on its ``payload`` key (JSON, rarely: when the
+    load changes). The service models the vehicle with it (docs/math.md 12.5), as after
+    ``PUT /vehicles/{id}/payload``; the vehicle id is the key's."""
+
+    model_config = ConfigDict(
+        frozen=True, extra="forbid", json_schema_extra={"examples": [{"v": 1, "payload_kg": 120.0}]}
+    )
+
+    v: Literal[1] = Field(1, description="protocol version")
+    payload_kg: float = Field(ge=0.0, allow_inf_nan=False, description="the load on board [kg]; 0 when unloaded")
 
 
 AlarmKind = Literal[

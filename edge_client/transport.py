@@ -39,7 +39,7 @@ from typing import Any, Literal, TypeVar
 import numpy as np
 import zenoh
 
-from agv_protocol.wire import DEFAULT_PREFIX, ProtocolError, vehicle_key
+from agv_protocol.wire import DEFAULT_PREFIX, PayloadReport, ProtocolError, vehicle_key
 from agv_protocol.zenoh_session import ConfigValue, TransportError, session_config
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -130,6 +130,40 @@ def connected_nodes(session: zenoh.Session) -> int:
 
 
 _Message = TypeVar("_Message")
+
+
+#: How often :func:`report_payload` looks whether the service's subscriber is known yet [s].
+_MATCH_POLL_S = 0.01
+
+
+def report_payload(
+    session: zenoh.Session, vehicle_id: str, payload_kg: float, prefix: str = DEFAULT_PREFIX, wait_s: float = 5.0
+) -> bool:
+    """Report what ``vehicle_id`` carries now on its ``payload`` key (agv_protocol.wire.PayloadReport): the
+    service models the vehicle with it from then on (docs/math.md 12.5). A vehicle reports when its load
+    changes. Waits at most ``wait_s`` until a subscriber (the service) is known, since a client sends only what
+    some subscriber wants; returns whether one was, the report then sent reliably.
+
+    Raises ProtocolError for a payload the protocol does not take (negative, not finite).
+    """
+    try:
+        message = PayloadReport(payload_kg=payload_kg).encode()
+    except ValueError as exc:
+        raise ProtocolError(f"payload_kg: {exc}") from exc
+    publisher: Any = session.declare_publisher(
+        vehicle_key(vehicle_id, "payload", prefix),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE,
+    )
+    try:
+        deadline = time.monotonic() + wait_s
+        while not publisher.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(_MATCH_POLL_S)
+        matched = bool(publisher.matching_status.matching)
+        publisher.put(message)
+        return matched
+    finally:
+        publisher.undeclare()
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agv_protocol.wire import bucket_of
+from agv_protocol.wire import PayloadReport, ProtocolError, bucket_of
 from service import logs
 from service.bucket_handover import BucketHandover
 from service.databases import open_storage
@@ -460,10 +460,50 @@ class Service:
             changes: list[AlarmChange] = []
             for vehicle_id, alive in transport.drain_liveliness():
                 changes.extend(self.engine.liveliness(vehicle_id, alive))
+            for vehicle_id, payload in transport.drain_payloads():
+                self.report_payload(vehicle_id, payload)
             changes.extend(self.engine.housekeeping())
             changes.extend(await self.ownership.check())
             if changes:
                 self.commit_alarms(changes)
+
+    def report_payload(self, vehicle_id: str, payload: bytes) -> None:
+        """A vehicle's own payload report (its ``payload`` key, agv_protocol.wire.PayloadReport): applied and stored
+        as PUT /vehicles/{id}/payload does, or counted and logged by why not (malformed, unknown_vehicle,
+        out_of_range: heavier than the profile's vehicle). A vehicle not yet registered is registered as its
+        first measurement would register it (``ingest.unknown_vehicles``)."""
+        counts = self.metrics.payload_reports
+        try:
+            report = PayloadReport.decode(payload)
+        except ProtocolError as exc:
+            counts["malformed"] += 1
+            log.warning("payload report of %s refused: %s", vehicle_id, exc)
+            return
+        if vehicle_id not in self.engine.vehicles and not self._register_reporting(vehicle_id):
+            counts["unknown_vehicle"] += 1
+            log.warning("payload report of unknown vehicle %s refused", vehicle_id)
+            return
+        try:
+            vehicle = self.engine.set_payload(vehicle_id, report.payload_kg)
+        except ValueError as exc:
+            counts["out_of_range"] += 1
+            log.warning("payload report of %s refused: %s", vehicle_id, exc)
+            return
+        counts["applied"] += 1
+        write = partial(Storage.put_payload, vehicle_id=vehicle.id, payload_kg=vehicle.payload_kg, t_ns=time.time_ns())
+        self.store(f"the payload of {vehicle.id}", write)
+
+    def _register_reporting(self, vehicle_id: str) -> bool:
+        """Register a vehicle that reports before it measures, where unknown vehicles are registered."""
+        engine = self.engine
+        config = engine.config
+        refused = config.unknown_vehicles == "reject" or config.default_profile not in engine.banks
+        if refused or vehicle_id in engine.held:
+            return False
+        vehicle = engine.register(vehicle_id, config.default_profile, announced=True)
+        rows = [(vehicle.id, vehicle.profile, vehicle.registered_t_ns)]
+        self.store(f"the registration of {vehicle.id}", partial(Storage.put_vehicles, rows=rows))
+        return True
 
     def commit_alarms(self, changes: list[AlarmChange]) -> Future[None]:
         """Queue the alarm changes for storage (one transaction) and publish them at once.

@@ -93,6 +93,10 @@ class Histogram:
         return HistogramMetricFamily(name, documentation, buckets=buckets, sum_value=self.sum)
 
 
+#: What became of a vehicle's payload report on its Zenoh key (service.app.Service.report_payload).
+PAYLOAD_OUTCOMES = ("applied", "malformed", "unknown_vehicle", "out_of_range")
+
+
 class ServiceMetrics:
     """The histograms and counters kept outside the fleet engine."""
 
@@ -108,6 +112,8 @@ class ServiceMetrics:
         self.alarms_out = 0
         self.last_batch = 0
         self.full_batches = 0
+        #: the vehicles' own payload reports by outcome (PAYLOAD_OUTCOMES)
+        self.payload_reports: dict[str, int] = dict.fromkeys(PAYLOAD_OUTCOMES, 0)
 
     def observe_end_to_end(self, t_ns: Sequence[np.ndarray], published_ns: int) -> None:
         """Sample time stamps ``t_ns`` (vehicle clock [ns], one array per estimate batch) to ``published_ns``
@@ -421,6 +427,12 @@ class ServiceCollector(Collector):
         yield _one(
             CounterMetricFamily("agv_fe_alarm_events_published", "alarm events stored and published"), m.alarms_out
         )
+        payloads = CounterMetricFamily(
+            "agv_fe_payload_reports", "the vehicles' own payload reports, by outcome", labels=["outcome"]
+        )
+        for outcome, n in m.payload_reports.items():
+            payloads.add_metric([outcome], n)
+        yield payloads
         dropped = CounterMetricFamily(
             "agv_fe_events_dropped",
             "fleet events an in-process subscriber (the dashboards' hub) fell behind on and lost, by kind",

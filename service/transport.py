@@ -78,6 +78,8 @@ if TYPE_CHECKING:
 
 #: Ground-truth samples kept per followed vehicle between two drains (newest kept).
 TRUTH_RING_CAPACITY = 1024
+#: Payload reports kept per bucket between two housekeeping passes (a vehicle reports when its load changes).
+PAYLOAD_CAPACITY = 1024
 #: Ownership announcements of the replicas kept between two drains (newest kept): a handful per change.
 OWNERSHIP_RING_CAPACITY = 256
 #: A new estimate publisher is taken as matched for this long, then its matching status is read once: a
@@ -517,6 +519,7 @@ class Transport:
         # by bucket, or one entry '*' for the whole fleet
         self._meas: dict[str, Any] = {}
         self._alive: dict[str, Any] = {}
+        self._payloads: dict[str, Any] = {}  # the vehicles' own payload reports
         self._ownership_pub: Any = None
         self._ownership_sub: Any = None
         self._token: Any = None
@@ -552,6 +555,8 @@ class Transport:
             self._alive[name] = session.liveliness().declare_subscriber(
                 key, zenoh.handlers.FifoChannel(4096), history=True
             )
+        for name, key in self._selectors("payload", buckets).items():
+            self._payloads[name] = session.declare_subscriber(key, zenoh.handlers.FifoChannel(PAYLOAD_CAPACITY))
 
     def add_buckets(self, buckets: list[str]) -> None:
         """Serve ``buckets`` too: their measurements and their vehicles' liveliness (current tokens included)."""
@@ -565,7 +570,7 @@ class Transport:
     def remove_buckets(self, buckets: list[str]) -> None:
         """Stop serving ``buckets``: what their subscriptions still hold is dropped with them."""
         for bucket in buckets:
-            for entities in (self._meas, self._alive):
+            for entities in (self._meas, self._alive, self._payloads):
                 entity = entities.pop(bucket, None)
                 if entity is not None:
                     with contextlib.suppress(zenoh.ZError):
@@ -656,6 +661,19 @@ class Transport:
                 out.append((vehicle_id, sample.kind == zenoh.SampleKind.PUT))
         return out
 
+    def drain_payloads(self) -> list[tuple[str, bytes]]:
+        """The vehicles' payload reports since the last call: (vehicle id, payload); at most PAYLOAD_CAPACITY a
+        bucket between two calls are kept (a vehicle reports when its load changes)."""
+        out: list[tuple[str, bytes]] = []
+        for sub in self._payloads.values():
+            while (sample := sub.try_recv()) is not None:
+                try:
+                    vehicle_id, _ = parse_vehicle_key(str(sample.key_expr))
+                except ValueError:
+                    continue
+                out.append((vehicle_id, sample.payload.to_bytes()))
+        return out
+
     def follow_truth(self, vehicle_ids: Collection[str]) -> None:
         """Subscribe to the ground truth of exactly ``vehicle_ids`` (for the dashboard only)."""
         wanted = set(vehicle_ids)
@@ -731,7 +749,7 @@ class Transport:
 
     def close(self) -> None:
         """Undeclare everything and close the session (an unclosed session can hang the process at exit)."""
-        entities = [*self._meas.values(), *self._alive.values(), *self._truth.values()]
+        entities = [*self._meas.values(), *self._alive.values(), *self._payloads.values(), *self._truth.values()]
         fleet = [p for p in (self._fleet_pub, self._ownership_pub, self._ownership_sub) if p is not None]
         if self._vehicle is not None:  # first: it publishes what is queued on the open session
             self._vehicle.close()
@@ -743,6 +761,7 @@ class Transport:
             with contextlib.suppress(zenoh.ZError):
                 self._token.undeclare()
         self._meas, self._alive, self._token, self._ownership_pub, self._ownership_sub = {}, {}, None, None, None
+        self._payloads = {}
         self._alarm_pubs, self._truth, self._fleet_pub = {}, {}, None
         if self._session is not None:
             self._session.close()  # type: ignore[no-untyped-call]

@@ -5,11 +5,11 @@ name, a user name) to send or receive a *message* (put, declare_subscriber, live
 expressions a *rule* names. A rule cannot say "the connecting vehicle's own key", so every vehicle gets rules
 of its own, naming its keys exactly (bucket included), bound to the identity that publishes for it:
 
-* a vehicle may put its measurements and declare its liveliness token, nothing else; it may declare
-  subscribers on the fleet's estimate and alarm keys (the edge client does), but the router forwards it only
-  its own estimates and alarms;
-* the service (identity :data:`SERVICE_IDENTITY`, every replica) may subscribe to every measurement, truth
-  stream and liveliness token, to the replicas' ownership announcements and to the fleet stream (its own
+* a vehicle may put its measurements and its payload reports and declare its liveliness token, nothing else;
+  it may declare subscribers on the fleet's estimate and alarm keys (the edge client does), but the router
+  forwards it only its own estimates and alarms;
+* the service (identity :data:`SERVICE_IDENTITY`, every replica) may subscribe to every measurement, payload
+  report, truth stream and liveliness token, to the replicas' ownership announcements and to the fleet stream (its own
   processes read it, service/fleet_child.py), and is the only one that may put
   estimates, alarms, the fleet stream and ownership announcements;
 * a monitor (identity :data:`MONITOR_IDENTITY`: the terminal dashboard) may read estimates, alarms, the fleet
@@ -114,10 +114,11 @@ def access_control(
     grants: Sequence[VehicleGrant], prefix: str = "agv", identify_by: IdentifyBy = "both"
 ) -> dict[str, Any]:
     """The router's ``access_control`` section for ``grants``: deny by default, allow what the protocol needs."""
-    measurements, truth, alive = (
+    measurements, truth, alive, payloads = (
         fleet_selector("meas", prefix),
         fleet_selector("truth", prefix),
         fleet_selector("alive", prefix),
+        fleet_selector("payload", prefix),
     )
     estimates, alarms = fleet_selector("estimate", prefix), fleet_selector("alarm", prefix)
     binary_estimates = fleet_selector(BINARY_ESTIMATE_KIND, prefix)  # the same estimates in the binary encoding
@@ -126,8 +127,13 @@ def access_control(
     rules = [
         # the service: reads measurements, truth and liveliness; the only publisher of answers; its own processes
         # (the vehicle-estimate and history processes, service/fleet_child.py) read its fleet stream
-        _rule("service-subscribe", ["declare_subscriber"], "ingress", [measurements, truth, ownership, fleet_stream]),
-        _rule("service-receive", ["put"], "egress", [measurements, truth, ownership, fleet_stream]),
+        _rule(
+            "service-subscribe",
+            ["declare_subscriber"],
+            "ingress",
+            [measurements, payloads, truth, ownership, fleet_stream],
+        ),
+        _rule("service-receive", ["put"], "egress", [measurements, payloads, truth, ownership, fleet_stream]),
         _rule("service-follow-liveliness", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [alive]),
         _rule("service-receive-liveliness", ["liveliness_token"], "egress", [alive]),
         _rule("service-publish", ["put"], "ingress", [estimates, binary_estimates, alarms, fleet_stream, ownership]),
@@ -150,9 +156,10 @@ def access_control(
         _rule("monitor-follow-liveliness", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [alive]),
         _rule("monitor-receive-liveliness", ["liveliness_token"], "egress", [alive]),
         # every vehicle: may declare subscribers on the fleet's answers (delivery is per vehicle, below), and
-        # learns of the service's measurement subscribers (a client only sends what some subscriber wants)
+        # learns of the service's measurement and payload subscribers (a client only sends what some subscriber
+        # wants)
         _rule("vehicle-subscribe", ["declare_subscriber"], "ingress", [estimates, binary_estimates, alarms]),
-        _rule("vehicle-see-subscribers", ["declare_subscriber"], "egress", [measurements]),
+        _rule("vehicle-see-subscribers", ["declare_subscriber"], "egress", [measurements, payloads]),
     ]
     own_rules, vehicle_rules = _vehicle_rules(grants, prefix)
     rules += own_rules
@@ -183,14 +190,20 @@ def access_control(
 
 
 def _vehicle_rules(grants: Sequence[VehicleGrant], prefix: str) -> tuple[list[dict[str, Any]], dict[str, list[str]]]:
-    """Each vehicle's own rules (it puts its measurements and liveliness token, and receives its own answers), in
+    """Each vehicle's own rules (it puts its measurements, payload reports and liveliness token, and receives its
+    own answers), in
     the order of ``grants``, and the ids of those rules by identity."""
     rules: list[dict[str, Any]] = []
     by_identity: dict[str, list[str]] = {}
     for grant in grants:
         vid = grant.vehicle_id
         rules += [
-            _rule(f"{vid}/meas", ["put"], "ingress", [vehicle_key(vid, "meas", prefix)]),
+            _rule(
+                f"{vid}/meas",
+                ["put"],
+                "ingress",
+                [vehicle_key(vid, "meas", prefix), vehicle_key(vid, "payload", prefix)],
+            ),
             _rule(f"{vid}/alive", ["liveliness_token"], "ingress", [vehicle_key(vid, "alive", prefix)]),
             _rule(
                 f"{vid}/answers",

@@ -38,6 +38,14 @@ def register(sub: Any) -> None:
     parser.add_argument(
         "--progress", type=float, default=1.0, metavar="S", help="seconds between progress lines (default 1)"
     )
+    parser.add_argument(
+        "--payload-kg",
+        type=float,
+        default=None,
+        metavar="KG",
+        help="report this payload on the vehicle's payload key before streaming (the load the recording was "
+        "driven with): the service models the vehicle with it, as `replay --payload-kg` does",
+    )
     add_estimates_argument(parser)
     add_transport_arguments(parser)
     parser.set_defaults(handler=run)
@@ -48,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     from agv_protocol.zenoh_session import TransportError
     from edge_client.publisher import FleetPublisher, PublisherOptions
     from edge_client.sources import RecordingSource
-    from edge_client.transport import close_session, open_session
+    from edge_client.transport import close_session, open_session, report_payload
 
     try:
         try:
@@ -59,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(f"--buffer: expected seconds in [0, 600], got {args.buffer}")
         if not (math.isfinite(args.progress) and args.progress > 0):
             raise CommandError(f"--progress: expected seconds > 0, got {args.progress}")
+        if args.payload_kg is not None and not (math.isfinite(args.payload_kg) and args.payload_kg >= 0):
+            raise CommandError(f"--payload-kg: expected kg >= 0, got {args.payload_kg}")
         transport = transport_options(args)
         recording = read_input(args.input, args.map)
     except CommandError as exc:
@@ -75,6 +85,9 @@ def run(args: argparse.Namespace) -> int:
     options = PublisherOptions(
         truth_rate_hz=0.0, buffer_s=args.buffer, prefix=args.prefix, warmup_s=0.0, estimate_encoding=args.estimates
     )
+    if args.payload_kg is not None:
+        reached = report_payload(session, args.vehicle, args.payload_kg, args.prefix)
+        print(f"payload {args.payload_kg:g} kg reported" + ("" if reached else " (no service subscribed yet)"))
     try:
         with contextlib.ExitStack() as stack:
             stack.callback(close_session, session)

@@ -15,6 +15,7 @@ from agv_protocol.wire import (
     EstimateBatch,
     FleetEstimates,
     Measurement,
+    PayloadReport,
     ProtocolError,
     all_buckets,
     bucket_of,
@@ -198,6 +199,17 @@ def test_json_messages_round_trip():
     assert Alarm.decode(a.encode()) == a
     with pytest.raises(ProtocolError, match="invalid Alarm"):
         Alarm.decode(b'{"v": 1, "vehicle": "v1"}')
+
+
+def test_a_payload_report_is_a_small_json_document_on_the_vehicles_payload_key():
+    report = PayloadReport(payload_kg=120.5)
+    assert orjson.loads(report.encode()) == {"v": 1, "payload_kg": 120.5}
+    assert PayloadReport.decode(b'{"v":1,"payload_kg":0}').payload_kg == 0.0
+    for bad in (b'{"v":1,"payload_kg":-1}', b'{"v":1,"payload_kg":"NaN"}', b'{"v":1}', b'{"v":2,"payload_kg":1}', b"x"):
+        with pytest.raises(ProtocolError, match="invalid PayloadReport"):
+            PayloadReport.decode(bad)
+    key = vehicle_key("truck-7", "payload")
+    assert key.endswith("/truck-7/payload") and parse_vehicle_key(key) == ("truck-7", "payload")
 
 
 def test_the_bucket_is_zlibs_crc32_of_the_utf8_id_as_documented():

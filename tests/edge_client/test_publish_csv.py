@@ -86,3 +86,24 @@ def test_publish_csv_streams_the_recording_exactly_and_collects_estimates(
     if getattr(estimation_service, "answers_every_sample", False):
         assert sorted(e["seq"] for e in estimates) == list(range(500))
         assert "estimates received 500" in out.stdout
+
+
+def test_publish_csv_reports_the_recordings_payload_before_streaming(router, estimation_service, recording_file):
+    """--payload-kg puts a PayloadReport on the vehicle's payload key once the service's subscriber is known: the
+    service registers the vehicle, models it loaded, and shows the payload."""
+    out = subprocess.run(
+        [
+            sys.executable, "-m", "agv_fe", "publish-csv", str(recording_file), "--vehicle", "loaded-7",
+            "--connect", router.endpoint, "--payload-kg", "70",
+        ],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "payload 70 kg reported\n" in out.stdout
+    vehicle = estimation_service.get("/vehicles/loaded-7").json()
+    assert vehicle["payload_kg"] == 70.0 and vehicle["counters"]["accepted"] == 500
+    refused = subprocess.run(
+        [sys.executable, "-m", "agv_fe", "publish-csv", str(recording_file), "--vehicle", "x", "--payload-kg", "-1"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert refused.returncode != 0 and "--payload-kg: expected kg >= 0, got -1.0" in refused.stderr

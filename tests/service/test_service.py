@@ -12,8 +12,9 @@ import time
 import numpy as np
 import pytest
 
-from agv_protocol.wire import FLAG_SEQUENCE_RESTART, Measurement, vehicle_key
+from agv_protocol.wire import FLAG_SEQUENCE_RESTART, Measurement, ProtocolError, vehicle_key
 from edge_client.library import paper_1
+from edge_client.transport import report_payload
 from service.main import create_app
 from service.profiles import ProfileSpec
 from synth.gains import ObserverGains
@@ -25,6 +26,7 @@ from tests.service.helpers import (
     as_array,
     constant_measurement,
     make_settings,
+    parse_metrics,
     plant_measurements,
     probe,
     running,
@@ -264,6 +266,33 @@ def test_a_vehicles_payload_is_reported_shown_and_checked(server):
     r = server.http.put("/vehicles/nobody/payload", json={"payload_kg": 1.0}, headers=server.auth)
     assert r.status_code == 404 and "nobody" in r.json()["detail"]
     assert server.get("/vehicles/loaded-1").json()["payload_kg"] == 80.0  # the refusals changed nothing
+
+
+def test_a_vehicle_reports_its_own_payload_on_its_payload_key(server, zprobe):
+    """The vehicle puts a PayloadReport on its own key (edge_client.transport.report_payload): applied as the
+    REST route applies it, the vehicle registered if it was not; a malformed or too heavy report is counted by
+    its outcome and changes nothing."""
+
+    def outcome(name: str) -> float:
+        metrics = parse_metrics(server.get("/metrics").text)
+        return metrics.samples.get(("agv_fe_payload_reports_total", frozenset({("outcome", name)})), 0.0)
+
+    before = {name: outcome(name) for name in ("applied", "malformed", "out_of_range")}
+    assert report_payload(zprobe.session, "self-loading-1", 65.0)
+    wait_for(
+        lambda: (
+            server.http.get("/vehicles/self-loading-1").status_code == 200
+            and server.vehicle("self-loading-1")["payload_kg"] == 65.0
+        ),
+        what="the reported payload",
+    )
+    zprobe.put_raw(vehicle_key("self-loading-1", "payload"), b'{"v":1,"payload_kg":"lots"}')
+    assert report_payload(zprobe.session, "self-loading-1", 1e6)
+    wait_for(lambda: outcome("out_of_range") == before["out_of_range"] + 1, what="the too heavy report counted")
+    assert outcome("malformed") == before["malformed"] + 1 and outcome("applied") == before["applied"] + 1
+    assert server.vehicle("self-loading-1")["payload_kg"] == 65.0
+    with pytest.raises(ProtocolError, match="payload_kg"):
+        report_payload(zprobe.session, "self-loading-1", -3.0)
 
 
 def test_replicas_lists_the_live_ones_by_their_liveliness_tokens(server):

@@ -239,14 +239,14 @@ class Witness:
 
 
 def test_a_vehicle_cannot_publish_as_another_nor_put_estimates_nor_read_others(router: Router):
-    """Vehicle truck-7 (authorised, own certificate and password) forges veh-000's measurement and
-    liveliness token and puts estimates; veh-000 (the fleet simulator's identity) subscribes to every
+    """Vehicle truck-7 (authorised, own certificate and password) forges veh-000's measurement, payload report
+    and liveliness token and puts estimates; veh-000 (the fleet simulator's identity) subscribes to every
     estimate. On the secure router nothing forged arrives and veh-000 gets only its own estimates; on the
     open router all of it arrives, which shows these assertions can fail."""
     key = {
         (vid, kind): vehicle_key(vid, kind)  # type: ignore[arg-type]
         for vid in (VEHICLE, OTHER)
-        for kind in ("meas", "alive", "estimate")
+        for kind in ("meas", "alive", "estimate", "payload")
     }
     sessions: list[zenoh.Session] = []
     entities: list[Any] = []
@@ -263,6 +263,7 @@ def test_a_vehicle_cannot_publish_as_another_nor_put_estimates_nor_read_others(r
         service, monitor = Witness(), Witness()
         as_service = session("agv-service")  # sees what the service would
         declare(as_service.declare_subscriber("agv/v1/*/*/meas", service.on_sample))
+        declare(as_service.declare_subscriber("agv/v1/*/*/payload", service.on_sample))
         declare(as_service.liveliness().declare_subscriber("agv/v1/*/*/alive", service.on_token, history=True))
         as_monitor = session("agv-dashboard")
         declare(as_monitor.declare_subscriber("agv/v1/*/*/estimate", monitor.on_sample))
@@ -273,21 +274,27 @@ def test_a_vehicle_cannot_publish_as_another_nor_put_estimates_nor_read_others(r
         vehicle = session(VEHICLE)
         own_meas = declare(vehicle.declare_publisher(key[VEHICLE, "meas"]))
         forged_meas = declare(vehicle.declare_publisher(key[OTHER, "meas"]))
+        own_payload = declare(vehicle.declare_publisher(key[VEHICLE, "payload"]))
+        forged_payload = declare(vehicle.declare_publisher(key[OTHER, "payload"]))
         forged_estimates = [declare(vehicle.declare_publisher(key[v, "estimate"])) for v in (VEHICLE, OTHER)]
         service_estimates = [declare(as_service.declare_publisher(key[v, "estimate"])) for v in (VEHICLE, OTHER)]
         wait_for(lambda: own_meas.matching_status.matching, what="the vehicle to see the service's subscriber")
+        wait_for(lambda: own_payload.matching_status.matching, what="the vehicle to see the payload subscriber")
         wait_for(lambda: all(p.matching_status.matching for p in service_estimates), what="estimate subscribers")
         if not router.secure:  # an open router tells the vehicle of the estimate subscribers: it then sends
             wait_for(lambda: all(p.matching_status.matching for p in forged_estimates), what="forgery targets")
 
         # the forgeries, then on the same session the vehicle's own measurement and token
         forged_meas.put(b"forged")
+        forged_payload.put(b"forged")
         declare(vehicle.liveliness().declare_token(key[OTHER, "alive"]))
         for publisher in forged_estimates:
             publisher.put(b"forged")
         own_meas.put(b"marker")
+        own_payload.put(b"marker")
         declare(vehicle.liveliness().declare_token(key[VEHICLE, "alive"]))
         wait_for(lambda: service.has(key[VEHICLE, "meas"], b"marker"), what="the vehicle's own measurement")
+        wait_for(lambda: service.has(key[VEHICLE, "payload"], b"marker"), what="the vehicle's own payload report")
         wait_for(lambda: key[VEHICLE, "alive"] in service.tokens, what="the vehicle's own liveliness token")
         # then the service answers both vehicles: causally after every forgery
         for publisher in service_estimates:
@@ -297,6 +304,7 @@ def test_a_vehicle_cannot_publish_as_another_nor_put_estimates_nor_read_others(r
 
         got = {
             "forged measurement": service.has(key[OTHER, "meas"]),
+            "forged payload report": service.has(key[OTHER, "payload"]),
             "forged liveliness token": key[OTHER, "alive"] in service.tokens,
             "forged estimates": monitor.has(key[VEHICLE, "estimate"], b"forged")
             or monitor.has(key[OTHER, "estimate"], b"forged"),
