@@ -43,9 +43,9 @@ import os
 import secrets
 import threading
 import time
-from collections.abc import Callable, Collection, MutableMapping, Sequence
+from collections.abc import Callable, Collection, Iterable, MutableMapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, TypedDict
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict, TypeVar
 
 import numpy as np
 import zenoh
@@ -495,6 +495,23 @@ class VehicleEstimates:
         return self.unmatched
 
 
+_T = TypeVar("_T")
+
+
+def _drain_by_vehicle(subscribers: Iterable[Any], value: Callable[[Any], _T]) -> list[tuple[str, _T]]:
+    """What the subscribers on vehicle keys hold now, as (vehicle id, ``value(sample)``); a sample on a key that is
+    not a vehicle's is skipped."""
+    out: list[tuple[str, _T]] = []
+    for sub in subscribers:
+        while (sample := sub.try_recv()) is not None:
+            try:
+                vehicle_id, _ = parse_vehicle_key(str(sample.key_expr))
+            except ValueError:
+                continue
+            out.append((vehicle_id, value(sample)))
+    return out
+
+
 class Transport:
     """The service's Zenoh session: measurement and liveliness subscriptions, estimate and alarm publication."""
 
@@ -651,28 +668,12 @@ class Transport:
 
     def drain_liveliness(self) -> list[tuple[str, bool]]:
         """Vehicle liveliness changes since the last call: (vehicle id, alive)."""
-        out: list[tuple[str, bool]] = []
-        for sub in self._alive.values():
-            while (sample := sub.try_recv()) is not None:
-                try:
-                    vehicle_id, _ = parse_vehicle_key(str(sample.key_expr))
-                except ValueError:
-                    continue
-                out.append((vehicle_id, sample.kind == zenoh.SampleKind.PUT))
-        return out
+        return _drain_by_vehicle(self._alive.values(), lambda sample: sample.kind == zenoh.SampleKind.PUT)
 
     def drain_payloads(self) -> list[tuple[str, bytes]]:
         """The vehicles' payload reports since the last call: (vehicle id, payload); at most PAYLOAD_CAPACITY a
         bucket between two calls are kept (a vehicle reports when its load changes)."""
-        out: list[tuple[str, bytes]] = []
-        for sub in self._payloads.values():
-            while (sample := sub.try_recv()) is not None:
-                try:
-                    vehicle_id, _ = parse_vehicle_key(str(sample.key_expr))
-                except ValueError:
-                    continue
-                out.append((vehicle_id, sample.payload.to_bytes()))
-        return out
+        return _drain_by_vehicle(self._payloads.values(), lambda sample: sample.payload.to_bytes())
 
     def follow_truth(self, vehicle_ids: Collection[str]) -> None:
         """Subscribe to the ground truth of exactly ``vehicle_ids`` (for the dashboard only)."""
