@@ -19,7 +19,7 @@ A Measurement is 64 bytes plus the vehicle id; little-endian:
     offset size field
     0      4    magic b"AGVM"
     4      1    format version (1)
-    5      1    flags (bit 0: the vehicle restarted its sequence; others 0)
+    5      1    flags (bit 0: the vehicle restarted its sequence; bit 1: bytes 56-63 carry the road grade; others 0)
     6      2    length L of the vehicle id in bytes (1..64)
     8      8    sequence number, u64, +1 per sample
     16     8    timestamp, i64 nanoseconds since the Unix epoch (vehicle clock)
@@ -27,7 +27,7 @@ A Measurement is 64 bytes plus the vehicle id; little-endian:
     32     8    r [rad/s], f64
     40     8    demanded torque T_d [N m], f64
     48     8    demanded steering delta_d [rad], f64
-    56     8    reserved, zero
+    56     8    road grade [rad], f64, + uphill, with flag bit 1; zero without it
     64     L    vehicle id, UTF-8
 """
 
@@ -56,7 +56,8 @@ DEFAULT_PREFIX = "agv"
 N_BUCKETS = 16
 
 MAGIC = b"AGVM"
-_HEADER = struct.Struct("<4sBBHQqddddQ")
+_HEADER = struct.Struct("<4sBBHQqdddd8s")
+_GRADE = struct.Struct("<d")
 MEASUREMENT_HEADER_SIZE = _HEADER.size  # 64
 #: The same header as a numpy record, to decode a tick's headers in one ``np.frombuffer``.
 MEASUREMENT_HEADER_DTYPE = np.dtype(
@@ -75,8 +76,11 @@ MEASUREMENT_HEADER_DTYPE = np.dtype(
     ]
 )
 FLAG_SEQUENCE_RESTART = 0x01
-#: Every flag bit this version defines; the others, like the reserved bytes, must be zero.
-KNOWN_FLAGS = FLAG_SEQUENCE_RESTART
+#: Bytes 56-63 carry the road grade (f64, rad, + uphill); without this flag they are reserved and zero.
+FLAG_ROAD_GRADE = 0x02
+#: Every flag bit this version defines; the others, like the reserved bytes of a sample without a grade, must be
+#: zero.
+KNOWN_FLAGS = FLAG_SEQUENCE_RESTART | FLAG_ROAD_GRADE
 
 VEHICLE_ID_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 BUCKET_PATTERN = re.compile(r"^b[0-9a-f]{2}$")
@@ -180,7 +184,8 @@ def parse_vehicle_key(key: str) -> tuple[str, Kind]:
 
 @dataclass(frozen=True, slots=True)
 class Measurement:
-    """One 100 Hz sample from a vehicle: y = [v_x, r] and the demanded u_d = [T_d, delta_d]."""
+    """One 100 Hz sample from a vehicle: y = [v_x, r] and the demanded u_d = [T_d, delta_d]; with
+    ``grade_rad`` the road's grade under it (flag bit 1 is then set by :meth:`encode`)."""
 
     vehicle_id: str
     seq: int
@@ -190,14 +195,16 @@ class Measurement:
     torque_nm: float
     steer_rad: float
     flags: int = 0
+    grade_rad: float | None = None
 
     def encode(self) -> bytes:
         vid = check_vehicle_id(self.vehicle_id).encode()
+        graded = self.grade_rad is not None
         return (
             _HEADER.pack(
                 MAGIC,
                 PROTOCOL_VERSION,
-                self.flags,
+                self.flags | FLAG_ROAD_GRADE if graded else self.flags & ~FLAG_ROAD_GRADE,
                 len(vid),
                 self.seq,
                 self.timestamp_ns,
@@ -205,7 +212,7 @@ class Measurement:
                 self.r_radps,
                 self.torque_nm,
                 self.steer_rad,
-                0,
+                _GRADE.pack(self.grade_rad) if graded else bytes(8),
             )
             + vid
         )
@@ -216,7 +223,7 @@ class Measurement:
         data = bytes(payload)
         if len(data) < MEASUREMENT_HEADER_SIZE:
             raise ProtocolError(f"measurement too short: {len(data)} bytes, need at least {MEASUREMENT_HEADER_SIZE}")
-        magic, version, flags, id_len, seq, ts, vx, r, torque, steer, _reserved = _HEADER.unpack_from(data)
+        magic, version, flags, id_len, seq, ts, vx, r, torque, steer, reserved = _HEADER.unpack_from(data)
         if magic != MAGIC:
             raise ProtocolError(f"bad magic {magic!r}, expected {MAGIC!r}")
         if version != PROTOCOL_VERSION:
@@ -232,10 +239,12 @@ class Measurement:
         except UnicodeDecodeError as exc:
             raise ProtocolError("vehicle id is not UTF-8") from exc
         check_vehicle_id(vehicle_id)
-        return cls(vehicle_id, seq, ts, vx, r, torque, steer, flags)
+        grade = _GRADE.unpack(reserved)[0] if flags & FLAG_ROAD_GRADE else None
+        return cls(vehicle_id, seq, ts, vx, r, torque, steer, flags, grade)
 
     def is_finite(self) -> bool:
-        return all(math.isfinite(v) for v in (self.vx_mps, self.r_radps, self.torque_nm, self.steer_rad))
+        values = (self.vx_mps, self.r_radps, self.torque_nm, self.steer_rad)
+        return all(math.isfinite(v) for v in values) and (self.grade_rad is None or math.isfinite(self.grade_rad))
 
 
 class _Json(BaseModel):

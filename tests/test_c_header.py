@@ -46,17 +46,20 @@ def _cases() -> list[Measurement]:
     edges = [0.0, -0.0, 5e-324, -1.7976931348623157e308, 1e-300, math.pi]
     cases.append(Measurement("edge", 2**64 - 1, -(2**63), *edges[:4]))
     cases.append(Measurement("edge", 0, 0, *edges[2:], flags=1))
+    cases.append(Measurement("hill", 7, 1, 12.0, 0.01, 480.0, 0.002, grade_rad=0.052359877559829883))
+    cases.append(Measurement("dip", 0, 2, 9.0, -0.02, -150.0, -0.001, flags=1, grade_rad=-0.0))
     return cases
 
 
 def test_the_c_encoder_writes_the_python_bytes_and_keys(example):
     for m in _cases():
+        grade = [] if m.grade_rad is None else [repr(m.grade_rad)]
         out = _run(example, "encode", m.vehicle_id, str(m.seq), str(m.timestamp_ns),
-                   *(repr(v) for v in (m.vx_mps, m.r_radps, m.torque_nm, m.steer_rad)))  # fmt: skip
+                   *(repr(v) for v in (m.vx_mps, m.r_radps, m.torque_nm, m.steer_rad)), *grade)  # fmt: skip
         assert out.returncode == 0, out.stderr
         key, payload = out.stdout.split()
         expected = Measurement(m.vehicle_id, m.seq, m.timestamp_ns, m.vx_mps, m.r_radps, m.torque_nm, m.steer_rad,
-                               flags=1 if m.seq == 0 else 0)  # fmt: skip
+                               flags=1 if m.seq == 0 else 0, grade_rad=m.grade_rad)  # fmt: skip
         assert payload == expected.encode().hex(), m
         assert key == vehicle_key(m.vehicle_id, "meas") and key.split("/")[2] == bucket_of(m.vehicle_id)
     assert (
@@ -74,15 +77,16 @@ def _decoded(example: Path, payload: bytes) -> str:
 def test_the_c_decoder_reads_python_payloads_and_refuses_what_the_service_refuses(example):
     for m in _cases():
         fields = _decoded(example, m.encode()).split()
-        assert fields[:4] == [m.vehicle_id, str(m.flags), str(m.seq), str(m.timestamp_ns)]
+        flags = m.flags | (2 if m.grade_rad is not None else 0)
+        assert fields[:4] == [m.vehicle_id, str(flags), str(m.seq), str(m.timestamp_ns)]
         got = [float(v) for v in fields[4:]]
-        expected = [m.vx_mps, m.r_radps, m.torque_nm, m.steer_rad]
+        expected = [m.vx_mps, m.r_radps, m.torque_nm, m.steer_rad, *([] if m.grade_rad is None else [m.grade_rad])]
         assert [struct.pack("<d", v) for v in got] == [struct.pack("<d", v) for v in expected], m
     good = bytearray(Measurement("truck-7", 5, 1, 1.0, 0.0, 0.0, 0.0).encode())
     refused = {
         "magic": b"AGVX" + good[4:],
         "version": good[:4] + b"\x02" + good[5:],
-        "reserved": good[:5] + b"\x02" + good[6:],  # flag bit 1
+        "reserved": good[:5] + b"\x04" + good[6:],  # flag bit 2
         "size": good[:-1],
     }
     refused_reserved_bytes = good[:56] + b"\x01" + good[57:]

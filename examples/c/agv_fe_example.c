@@ -13,8 +13,8 @@
 #include "agv_fe/measurement.h"
 
 static int encode(int argc, char **argv) {
-    if (argc != 9) {
-        fprintf(stderr, "usage: encode ID SEQ T_NS VX R TORQUE STEER\n");
+    if (argc != 9 && argc != 10) {
+        fprintf(stderr, "usage: encode ID SEQ T_NS VX R TORQUE STEER [GRADE]\n");
         return 2;
     }
     agv_fe_measurement m;
@@ -31,6 +31,10 @@ static int encode(int argc, char **argv) {
     m.torque_nm = strtod(argv[7], NULL);
     m.steer_rad = strtod(argv[8], NULL);
     m.flags = m.seq == 0 ? AGV_FE_FLAG_SEQUENCE_RESTART : 0;
+    if (argc == 10) { /* the road grade [rad], + uphill */
+        m.grade_rad = strtod(argv[9], NULL);
+        m.flags |= AGV_FE_FLAG_ROAD_GRADE;
+    }
     uint8_t payload[AGV_FE_MAX_MEASUREMENT_SIZE];
     char key[160];
     int n = agv_fe_encode(&m, payload, sizeof payload);
@@ -68,8 +72,10 @@ static int decode(const char *hex) {
         printf("error %d\n", error);
         return 1;
     }
-    printf("%s %u %llu %lld %.17g %.17g %.17g %.17g\n", m.vehicle_id, (unsigned)m.flags, (unsigned long long)m.seq,
+    printf("%s %u %llu %lld %.17g %.17g %.17g %.17g", m.vehicle_id, (unsigned)m.flags, (unsigned long long)m.seq,
            (long long)m.timestamp_ns, m.vx_mps, m.r_radps, m.torque_nm, m.steer_rad);
+    if (m.flags & AGV_FE_FLAG_ROAD_GRADE) printf(" %.17g", m.grade_rad);
+    printf("\n");
     return 0;
 }
 
@@ -94,6 +100,6 @@ int main(int argc, char **argv) {
     if (argc >= 2 && strcmp(argv[1], "encode") == 0) return encode(argc, argv);
     if (argc == 3 && strcmp(argv[1], "decode") == 0) return decode(argv[2]);
     if (argc == 3 && strcmp(argv[1], "decode-estimate") == 0) return decode_estimate(argv[2]);
-    fprintf(stderr, "usage: %s encode ID SEQ T_NS VX R TORQUE STEER | decode HEX | decode-estimate HEX\n", argv[0]);
+    fprintf(stderr, "usage: %s encode ID SEQ T_NS VX R TORQUE STEER [GRADE] | decode HEX | decode-estimate HEX\n", argv[0]);
     return 2;
 }

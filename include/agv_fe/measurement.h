@@ -23,9 +23,11 @@
 #define AGV_FE_MAX_ID_LEN 64u
 /* the largest measurement: header and a 64-byte id */
 #define AGV_FE_MAX_MEASUREMENT_SIZE (AGV_FE_HEADER_SIZE + AGV_FE_MAX_ID_LEN)
-/* flag bit 0: the vehicle restarted its sequence (seq may jump back); every other bit must be zero */
+/* flag bit 0: the vehicle restarted its sequence (seq may jump back); bit 1: bytes 56-63 carry the road grade;
+ * every other bit must be zero */
 #define AGV_FE_FLAG_SEQUENCE_RESTART 0x01u
-#define AGV_FE_KNOWN_FLAGS AGV_FE_FLAG_SEQUENCE_RESTART
+#define AGV_FE_FLAG_ROAD_GRADE 0x02u
+#define AGV_FE_KNOWN_FLAGS (AGV_FE_FLAG_SEQUENCE_RESTART | AGV_FE_FLAG_ROAD_GRADE)
 
 /* errors: the functions return these (negative) or a length / zero on success */
 #define AGV_FE_ERR_ID (-1)        /* vehicle id not 1..64 of A-Z a-z 0-9 _ . - */
@@ -33,7 +35,7 @@
 #define AGV_FE_ERR_SIZE (-3)      /* payload too short, or its length does not match the header's id length */
 #define AGV_FE_ERR_MAGIC (-4)     /* not "AGVM" */
 #define AGV_FE_ERR_VERSION (-5)   /* a format version this side does not speak */
-#define AGV_FE_ERR_RESERVED (-6)  /* an unknown flag bit or non-zero reserved bytes */
+#define AGV_FE_ERR_RESERVED (-6)  /* an unknown flag bit, or non-zero bytes 56-63 without flag bit 1 */
 
 #if defined(_MSC_VER)
 #pragma pack(push, 1)
@@ -45,7 +47,7 @@
 struct AGV_FE_PACKED agv_fe_measurement_header {
     char magic[4];          /*  0: "AGVM" */
     uint8_t version;        /*  4: 1 */
-    uint8_t flags;          /*  5: bit 0 = sequence restart, others 0 */
+    uint8_t flags;          /*  5: bit 0 = sequence restart, bit 1 = road grade, others 0 */
     uint16_t id_len;        /*  6: L, 1..64 */
     uint64_t seq;           /*  8: +1 per sample */
     int64_t timestamp_ns;   /* 16: ns since the Unix epoch, vehicle clock */
@@ -53,7 +55,7 @@ struct AGV_FE_PACKED agv_fe_measurement_header {
     double r_radps;         /* 32: yaw rate r [rad/s], measured, + left */
     double torque_nm;       /* 40: demanded total drive torque at the driven wheels T_d [N m], + driving */
     double steer_rad;       /* 48: demanded road-wheel angle delta_d [rad], + left */
-    uint8_t reserved[8];    /* 56: zero */
+    double grade_rad;       /* 56: road grade [rad], + uphill, with flag bit 1; zero bytes without it */
 };
 #if defined(_MSC_VER)
 #pragma pack(pop)
@@ -67,6 +69,7 @@ typedef struct {
     uint64_t seq;
     int64_t timestamp_ns;
     double vx_mps, r_radps, torque_nm, steer_rad;
+    double grade_rad; /* sent with flag bit AGV_FE_FLAG_ROAD_GRADE only; 0 when decoded without it */
 } agv_fe_measurement;
 
 /* CRC-32 of zlib, ISO-HDLC (polynomial 0x04C11DB7 reflected = 0xEDB88320, initial and final XOR 0xFFFFFFFF). */
@@ -143,7 +146,10 @@ static inline int agv_fe_encode(const agv_fe_measurement *m, uint8_t *out, size_
     agv_fe_put_le(out + 32, agv_fe_double_bits(m->r_radps), 8);
     agv_fe_put_le(out + 40, agv_fe_double_bits(m->torque_nm), 8);
     agv_fe_put_le(out + 48, agv_fe_double_bits(m->steer_rad), 8);
-    memset(out + 56, 0, 8);
+    if (m->flags & AGV_FE_FLAG_ROAD_GRADE)
+        agv_fe_put_le(out + 56, agv_fe_double_bits(m->grade_rad), 8);
+    else
+        memset(out + 56, 0, 8);
     memcpy(out + AGV_FE_HEADER_SIZE, m->vehicle_id, id_len);
     return (int)(AGV_FE_HEADER_SIZE + id_len);
 }
@@ -155,7 +161,8 @@ static inline int agv_fe_decode(const uint8_t *p, size_t n, agv_fe_measurement *
     if (p[4] != AGV_FE_PROTOCOL_VERSION) return AGV_FE_ERR_VERSION;
     size_t id_len = (size_t)agv_fe_get_le(p + 6, 2);
     if (n != AGV_FE_HEADER_SIZE + id_len || id_len > AGV_FE_MAX_ID_LEN) return AGV_FE_ERR_SIZE;
-    if ((p[5] & ~AGV_FE_KNOWN_FLAGS) != 0 || agv_fe_get_le(p + 56, 8) != 0) return AGV_FE_ERR_RESERVED;
+    int graded = (p[5] & AGV_FE_FLAG_ROAD_GRADE) != 0;
+    if ((p[5] & ~AGV_FE_KNOWN_FLAGS) != 0 || (!graded && agv_fe_get_le(p + 56, 8) != 0)) return AGV_FE_ERR_RESERVED;
     memcpy(m->vehicle_id, p + AGV_FE_HEADER_SIZE, id_len);
     m->vehicle_id[id_len] = '\0';
     if (strlen(m->vehicle_id) != id_len || !agv_fe_valid_id(m->vehicle_id)) return AGV_FE_ERR_ID;
@@ -166,6 +173,7 @@ static inline int agv_fe_decode(const uint8_t *p, size_t n, agv_fe_measurement *
     m->r_radps = agv_fe_bits_double(agv_fe_get_le(p + 32, 8));
     m->torque_nm = agv_fe_bits_double(agv_fe_get_le(p + 40, 8));
     m->steer_rad = agv_fe_bits_double(agv_fe_get_le(p + 48, 8));
+    m->grade_rad = graded ? agv_fe_bits_double(agv_fe_get_le(p + 56, 8)) : 0.0;
     return 0;
 }
 
