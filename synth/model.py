@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from synth.params import VehicleParams
+from synth.params import STANDARD_GRAVITY_MPS2, VehicleParams
 
 FloatArray = NDArray[np.floating[Any]]
 
@@ -191,22 +191,25 @@ def model_demand(y: ArrayLike, u_d: ArrayLike, p: VehicleParams) -> FloatArray:
 
 
 def payload_torque(
-    v_x: ArrayLike, torque_nm: ArrayLike, payload_kg: ArrayLike, p: VehicleParams
+    v_x: ArrayLike, torque_nm: ArrayLike, payload_kg: ArrayLike, p: VehicleParams, grade_rad: ArrayLike = 0.0
 ) -> tuple[FloatArray, FloatArray]:
-    """The drive torque the profile's vehicle would need to move as the vehicle with a payload does, and the
-    ratio rho = m_eff / (m_eff + payload) a torque fault is seen through (docs/math.md 12.5).
+    """The drive torque the profile's vehicle would need on level ground to move as the vehicle with a payload, on
+    a road of grade ``grade_rad``, does, and the ratio rho = m_eff / (m_eff + payload) a torque fault is seen
+    through (docs/math.md 12.5 and 12.6).
 
     A payload of Delta kg at the centre of gravity adds Delta to the effective mass and, with the rolling
-    resistance proportional to the weight, F_r Delta / M_v to it: the vehicle's dv_x/dt - v_y r is then
-    rho (T / R_w - C_x v_x^2 - F_r kappa) / m_eff with kappa = (M_v + Delta) / M_v. The model's eq. (1) gives the
-    same acceleration with the torque
+    resistance proportional to the weight, F_r Delta / M_v to it; a grade theta (+ uphill) pulls the whole mass
+    back with (M_v + Delta) g sin(theta). The vehicle's dv_x/dt - v_y r is then
+    rho (T / R_w - C_x v_x^2 - F_r kappa - (M_v + Delta) g sin(theta)) / m_eff with kappa = (M_v + Delta) / M_v.
+    The model's eq. (1) gives the same acceleration with the torque
 
-        T_model = rho T + R_w ((1 - rho) C_x v_x^2 + (1 - rho kappa) F_r),
+        T_model = rho T + R_w ((1 - rho) C_x v_x^2 + (1 - rho kappa) F_r - rho (M_v + Delta) g sin(theta)),
 
     and a torque fault T_f of the vehicle appears in the model as rho T_f: an observer fed T_model estimates
     rho T_f, which divided by rho is the fault again. Known signals only, so the model's input stays known and
     the design's certificate holds. Left out: the cornering drag's share (its factor 1 - rho kappa is under
-    1 % for any payload when m_eff is within 5 % of M_v) and the payload's effect on the lateral dynamics.
+    1 % for any payload when m_eff is within 5 % of M_v), the payload's effect on the lateral dynamics, and the
+    grade's cos(theta) on the rolling resistance (0.1 % at a 5 % grade).
 
     Parameters
     ----------
@@ -218,6 +221,8 @@ def payload_torque(
         The payload [kg], >= 0.
     p : VehicleParams
         The vehicle without payload (the profile).
+    grade_rad : (...) array_like
+        The road's grade, the angle of the road to the horizontal along the vehicle's x axis [rad], + uphill.
 
     Returns
     -------
@@ -232,7 +237,32 @@ def payload_torque(
     rho = m_eff / (m_eff + payload)
     kappa = (p.mass_kg + payload) / p.mass_kg
     drag = (1.0 - rho) * p.longitudinal_drag_coeff * v_x**2 + (1.0 - rho * kappa) * p.rolling_resistance_n
-    return np.asarray(rho * np.asarray(torque_nm, dtype=float) + p.wheel_radius_m * drag, dtype=float), rho
+    torque = rho * np.asarray(torque_nm, dtype=float) + p.wheel_radius_m * drag
+    grade = np.asarray(grade_rad, dtype=float)
+    if grade.any():
+        torque = torque - grade_torque(grade, payload, p)
+    return np.asarray(torque, dtype=float), rho
+
+
+def grade_torque(grade_rad: ArrayLike, payload_kg: ArrayLike, p: VehicleParams) -> FloatArray:
+    """The part of :func:`payload_torque` the road's grade takes [N m]: rho R_w (M_v + payload) g sin(theta), with
+    theta [rad] + uphill and rho = m_eff / (m_eff + payload) (docs/math.md 12.6)."""
+    payload = np.asarray(payload_kg, dtype=float)
+    m_eff = p.effective_mass_kg
+    return np.asarray(m_eff / (m_eff + payload) * _grade_pull(grade_rad, payload, p), dtype=float)
+
+
+def level_torque(torque_nm: ArrayLike, grade_rad: ArrayLike, payload_kg: ArrayLike, p: VehicleParams) -> FloatArray:
+    """The torque that moves the vehicle (with its payload) on level ground as ``torque_nm`` does on a road of grade
+    ``grade_rad`` [rad, + uphill]: T - R_w (M_v + payload) g sin(theta); :func:`payload_torque` of it without the
+    grade is :func:`payload_torque` of T with it (docs/math.md 12.6)."""
+    return np.asarray(np.asarray(torque_nm, dtype=float) - _grade_pull(grade_rad, payload_kg, p), dtype=float)
+
+
+def _grade_pull(grade_rad: ArrayLike, payload_kg: ArrayLike, p: VehicleParams) -> FloatArray:
+    """R_w (M_v + payload) g sin(theta): the wheel torque that holds the weight on the grade [N m]."""
+    weight = (p.mass_kg + np.asarray(payload_kg, dtype=float)) * STANDARD_GRAVITY_MPS2
+    return np.asarray(p.wheel_radius_m * weight * np.sin(np.asarray(grade_rad, dtype=float)), dtype=float)
 
 
 def continuous_dynamics(x: ArrayLike, u_d: ArrayLike, w: ArrayLike, f: ArrayLike, p: VehicleParams) -> FloatArray:

@@ -1,13 +1,14 @@
-"""A payload as the model's equivalent drive torque (synth.model.payload_torque, docs/math.md 12.5)."""
+"""A payload and a road grade as the model's equivalent drive torque (synth.model.payload_torque, docs/math.md 12.5
+and 12.6)."""
 
 import numpy as np
 import pytest
 
 from synth.design import synthesize
-from synth.model import continuous_dynamics, payload_torque, rk4_step
+from synth.model import continuous_dynamics, grade_torque, level_torque, payload_torque, rk4_step
 from synth.observer import FuzzyObserver
 from synth.options import DesignOptions
-from synth.params import VehicleParams
+from synth.params import STANDARD_GRAVITY_MPS2, VehicleParams
 
 PROFILE = VehicleParams(rolling_resistance_n=180.0, longitudinal_drag_coeff=0.45, effective_mass_kg=1340.0)
 PAYLOAD_KG = 240.0
@@ -38,6 +39,29 @@ def test_the_model_fed_the_payload_torque_accelerates_as_the_loaded_vehicle(faul
     unchanged, one = payload_torque(x[:, 0], u[:, 0], 0.0, PROFILE)
     np.testing.assert_array_equal(unchanged, u[:, 0])
     assert one == 1.0
+
+
+@pytest.mark.parametrize("payload_kg", [0.0, PAYLOAD_KG])
+def test_the_model_fed_the_grade_torque_accelerates_as_the_vehicle_on_the_grade(payload_kg):
+    """On a grade theta the weight (M_v + payload) g sin(theta) pulls the vehicle back: the loaded vehicle with
+    that force as a torque fault -R_w (M_v + payload) g sin(theta) is the truth; the profile's model fed
+    payload_torque(..., grade) and rho times the vehicle's own fault accelerates as it does."""
+    heavy = loaded(PROFILE, payload_kg)
+    x = np.array([[8.0, 0.1, 0.05], [25.0, -0.2, -0.1], [15.0, 0.0, 0.0]])
+    u = np.array([[900.0, 0.02], [-1500.0, -0.01], [400.0, 0.0]])
+    grade = np.array([0.08, -0.05, 0.0])
+    fault = -120.0
+    pull = PROFILE.wheel_radius_m * (PROFILE.mass_kg + payload_kg) * STANDARD_GRAVITY_MPS2 * np.sin(grade)
+    truth = continuous_dynamics(x, u, 0.0, np.column_stack([fault - pull, np.zeros(3)]), heavy)[:, 0]
+    torque, rho = payload_torque(x[:, 0], u[:, 0], payload_kg, PROFILE, grade)
+    model = continuous_dynamics(x, np.column_stack([torque, u[:, 1]]), 0.0, np.array([rho * fault, 0.0]), PROFILE)
+    np.testing.assert_allclose(model[:, 0], truth, rtol=1e-12, atol=1e-12)
+    # the grade's part, and the level-ground torque the payload's own term is then applied to
+    without, _ = payload_torque(x[:, 0], u[:, 0], payload_kg, PROFILE)
+    np.testing.assert_allclose(without - torque, grade_torque(grade, payload_kg, PROFILE), rtol=1e-12)
+    level = level_torque(u[:, 0], grade, payload_kg, PROFILE)
+    np.testing.assert_allclose(payload_torque(x[:, 0], level, payload_kg, PROFILE)[0], torque, rtol=1e-12)
+    assert grade_torque(0.0, payload_kg, PROFILE) == 0.0
 
 
 def _accelerating(p: VehicleParams, fault_nm: float) -> tuple[np.ndarray, np.ndarray]:
