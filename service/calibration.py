@@ -35,7 +35,7 @@ import numpy as np
 import scipy.stats
 
 from service.profiles import AlarmThresholds, ProfileSpec
-from synth.calibration import CalibrationOptions, CalibrationResult, Drive, calibrate
+from synth.calibration import CalibrationOptions, CalibrationResult, Drive, calibrate, level_ground
 from synth.design import synthesize
 from synth.effectiveness import EffectivenessObserver
 from synth.gains import ObserverGains
@@ -198,6 +198,7 @@ def calibrate_profile(
     if not (false_alarms_per_1000_h > 0 and math.isfinite(false_alarms_per_1000_h)):
         raise ValueError(f"false_alarms_per_1000_h must be positive, got {false_alarms_per_1000_h}")
     say = progress or (lambda _line: None)
+    drives = [level_ground(d, base) for d in drives]  # the torque the service gives the model for a graded sample
     result = stated_bounds(calibrate(drives, base, options), bounds)
     say(f"parameters identified from {result.duration_s:.0f} s of driving")
     params = result.params
@@ -636,7 +637,7 @@ def run_calibration(request: dict[str, Any]) -> dict[str, Any]:
             rec = parse_recording(item["csv"].splitlines(), period, source=item["name"])
         except RecordingError as exc:
             return {"ok": False, "error": "bad_recording", "reason": str(exc)}
-        drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=item["name"]))
+        drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=item["name"], grade=rec.grade))
     try:
         report = calibrate_from_base(
             drives,

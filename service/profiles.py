@@ -145,6 +145,7 @@ class InputLimits(BaseModel):
     r_abs_max_radps: Positive = Field(5.0, description="highest |r| [rad/s]")
     torque_abs_max_nm: Positive = Field(20_000.0, description="highest |T_d| [N m]")
     steer_abs_max_rad: Positive = Field(1.0, description="highest |delta_d| [rad]")
+    grade_abs_max_rad: Positive = Field(0.35, description="highest |road grade| a sample may carry [rad]")
 
     @model_validator(mode="after")
     def _ordered(self) -> InputLimits:

@@ -20,7 +20,7 @@ from service.fleet.alarms import Detector, EffectivenessLevels, FaultLevels, Lev
 from service.profiles import ProfileSpec
 from synth.effectiveness import EffectivenessEstimator
 from synth.gains import ObserverGains
-from synth.model import FloatArray, payload_torque
+from synth.model import FloatArray, grade_torque, payload_torque
 from synth.observer import RuntimeGains, initial_observer_state, observer_step, switched_step
 from synth.params import VehicleParams
 
@@ -281,14 +281,24 @@ class ProfileBank:
 
     # ------------------------------------------------------------------ the step
 
-    def step(self, slots: np.ndarray, y: FloatArray, u: FloatArray, seq: np.ndarray, t_ns: np.ndarray) -> StepOutput:
-        """Advance ``slots`` (distinct) by one sample: y (k, 2) = [v_x, r], u (k, 2) = [T_d, delta_d], finite."""
+    def step(
+        self,
+        slots: np.ndarray,
+        y: FloatArray,
+        u: FloatArray,
+        seq: np.ndarray,
+        t_ns: np.ndarray,
+        grade: FloatArray | None = None,
+    ) -> StepOutput:
+        """Advance ``slots`` (distinct) by one sample: y (k, 2) = [v_x, r], u (k, 2) = [T_d, delta_d], finite;
+        ``grade`` (k,) the road grade the samples carry [rad, + uphill] (0 where one carries none), or None."""
         rt = self.runtime
         if rt is None:
             raise RuntimeError(f"profile {self.name!r} has no active gains")
         rho = None
-        if self.loaded_rows:  # a payload: the model's torque, and its ratio to scale the torque faults back
-            u, rho = self._payload_input(slots, y, u, rt.gains.params)
+        stage_u = u
+        if self.loaded_rows or grade is not None:  # the model's torque, and rho to scale the torque faults back
+            u, stage_u, rho = self._model_input(slots, y, u, grade, rt.gains.params)
         restarted = self.needs_init[slots]
         if restarted.any():
             rows = slots[restarted]
@@ -309,7 +319,7 @@ class ProfileBank:
             self.domain.reset(rows, keep_level=True)
             self.effectiveness.reset(rows, keep_level=True)
             if self.stage is not None:
-                self.stage.reset(rows, u[restarted])
+                self.stage.reset(rows, stage_u[restarted])
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             if rt.switched:
                 z_next, stat, left, res = switched_step(
@@ -323,7 +333,8 @@ class ProfileBank:
         values = res.x_hat[:, :_N_STATE]
         finite: np.ndarray = np.asarray(np.isfinite(values).all(axis=1) & np.isfinite(z_next).all(axis=1))
         if self.stage is not None:
-            values = self._second_stage(self.stage, slots, values, finite, res.fast if rt.switched else None, y, u)
+            fast = res.fast if rt.switched else None
+            values = self._second_stage(self.stage, slots, values, finite, fast, y, stage_u)
         if rho is not None:
             values = values.copy() if values.base is not None else values  # not the step's own arrays
             values[:, _TORQUE_FAULT] /= rho
@@ -357,18 +368,28 @@ class ProfileBank:
             fast=res.fast if rt.switched else None,
         )
 
-    def _payload_input(
-        self, slots: np.ndarray, y: FloatArray, u: FloatArray, params: VehicleParams
-    ) -> tuple[FloatArray, FloatArray | None]:
-        """The demand with the model's torque for the rows' payloads (synth.model.payload_torque), and rho; rho is
-        None when none of these rows carries one."""
+    def _model_input(
+        self, slots: np.ndarray, y: FloatArray, u: FloatArray, grade: FloatArray | None, params: VehicleParams
+    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """The demand with the model's torque for the rows' payloads and the samples' road grades
+        (synth.model.payload_torque); the same without the grade's part, which the effectiveness stage scales
+        (a loss of effectiveness scales the torque the actuator delivers, not the grade's); and rho, None when none
+        of these rows carries a payload."""
         payload = self.payload_kg[slots]
-        if not payload.any():
-            return u, None
-        torque, rho = payload_torque(y[:, 0], u[:, 0], payload, params)
-        model_u = u.copy()
-        model_u[:, 0] = torque
-        return model_u, rho
+        loaded = bool(self.loaded_rows) and bool(payload.any())
+        graded = grade is not None and bool(grade.any())
+        if not loaded and not graded:
+            return u, u, None
+        stage_u, rho = u, None
+        if loaded:
+            torque, rho = payload_torque(y[:, 0], u[:, 0], payload, params)
+            stage_u = u.copy()
+            stage_u[:, 0] = torque
+        model_u = stage_u
+        if grade is not None and graded:
+            model_u = stage_u.copy()
+            model_u[:, 0] -= grade_torque(grade, payload, params)
+        return model_u, stage_u, rho
 
     def _second_stage(
         self,

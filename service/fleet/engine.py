@@ -50,6 +50,7 @@ from typing import Any, Literal
 import numpy as np
 
 from agv_protocol.wire import (
+    FLAG_ROAD_GRADE,
     FLAG_SEQUENCE_RESTART,
     KNOWN_FLAGS,
     MAGIC,
@@ -92,10 +93,29 @@ _FAST_SEQ_LIMIT = 1 << 62
 _FRAME_PREFIX = MAGIC + bytes([PROTOCOL_VERSION])
 
 
-def _limits_row(spec: ProfileSpec) -> tuple[float, float, float, float, float]:
-    """(v_x min, v_x max, |r| max, |T_d| max, |delta_d| max) of a profile's plausibility limits."""
+def _limits_row(spec: ProfileSpec) -> tuple[float, float, float, float, float, float]:
+    """(v_x min, v_x max, |r| max, |T_d| max, |delta_d| max, |grade| max) of a profile's plausibility limits."""
     lim = spec.limits
-    return (lim.vx_min_mps, lim.vx_max_mps, lim.r_abs_max_radps, lim.torque_abs_max_nm, lim.steer_abs_max_rad)
+    return (
+        lim.vx_min_mps,
+        lim.vx_max_mps,
+        lim.r_abs_max_radps,
+        lim.torque_abs_max_nm,
+        lim.steer_abs_max_rad,
+        lim.grade_abs_max_rad,
+    )
+
+
+def _graded(header: np.ndarray) -> tuple[np.ndarray, FloatArray | None]:
+    """Which frames conform when a frame may carry a road grade (flag bit 1: bytes 56-63 are its grade, f64; zero
+    without the flag), and the grades (0 where a frame carries none), None when no frame carries one."""
+    flags = header["flags"]
+    known = (flags & ~np.uint8(KNOWN_FLAGS)) == 0
+    graded = (flags & np.uint8(FLAG_ROAD_GRADE)) != 0
+    if not graded.any():
+        return known & (header["reserved"] == 0), None
+    grade = np.where(graded, header["reserved"].view(np.float64), 0.0)
+    return known & (graded | (header["reserved"] == 0)), grade
 
 
 def _classify(payload: bytes, vehicle_id: str) -> RejectReason:
@@ -179,7 +199,7 @@ class FleetEngine:
         self.stats.update({"missing": 0, "gaps": 0, "restarts": 0, "numerical_restarts": 0})
         self.rejected: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
         #: plausibility limits of every profile, one row per bank ordinal (see _limits_row)
-        self._limits = np.zeros((0, 5))
+        self._limits = np.zeros((0, 6))
         self._ordinal: dict[str, int] = {}
         self._stale_count = 0  # vehicles marked stale now (a tick with none skips gathering the flags)
         # the common tick's shortcuts in stepping (one round, no restart, every estimate finite and published);
@@ -190,7 +210,7 @@ class FleetEngine:
 
     def _refresh_limits(self) -> None:
         self._ordinal = {name: k for k, name in enumerate(self.banks)}
-        self._limits = np.array([_limits_row(bank.spec) for bank in self.banks.values()]).reshape(-1, 5)
+        self._limits = np.array([_limits_row(bank.spec) for bank in self.banks.values()]).reshape(-1, 6)
 
     def add_profile(self, name: str, spec: ProfileSpec) -> ProfileBank:
         if name in self.banks:
@@ -389,7 +409,7 @@ class FleetEngine:
         seq_all = tick.header["seq"].astype(np.int64)
         t_ns_all = tick.header["t_ns"].astype(np.int64)
         for name, rows in per_bank.items():
-            self._step_bank(self.banks[name], rows, tick.values, seq_all, t_ns_all, now_mono, now_ns, result)
+            self._step_bank(self.banks[name], rows, tick, seq_all, t_ns_all, now_mono, now_ns, result)
         return result
 
     def _decode(
@@ -428,7 +448,8 @@ class FleetEngine:
 
     def _plausibility(self, frame_vehicles: list[Vehicle], headers: list[bytes]) -> Checked:
         """Stage 2: the values of every frame at once, checked against its profile's limits before its sequence
-        number is believed: finite, within limits, flag bits this version defines and zero reserved bytes."""
+        number is believed: finite, within limits, flag bits this version defines and zero reserved bytes (bytes
+        56-63 of a frame with flag bit 1 are its road grade, checked as a value)."""
         header = np.frombuffer(b"".join(headers), dtype=MEASUREMENT_HEADER_DTYPE)
         values = np.column_stack([header["vx"], header["r"], header["torque"], header["steer"]])
         ordinal = self._ordinal
@@ -439,6 +460,11 @@ class FleetEngine:
         lim = self._limits[bank_of]
         finite = np.isfinite(values).all(axis=1)
         conforming = ((header["flags"] & ~np.uint8(KNOWN_FLAGS)) == 0) & (header["reserved"] == 0)
+        grade = None
+        if not conforming.all():  # a road grade in the reserved bytes, or a frame that breaks the format
+            conforming, grade = _graded(header)
+            if grade is not None:
+                finite &= np.isfinite(grade)
         with np.errstate(invalid="ignore"):
             ok = (
                 conforming
@@ -449,7 +475,9 @@ class FleetEngine:
                 & (np.abs(values[:, 2]) <= lim[:, 3])
                 & (np.abs(values[:, 3]) <= lim[:, 4])
             )
-        return Checked(frame_vehicles, header, values, bank_of, ok, conforming, finite)
+            if grade is not None:
+                ok &= np.abs(grade) <= lim[:, 5]
+        return Checked(frame_vehicles, header, values, bank_of, ok, conforming, finite, grade)
 
     def _sequence_in_order(
         self, tick: Checked, per_bank: dict[str, Rows], now_mono: float, now_ns: int, result: TickResult
@@ -691,7 +719,7 @@ class FleetEngine:
         self,
         bank: ProfileBank,
         rows: Rows,
-        tick_values: FloatArray,
+        tick: Checked,
         tick_seq: np.ndarray,
         tick_t_ns: np.ndarray,
         now_mono: float,
@@ -700,11 +728,12 @@ class FleetEngine:
     ) -> None:
         """Step the validated samples of one profile, one round per sample index of a vehicle."""
         at = np.array(rows.positions, dtype=np.int64)
-        values, seq, t_ns = tick_values[at], tick_seq[at], tick_t_ns[at]
+        values, seq, t_ns = tick.values[at], tick_seq[at], tick_t_ns[at]
+        grade = None if tick.grade is None else tick.grade[at]
         slots = np.array(rows.slots, dtype=np.int64)
         if self._shortcuts and not rows.later and not rows.restart:  # the common tick: one sample each, no restart
             idx = np.arange(len(slots))
-            out = bank.step(slots, values[:, :2], values[:, 2:], seq, t_ns)
+            out = bank.step(slots, values[:, :2], values[:, 2:], seq, t_ns, grade)
             self._after_step(bank, rows, idx, slots, out, seq, t_ns, values, result)
             result.accepted += len(slots)
             self.stats["accepted"] += len(slots)
@@ -726,7 +755,8 @@ class FleetEngine:
                     bank.restart(int(slots[i]))
                     rows.vehicles[i].base_counters["restarts"] += 1
                 self.stats["restarts"] += len(again)
-            out = bank.step(s, values[idx][:, [0, 1]], values[idx][:, [2, 3]], seq[idx], t_ns[idx])
+            round_grade = None if grade is None else grade[idx]
+            out = bank.step(s, values[idx][:, [0, 1]], values[idx][:, [2, 3]], seq[idx], t_ns[idx], round_grade)
             self._after_step(bank, rows, idx, s, out, seq, t_ns, values, result)
         result.accepted += len(slots)
         self.stats["accepted"] += len(slots)

@@ -48,7 +48,8 @@ class Checked:
     vehicles : the frames' vehicles, in arrival order; header : their decoded headers (MEASUREMENT_HEADER_DTYPE:
     seq and flags among them); values : (n, 4) [v_x, r, T_d, delta_d]; bank_of : each frame's profile ordinal;
     ok : plausible (conforming, finite, within limits); conforming, finite : the parts of ok that name a reject
-    reason.
+    reason; grade : (n,) the road grade of the frames that carry one (flag bit 1), 0 for the others, or None when
+    none does.
     """
 
     vehicles: list[Vehicle]
@@ -58,3 +59,4 @@ class Checked:
     ok: np.ndarray
     conforming: np.ndarray
     finite: np.ndarray
+    grade: FloatArray | None = None

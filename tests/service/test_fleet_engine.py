@@ -148,15 +148,16 @@ def test_bad_values_are_rejected_counted_and_leave_the_state_intact(fast_gains, 
 @pytest.mark.parametrize(
     "corrupt",
     [
-        lambda b: b[:5] + bytes([0x02]) + b[6:],  # a flag bit version 1 does not define
+        lambda b: b[:5] + bytes([0x04]) + b[6:],  # a flag bit version 1 does not define
         lambda b: b[:5] + bytes([0x81]) + b[6:],  # the restart bit and an undefined one
         lambda b: b[:56] + (1).to_bytes(8, "little") + b[64:],  # reserved bytes not zero
         lambda b: b[:63] + b"\x80" + b[64:],
     ],
 )
 def test_flags_and_reserved_bytes_that_must_be_zero_are_rejected_by_name(fast_gains, corrupt):
-    """docs/protocol.md: flag bits other than bit 0 and the 8 reserved bytes are zero. A sample that sets them is
-    not a version 1 measurement: rejected as reserved_bits, counted, and nothing else moves."""
+    """docs/protocol.md: flag bits other than bits 0 and 1 are zero, and so are bytes 56-63 without bit 1 (the
+    road grade). A sample that sets them is not a version 1 measurement: rejected as reserved_bits, counted, and
+    nothing else moves."""
     good = [constant_measurement("v", k) for k in range(20)]
     clean = make_engine(fast_gains)
     clean.process(pairs(good[:10]))
@@ -678,6 +679,43 @@ def test_the_tick_fast_path_gives_what_one_by_one_sequencing_gives(fast_gains, m
     rejected = fast_run[2]
     assert all(rejected[r] > 0 for r in ("duplicate", "out_of_order", "non_finite", "out_of_range"))
     assert fast_run[1]["gaps"] > 0 and fast_run[1]["restarts"] > 0
+
+
+def _hill(n_samples: int, p: VehicleParams) -> tuple[list[list[Measurement]], np.ndarray]:
+    """The project's plant climbing and descending (paper scenario 1 without its faults): a road grade theta(t)
+    acts on the vehicle as the torque fault -R_w M_v g sin(theta) (docs/math.md 12.6). The samples, and theta."""
+    from edge_client.faults import SinusoidalFault, fault_tables
+    from synth.params import STANDARD_GRAVITY_MPS2
+
+    pull = SinusoidalFault(channel="torque", amplitude=60.0, omega_radps=0.8, offset=-80.0, phase_from_zero=True)
+    t = np.arange(n_samples) * p.sample_period_s
+    grade = np.arcsin(-fault_tables((pull,), t)[0][:, 0] / (p.wheel_radius_m * p.mass_kg * STANDARD_GRAVITY_MPS2))
+    samples = plant_measurements(["v"], n_samples, scenario=paper_1().model_copy(update={"faults": (pull,)}))
+    return samples, grade
+
+
+def test_a_road_grade_in_the_measurement_keeps_a_hill_from_reading_as_a_torque_fault(fast_gains):
+    """A vehicle on a hill (the project's plant, no fault) that sends the grade (flag bit 1): the observer reads no
+    torque fault; one that does not, reads the grade's pull as one; a grade beyond the profile's limit, or not
+    finite, is refused by name (docs/protocol.md)."""
+    p = VehicleParams()
+    samples, grade = _hill(900, p)
+    engine = make_engine(fast_gains)
+    torque: dict[str, list[float]] = {"told": [], "blind": []}
+    for k, (m,) in enumerate(samples):
+        told = dataclasses.replace(m, vehicle_id="told", grade_rad=float(grade[k]))
+        blind = dataclasses.replace(m, vehicle_id="blind")
+        for e in decoded(engine.process(pairs([told, blind]))):
+            torque[e.vehicle].append(e.torque_fault)
+    told_t, blind_t = (np.abs(np.array(torque[v][300:])) for v in ("told", "blind"))
+    assert len(told_t) == len(blind_t) == 600
+    assert blind_t.mean() > 20.0 and told_t.max() < 0.05 * blind_t.mean()
+    assert sum(engine.rejected.values()) == 0
+    steep = dataclasses.replace(samples[0][0], vehicle_id="told", seq=900, timestamp_ns=T0_NS + 900 * PERIOD_NS)
+    engine.process(pairs([dataclasses.replace(steep, grade_rad=0.5)]))
+    engine.process(pairs([dataclasses.replace(steep, grade_rad=math.nan)]))
+    assert engine.vehicles["told"].rejected["out_of_range"] == 1
+    assert engine.vehicles["told"].rejected["non_finite"] == 1
 
 
 def test_a_payload_with_the_effectiveness_stage_scales_the_torque_bias_and_total_not_alpha(robust_gains_default):
