@@ -92,6 +92,8 @@ MIN_SIMULATED_SPEED_MPS = 1.0
 #: Default sensor noise: standard deviations of v_x [m/s] and r [rad/s].
 DEFAULT_SPEED_SIGMA_MPS = 0.05
 DEFAULT_YAW_RATE_SIGMA_RADPS = 0.005
+#: Default noise on the reported road grade [rad]: 0.11 degrees, an INS's pitch less the suspension's.
+DEFAULT_GRADE_SIGMA_RAD = 0.002
 
 # Indices into the 29-state MB vector (the model's x1..x29 are 0-based here).
 _STEER, _VX, _YAW_RATE, _PITCH, _VY, _Z = 2, 3, 5, 8, 10, 11
@@ -255,18 +257,22 @@ class Drive:
 
     speed_mps (K,) reference speed [m/s]; accel_mps2 (K,) its derivative
     [m/s^2]; curvature_1pm (K,) path curvature kappa [1/m], + = left. The
-    reference yaw rate is speed * curvature.
+    reference yaw rate is speed * curvature. grade_rad (K,) the road's grade
+    under the vehicle [rad], + uphill (None: level ground; :func:`on_hills`).
     """
 
     name: str
     speed_mps: FloatArray
     accel_mps2: FloatArray
     curvature_1pm: FloatArray
+    grade_rad: FloatArray | None = None
 
     def __post_init__(self) -> None:
         n = self.speed_mps.shape
-        for label in ("speed_mps", "accel_mps2", "curvature_1pm"):
+        for label in ("speed_mps", "accel_mps2", "curvature_1pm", "grade_rad"):
             value = getattr(self, label)
+            if value is None:
+                continue
             if value.ndim != 1 or value.shape != n:
                 raise MultibodyError(f"Drive.{label}: expected shape {n}, found {value.shape}")
         if n[0] < 2:
@@ -606,6 +612,30 @@ def calibration_drive() -> Drive:
     return b.build("calibration")
 
 
+#: Steepest grade of :func:`on_hills` by default [rad]: 6 %, a steep main road or a warehouse ramp.
+HILL_GRADE_RAD = 0.06
+#: How long :func:`on_hills` holds a grade [s] (uniform in this range) and takes to change it [s].
+HILL_HOLD_S, HILL_CHANGE_S = (8.0, 25.0), 5.0
+
+
+def on_hills(drive: Drive, rng: np.random.Generator, max_grade_rad: float = HILL_GRADE_RAD) -> Drive:
+    """``drive`` on a road that climbs and descends: grades uniform in +-``max_grade_rad``, each held for
+    HILL_HOLD_S and reached over HILL_CHANGE_S with a smooth ramp, level for the first HILL_HOLD_S[0]."""
+    if not 0.0 < max_grade_rad < 0.5:
+        raise MultibodyError(f"max_grade_rad must be in (0, 0.5) rad, got {max_grade_rad}")
+    t = drive.t
+    grade = np.zeros_like(t)
+    start, level = HILL_HOLD_S[0], 0.0
+    while start < t[-1]:
+        target = float(rng.uniform(-max_grade_rad, max_grade_rad))
+        ramp = _smoothstep((t - start) / HILL_CHANGE_S)
+        hold_end = start + HILL_CHANGE_S + float(rng.uniform(*HILL_HOLD_S))
+        inside = t >= start
+        grade[inside] = level + (target - level) * ramp[inside]
+        start, level = hold_end, target
+    return dataclasses.replace(drive, name=f"{drive.name}_hills", grade_rad=grade)
+
+
 #: Deterministic drives by name (each a function of no arguments).
 NAMED_DRIVES: dict[str, Callable[[], Drive]] = {
     "calibration": calibration_drive,
@@ -628,10 +658,12 @@ def named_drive(name: str) -> Drive:
 
 @dataclass(frozen=True)
 class SensorNoise:
-    """Seeded Gaussian noise on the measured v_x [m/s] and r [rad/s] (standard deviations)."""
+    """Seeded Gaussian noise on the measured v_x [m/s] and r [rad/s] and, on a drive with a grade, on the grade
+    the vehicle reports [rad] (standard deviations)."""
 
     speed_sigma_mps: float = DEFAULT_SPEED_SIGMA_MPS
     yaw_rate_sigma_radps: float = DEFAULT_YAW_RATE_SIGMA_RADPS
+    grade_sigma_rad: float = DEFAULT_GRADE_SIGMA_RAD
 
 
 @dataclass(frozen=True)
@@ -701,6 +733,8 @@ class _Driver:
         # speed: feed-forward of the reference acceleration plus PI
         error = float(self.drive.speed_mps[k]) - speed
         accel = float(self.drive.accel_mps2[k]) + g.speed_kp_per_s * error + self.speed_integral
+        if self.drive.grade_rad is not None:  # the grade's feed-forward (the stack knows its road)
+            accel += GRAVITY_MPS2 * math.sin(float(self.drive.grade_rad[k]))
         low, high = self.torque_limits(speed)
         torque = self.torque_per_accel * accel
         if low < torque < high or (torque >= high and error < 0) or (torque <= low and error > 0):
@@ -731,7 +765,9 @@ class MultibodyRun:
     torque_nm (K,) applied wheel torque after the MB's acceleration clip;
     steer_rad (K,) applied road-wheel angle (MB state x3); f (K, 2) true faults
     = applied minus demanded [T - T_d, delta_target - delta_d]; a_x, a_y (K,)
-    body accelerations [m/s^2] (a_x = dv_x/dt - r v_y, a_y = dv_y/dt + r v_x).
+    body accelerations [m/s^2] (a_x = dv_x/dt - r v_y, a_y = dv_y/dt + r v_x);
+    grade_rad (K,) the road grade the vehicle reports [rad] (the drive's, with
+    the sensor's noise; None on level ground).
     Row k is the state at t_k and the inputs held over [t_k, t_k+1).
     """
 
@@ -747,6 +783,7 @@ class MultibodyRun:
     f: FloatArray
     a_x: FloatArray
     a_y: FloatArray
+    grade_rad: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.t.size)
@@ -754,9 +791,10 @@ class MultibodyRun:
     def to_csv(self, path: str | Path) -> None:
         """Write the replay format (edge_client.recording) plus truth columns, floats at full precision.
 
-        Columns: t, vx, r, torque, steer, vx_true, vy_true, r_true, torque_fault, steer_fault, ay.
+        Columns: t, vx, r, torque, steer, vx_true, vy_true, r_true, torque_fault, steer_fault, ay, and grade (the
+        reported road grade) on a drive with one.
         """
-        header = (
+        header: tuple[str, ...] = (
             "t",
             "vx",
             "r",
@@ -769,7 +807,11 @@ class MultibodyRun:
             "steer_fault",
             "ay",
         )
-        table = np.column_stack([self.t, self.y, self.u, self.x_true, self.f, self.a_y]).tolist()
+        columns = [self.t, self.y, self.u, self.x_true, self.f, self.a_y]
+        if self.grade_rad is not None:
+            header += ("grade",)
+            columns.append(self.grade_rad)
+        table = np.column_stack(columns).tolist()
         with Path(path).open("w", newline="") as handle:
             writer = csv.writer(handle)
             writer.writerow(header)
@@ -800,14 +842,24 @@ def substeps_for(speed_mps: float) -> int:
 
 
 def _hold_sample(
-    dynamics: Callable[..., list[float]], p: Any, x: FloatArray, steer_target: float, accel: float, steer_gain: float
+    dynamics: Callable[..., list[float]],
+    p: Any,
+    x: FloatArray,
+    steer_target: float,
+    accel: float,
+    steer_gain: float,
+    grade_accel: float = 0.0,
 ) -> tuple[FloatArray, FloatArray]:
-    """Integrate the MB over one sample with the inputs held; return (x at t_k+1, dx/dt at t_k)."""
+    """Integrate the MB over one sample with the inputs held; return (x at t_k+1, dx/dt at t_k). ``grade_accel``
+    = g sin(grade) [m/s^2] pulls the whole mass back along the body's x axis (the MB's equation for v_x)."""
 
     def rhs(state: FloatArray) -> FloatArray:
         values = state.tolist()
         # steering servo: u1 = k_steer (delta_target - x3); the MB clips the rate
-        return np.array(dynamics(values, [steer_gain * (steer_target - values[_STEER]), accel], p))
+        d = np.array(dynamics(values, [steer_gain * (steer_target - values[_STEER]), accel], p))
+        if grade_accel:
+            d[_VX] -= grade_accel
+        return d
 
     n = substeps_for(float(x[_VX]))
     h = SAMPLE_PERIOD_S / n
@@ -875,6 +927,9 @@ def simulate(
     sensor = rng.standard_normal((n, 2)) * np.array([noise.speed_sigma_mps, noise.yaw_rate_sigma_radps])
     demand = _Driver(p, driver, drive).command if isinstance(drive, Drive) else _table_demand(drive.u)
     accel_per_torque = 1.0 / (p.m * p.R_w)
+    grade = drive.grade_rad if isinstance(drive, Drive) else None
+    grade_accel = np.zeros(n) if grade is None else GRAVITY_MPS2 * np.sin(grade)
+    reported_grade = None if grade is None else grade + rng.standard_normal(n) * noise.grade_sigma_rad
 
     x = initial_state(parameter_set, drive.initial_speed_mps, payload_kg)
     states = np.zeros((n, 29))
@@ -895,7 +950,9 @@ def simulate(
         accel = float(lib.acceleration_constraints(float(x[_VX]), demanded_accel, p.longitudinal))
         torque_applied[k] = torque if accel == demanded_accel else accel / accel_per_torque
         states[k] = x
-        x, derivatives[k] = _hold_sample(lib.dynamics, p, x, float(steer_target[k]), accel, steer_gain_per_s)
+        x, derivatives[k] = _hold_sample(
+            lib.dynamics, p, x, float(steer_target[k]), accel, steer_gain_per_s, float(grade_accel[k])
+        )
 
     v_x, v_y, r = states[:, _VX], states[:, _VY], states[:, _YAW_RATE]
     return MultibodyRun(
@@ -911,6 +968,7 @@ def simulate(
         f=np.column_stack([torque_applied - u[:, 0], steer_target - u[:, 1]]),
         a_x=derivatives[:, _VX] - r * v_y,
         a_y=derivatives[:, _VY] + r * v_x,
+        grade_rad=reported_grade,
     )
 
 

@@ -374,11 +374,13 @@ class FleetPublisher:
         y = tick.y.tolist()
         u = tick.u.tolist()
         active = tick.active.tolist()
+        grade = None if tick.grade is None else tick.grade.tolist()
         matched = self.links.matched.tolist()  # a snapshot: zenoh threads may change it meanwhile
         for i, vehicle_id in enumerate(self.ids):
             if not active[i]:
                 continue
-            payload = Measurement(vehicle_id, k, timestamp_ns, y[i][0], y[i][1], u[i][0], u[i][1], flags).encode()
+            g_i = None if grade is None else grade[i]
+            payload = Measurement(vehicle_id, k, timestamp_ns, y[i][0], y[i][1], u[i][0], u[i][1], flags, g_i).encode()
             buffer = self._buffers[i]
             if matched[i]:
                 while buffer:

@@ -2,8 +2,9 @@
 
 Input columns (header required, any order, extra columns ignored):
 ``t`` [s], ``vx`` [m/s], ``r`` [rad/s], ``torque`` [N m] (demanded T_d),
-``steer`` [rad] (demanded delta_d). Rows must be finite and evenly spaced at
-the sample period (within 1 %). Errors name the file line.
+``steer`` [rad] (demanded delta_d); optional ``grade`` [rad], the road grade
+the vehicle reports (+ uphill, docs/protocol.md). Rows must be finite and
+evenly spaced at the sample period (within 1 %). Errors name the file line.
 
 Output columns of `agv-fe replay` (:data:`OUTPUT_COLUMNS`): ``t, vx_hat,
 vy_hat, r_hat, torque_fault_hat, steer_fault_hat, in_domain, torque_level,
@@ -26,6 +27,8 @@ import numpy as np
 from synth.model import FloatArray
 
 REQUIRED_COLUMNS = ("t", "vx", "r", "torque", "steer")
+#: Columns a recording may have beside the required ones: the road grade [rad].
+OPTIONAL_COLUMNS = ("grade",)
 OUTPUT_COLUMNS = (
     "t",
     "vx_hat",
@@ -47,11 +50,13 @@ class RecordingError(ValueError):
 
 @dataclass(frozen=True)
 class Recording:
-    """A validated recording of K samples: t (K,), y = [vx, r] (K, 2), u = [torque, steer] (K, 2)."""
+    """A validated recording of K samples: t (K,), y = [vx, r] (K, 2), u = [torque, steer] (K, 2); grade (K,) the
+    road grade [rad], None when the recording has no ``grade`` column."""
 
     t: FloatArray
     y: FloatArray
     u: FloatArray
+    grade: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.t.size)
@@ -81,7 +86,8 @@ def parse_recording(lines: Iterable[str], sample_period_s: float = 0.01, source:
             f"{source}, line 1: missing column(s) {', '.join(missing)}; the header must contain "
             f"{', '.join(REQUIRED_COLUMNS)} (found {', '.join(header) or 'nothing'})"
         )
-    index = [header.index(c) for c in REQUIRED_COLUMNS]
+    columns = REQUIRED_COLUMNS + tuple(c for c in OPTIONAL_COLUMNS if c in header)
+    index = [header.index(c) for c in columns]
     rows: list[list[float]] = []
     for line_no, row in enumerate(reader, start=2):
         if not row or all(not cell.strip() for cell in row):
@@ -89,7 +95,7 @@ def parse_recording(lines: Iterable[str], sample_period_s: float = 0.01, source:
         if len(row) < len(header):
             raise RecordingError(f"{source}, line {line_no}: expected {len(header)} fields, found {len(row)}")
         values = []
-        for column, k in zip(REQUIRED_COLUMNS, index, strict=True):
+        for column, k in zip(columns, index, strict=True):
             cell = row[k].strip()
             try:
                 value = float(cell)
@@ -111,7 +117,8 @@ def parse_recording(lines: Iterable[str], sample_period_s: float = 0.01, source:
             f"{source}, line {k + 3}: time step {dt[k]:.6g} s from t = {t[k]:.6g} to t = {t[k + 1]:.6g}; "
             f"the stream must be sampled every {sample_period_s:g} s (within {PERIOD_TOLERANCE:.0%})"
         )
-    return Recording(t=t, y=data[:, [1, 2]], u=data[:, [3, 4]])
+    grade = data[:, 5] if "grade" in columns else None
+    return Recording(t=t, y=data[:, [1, 2]], u=data[:, [3, 4]], grade=grade)
 
 
 def write_estimates(

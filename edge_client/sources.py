@@ -26,7 +26,8 @@ class Tick:
 
     y : (nv, 2) measured [v_x [m/s], r [rad/s]]; u : (nv, 2) demanded [T_d [N m], delta_d [rad]];
     active : (nv,) the vehicle has a sample at k; x : (nv, 3) true state and f : (nv, 2) true faults,
-    or None when the source does not know them (a recording).
+    or None when the source does not know them (a recording); grade : (nv,) the road grade each vehicle reports
+    [rad], or None when none reports one.
     """
 
     k: int
@@ -35,6 +36,7 @@ class Tick:
     active: NDArray[np.bool_]
     x: FloatArray | None = None
     f: FloatArray | None = None
+    grade: FloatArray | None = None
 
 
 class SampleSource(Protocol):
@@ -138,4 +140,5 @@ class RecordingSource(OneVehicleSource):
             y=self.recording.y[k : k + 1],
             u=self.recording.u[k : k + 1],
             active=np.ones(1, dtype=bool),
+            grade=None if self.recording.grade is None else self.recording.grade[k : k + 1],
         )

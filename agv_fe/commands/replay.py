@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -123,9 +124,10 @@ def run(args: argparse.Namespace) -> int:
         else:
             factory = estimator_factory(args, gains)
         factory = _with_payload(factory, args.payload_kg, gains, effectiveness)
+        level = _on_level_ground(recording, args.payload_kg, gains, effectiveness)
     except CommandError as exc:
         return fail(exc)
-    result = replay(recording, factory, x0, profile.alarms, profile.params.sample_period_s)
+    result = replay(level, factory, x0, profile.alarms, profile.params.sample_period_s)
     names = np.array(LEVEL_NAMES)[result.levels]
     extra = (
         {}
@@ -222,6 +224,22 @@ def replay(
     return Replay(x_hat, f_hat, in_domain, level, restarts, bias, alpha)
 
 
+def _on_level_ground(recording: Recording, payload_kg: float, gains: ObserverGains, effectiveness: bool) -> Recording:
+    """A recording with a ``grade`` column as the service steps it: the torque that moves the vehicle on level
+    ground as the demand did on the grade (synth.model.level_torque, docs/math.md 12.6); one without, as it is."""
+    if recording.grade is None:
+        return recording
+    if effectiveness:
+        raise CommandError(
+            "a recording with a grade column replays with the observer or the EKF, not with the effectiveness stage "
+            "(the service runs the stage on the demanded torque and the observer on the level-ground one)"
+        )
+    from synth.model import level_torque
+
+    torque = level_torque(recording.u[:, 0], recording.grade, payload_kg, gains.params)
+    return dataclasses.replace(recording, u=np.column_stack([torque, recording.u[:, 1]]), grade=None)
+
+
 def _with_payload(
     factory: EstimatorFactory, payload_kg: float, gains: ObserverGains, effectiveness: bool
 ) -> EstimatorFactory:
@@ -278,6 +296,7 @@ def outside_limits(recording: Recording, limits: InputLimits) -> np.ndarray:
         | (np.abs(r) > limits.r_abs_max_radps)
         | (np.abs(torque) > limits.torque_abs_max_nm)
         | (np.abs(steer) > limits.steer_abs_max_rad)
+        | (False if recording.grade is None else np.abs(recording.grade) > limits.grade_abs_max_rad)
     )
 
 

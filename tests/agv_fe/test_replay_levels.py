@@ -395,8 +395,9 @@ def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_
 def assert_the_engine_gives_the_replay(
     body: dict[str, Any], gains: Any, recording: Path, rows: list[dict[str, str]]
 ) -> list[Estimate]:
-    """Feed the recording's samples to an in-process fleet engine with the profile ``body`` and ``gains``: its
-    estimates are the replay's ``rows`` and its fault alarms change level at the replay's transition samples.
+    """Feed the recording's samples (with the road grade where it has a grade column) to an in-process fleet engine
+    with the profile ``body`` and ``gains``: its estimates are the replay's ``rows`` and its fault alarms change
+    level at the replay's transition samples.
     Returns the engine's estimates."""
     engine = FleetEngine(EngineConfig())
     engine.add_profile("default", ProfileSpec.model_validate(body))
@@ -405,7 +406,8 @@ def assert_the_engine_gives_the_replay(
     alarms = []
     for k, row in enumerate(read_rows(recording)):
         vx, r, torque, steer = (float(row[c]) for c in ("vx", "r", "torque", "steer"))
-        m = Measurement("veh-1", k, T0_NS + k * PERIOD_NS, vx, r, torque, steer)
+        grade = float(row["grade"]) if "grade" in row else None
+        m = Measurement("veh-1", k, T0_NS + k * PERIOD_NS, vx, r, torque, steer, grade_rad=grade)
         result = engine.process([(vehicle_key("veh-1", "meas"), m.encode())])
         estimates += [Estimate.decode(doc) for _, doc in result.estimates]
         alarms += [change.event for change in result.alarms]
@@ -474,3 +476,37 @@ def test_a_recording_of_a_loaded_vehicle_replays_with_its_payload(tmp_path, caps
     assert np.sqrt(np.mean(torque["blind"] ** 2)) > 3.0 * np.sqrt(np.mean(torque["told"] ** 2))
     code, _, err = replay(capsys, recording, tmp_path / "x.csv", "--gains", str(gains_file), "--payload-kg", "5000")
     assert code != 0 and "--payload-kg must be finite, >= 0 and at most the profile's mass_kg" in err
+
+
+def test_a_recording_with_a_grade_column_replays_on_level_ground_as_the_service_steps_it(
+    tmp_path, capsys, gains_file, robust_gains_default
+):
+    """The default vehicle on a road that climbs and descends, no fault, the grade in the recording's grade column:
+    the replay reads no torque fault where the same recording without the column reads the weight's pull as one,
+    and the engine fed the grade in its measurements (flag bit 1) gives the replay's estimates to the digit."""
+    from edge_client.faults import SinusoidalFault, fault_tables
+    from synth.params import STANDARD_GRAVITY_MPS2
+
+    p = VehicleParams()
+    weight_torque = p.wheel_radius_m * p.mass_kg * STANDARD_GRAVITY_MPS2
+    pull = SinusoidalFault(
+        channel="torque", amplitude=0.01 * weight_torque, omega_radps=0.6, offset=-0.005 * weight_torque
+    )
+    scenario = Scenario(
+        name="hills", duration_s=12.0, initial_speed_mps=12.0, faults=(pull,), noise=REALISTIC_NOISE, seed=6
+    )
+    plant = simulate_plant([scenario])
+    grade = np.arcsin(-fault_tables((pull,), plant.t)[0][:, 0] / weight_torque)
+    graded, level = tmp_path / "graded.csv", tmp_path / "level.csv"
+    write_recording(graded, plant.t, plant.y[:, 0], plant.u[:, 0], {"grade": grade})
+    write_recording(level, plant.t, plant.y[:, 0], plant.u[:, 0])
+    torque = {}
+    for name, recording in (("told", graded), ("blind", level)):
+        out = tmp_path / f"{name}.csv"
+        code, _, err = replay(capsys, recording, out, "--gains", str(gains_file))
+        assert code == 0, err
+        torque[name] = np.array([float(r["torque_fault_hat"]) for r in read_rows(out)])[300:]
+    assert np.sqrt(np.mean(torque["blind"] ** 2)) > 3.0 * np.sqrt(np.mean(torque["told"] ** 2))
+    assert_the_engine_gives_the_replay({}, robust_gains_default, graded, read_rows(tmp_path / "told.csv"))
+    code, _, err = replay(capsys, graded, tmp_path / "x.csv", "--gains", str(gains_file), "--effectiveness")
+    assert code != 0 and "a recording with a grade column replays with the observer or the EKF" in err

@@ -107,3 +107,40 @@ def test_publish_csv_reports_the_recordings_payload_before_streaming(router, est
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert refused.returncode != 0 and "--payload-kg: expected kg >= 0, got -1.0" in refused.stderr
+
+
+def test_publish_csv_sends_a_grade_column_as_the_measurements_road_grade(router, estimation_service, tmp_path):
+    """A recording with a grade column: each sample carries its grade (flag bit 1, bytes 56-63), bit for bit the
+    file's; the service accepts them all."""
+    plant = PlantSimulator([builtin_scenario("paper-2")])
+    samples = [plant.step() for _ in range(200)]
+    grade = 0.03 * np.sin(np.arange(200) / 40.0)
+    path = tmp_path / "hills.csv"
+    write_recording(
+        path,
+        np.array([s.t for s in samples]),
+        np.array([s.y[0] for s in samples]),
+        np.array([s.u[0] for s in samples]),
+        extra={"grade": grade},
+    )
+    listener = open_session(router.client())
+    counter = Counter(listener)
+    time.sleep(0.3)
+    try:
+        out = subprocess.run(
+            [sys.executable, "-m", "agv_fe", "publish-csv", str(path), "--vehicle", "hill-1",
+             "--connect", router.endpoint],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    finally:
+        time.sleep(0.2)
+        counter.close()
+        close_session(listener)
+    assert out.returncode == 0, out.stderr
+    sent = counter.meas["hill-1"]
+    assert [m.seq for m in sent] == list(range(200))
+    recording = read_recording(path)
+    assert recording.grade is not None
+    np.testing.assert_array_equal([m.grade_rad for m in sent], recording.grade)
+    assert all(m.flags & 0x02 for m in sent) and "lost 0" in out.stdout
+    assert "last estimate (seq 199)" in out.stdout  # the service took the graded samples
