@@ -50,7 +50,7 @@ import scipy.optimize
 import scipy.signal
 
 from synth.errors import SynthesisError
-from synth.model import FloatArray, lagged_steer
+from synth.model import FloatArray, grade_torque, lagged_steer
 from synth.params import OperatingBounds, VehicleParams
 
 #: Standard gravity [m/s^2].
@@ -81,12 +81,14 @@ class CalibrationRefused(SynthesisError):
 @dataclass(frozen=True)
 class Drive:
     """One recording: t (K,) [s], y (K, 2) measured [v_x [m/s], r [rad/s]], u (K, 2) demanded [T_d [N m],
-    delta_d [rad]]; ``name`` for messages."""
+    delta_d [rad]]; ``name`` for messages; ``grade`` (K,) the road grade the vehicle reported [rad, + uphill], or
+    None on level ground (:func:`level_ground`)."""
 
     t: FloatArray
     y: FloatArray
     u: FloatArray
     name: str = "recording"
+    grade: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.t.size)
@@ -171,6 +173,26 @@ class CalibrationResult:
     notes: list[str] = field(default_factory=list)
 
 
+def level_ground(drive: Drive, base: dict[str, Any]) -> Drive:
+    """``drive`` as the profile's vehicle would have driven it on level ground: the torque T_d less the grade's
+    R_w M_v g sin(theta) (synth.model.grade_torque, docs/math.md 12.6), which is what the service gives the model
+    for a measurement that carries the grade; a drive without a grade is returned as it is."""
+    if drive.grade is None:
+        return drive
+    bad = np.flatnonzero(~np.isfinite(drive.grade))
+    if bad.size:
+        raise CalibrationRefused(f"{drive.name}: row {int(bad[0]) + 1} has a non-finite grade")
+    if drive.grade.shape != drive.t.shape:
+        raise CalibrationRefused(f"{drive.name}: {drive.grade.size} grades for {drive.t.size} samples")
+    missing = [name for name in ("mass_kg", "wheel_radius_m") if name not in base]
+    if missing:
+        raise CalibrationRefused(f"a recording with a road grade needs {' and '.join(missing)} in the base profile")
+    vehicle = VehicleParams(mass_kg=base["mass_kg"], wheel_radius_m=base["wheel_radius_m"])
+    u = drive.u.astype(float).copy()
+    u[:, 0] -= grade_torque(drive.grade, 0.0, vehicle)
+    return Drive(t=drive.t, y=drive.y, u=u, name=drive.name)
+
+
 def calibrate(
     drives: Sequence[Drive], base: dict[str, Any], options: CalibrationOptions | None = None
 ) -> CalibrationResult:
@@ -182,7 +204,7 @@ def calibrate(
     Parameters
     ----------
     drives : sequence of Drive
-        The healthy recordings (100 Hz).
+        The healthy recordings (100 Hz); one with a road grade is taken on level ground (:func:`level_ground`).
     base : dict
         Vehicle parameters by their field names (synth.params.VehicleParams).
     options : CalibrationOptions, optional
@@ -201,6 +223,7 @@ def calibrate(
     """
     options = options or CalibrationOptions()
     _check_inputs(drives, base)
+    drives = [level_ground(d, base) for d in drives]
     sample_period_s = float(base.get("sample_period_s", VehicleParams().sample_period_s))
     prepared = [_prepare(d, sample_period_s, options) for d in drives]
     duration_s = sum(float(np.count_nonzero(p.moving)) for p in prepared) * sample_period_s
@@ -839,7 +862,9 @@ def _unidentified(name: str, est: Estimate, limit: float, params: VehicleParams)
             "transfer then explains what the stiffnesses cannot)"
         )
     why = {
-        "effective_mass_kg": "drive with firmer accelerations and braking",
+        "effective_mass_kg": (
+            "drive with firmer accelerations and braking, on level ground or with the road's grade (a grade column)"
+        ),
         "front_cornering_stiffness_npr": turns,
         "rear_cornering_stiffness_npr": turns,
         "yaw_inertia_kgm2": "give yaw_inertia_kgm2 in the base profile, or add brisk steering changes",

@@ -30,9 +30,10 @@ NOISE = SensorNoise(vx_sigma_mps=0.05, r_sigma_radps=0.005)
 
 
 def simulated_drive(
-    name: str, duration_s: float, speeds, manoeuvres, seed: int = 3, vehicle: VehicleParams = CAR
+    name: str, duration_s: float, speeds, manoeuvres, seed: int = 3, vehicle: VehicleParams = CAR, faults=()
 ) -> Drive:
-    """The car driven by the project's plant (RK4, 1 ms) through a speed profile and open-loop manoeuvres."""
+    """The car driven by the project's plant (RK4, 1 ms) through a speed profile and open-loop manoeuvres, with
+    ``faults`` (edge_client.faults) on its actuators."""
     scenario = Scenario(
         name=name,
         duration_s=duration_s,
@@ -42,6 +43,7 @@ def simulated_drive(
         manoeuvres=manoeuvres,
         noise=NOISE,
         seed=seed,
+        faults=tuple(faults),
     )
     rec = simulate_plant([scenario])
     return Drive(t=rec.t, y=rec.y[:, 0, :], u=rec.u[:, 0, :], name=name)
@@ -60,7 +62,28 @@ def healthy_drive_with_load_transfer() -> Drive:
     return _healthy(CAR.model_copy(update={"cg_height_m": CG_HEIGHT_M}))
 
 
-def _healthy(vehicle: VehicleParams) -> Drive:
+@lru_cache(maxsize=1)
+def healthy_drive_on_hills() -> Drive:
+    """The same minute on a road that climbs and descends (grades from -3 % to +5 %, period 23 s), with the grade
+    the car reports: the weight's pull R_w M_v g sin(grade) acts on it as a torque fault would (docs/math.md
+    12.6)."""
+    import dataclasses
+
+    import numpy as np
+
+    from edge_client.faults import SinusoidalFault, fault_tables
+    from synth.params import STANDARD_GRAVITY_MPS2
+
+    weight_torque = CAR.wheel_radius_m * CAR.mass_kg * STANDARD_GRAVITY_MPS2
+    pull = SinusoidalFault(
+        channel="torque", amplitude=0.04 * weight_torque, omega_radps=0.27, offset=-0.01 * weight_torque
+    )
+    drive = _healthy(CAR, (pull,))
+    grade = np.arcsin(-fault_tables((pull,), drive.t)[0][:, 0] / weight_torque)
+    return dataclasses.replace(drive, name="hills", grade=grade)
+
+
+def _healthy(vehicle: VehicleParams, faults=()) -> Drive:
     speeds = [(0, 10), (7, 18), (12, 18), (18, 9), (24, 9), (30, 20), (38, 20), (44, 12), (50, 12), (56, 17), (60, 17)]
     manoeuvres = [
         Manoeuvre(kind="slalom", start_s=1, duration_s=5, amplitude_rad=0.03),
@@ -69,7 +92,7 @@ def _healthy(vehicle: VehicleParams) -> Drive:
         Manoeuvre(kind="turn", start_s=39, duration_s=4, amplitude_rad=-0.03, ramp_s=0.4),
         Manoeuvre(kind="slalom", start_s=50, duration_s=6, amplitude_rad=0.035),
     ]
-    return simulated_drive("healthy", 60.0, speeds, manoeuvres, vehicle=vehicle)
+    return simulated_drive("healthy", 60.0, speeds, manoeuvres, vehicle=vehicle, faults=faults)
 
 
 def csv_text(drive: Drive) -> str:

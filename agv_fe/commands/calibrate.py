@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         drives = []
         for path in args.recordings:
             rec = read_input(path, args.map, float(base["params"].get("sample_period_s", 0.01)))
-            drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=Path(path).name))
+            drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=Path(path).name, grade=rec.grade))
         print(f"calibrating from {len(drives)} recording(s) ...", flush=True)
         start = time.monotonic()
 

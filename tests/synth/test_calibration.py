@@ -14,6 +14,7 @@ from tests.calibration_data import (
     CAR,
     CG_HEIGHT_M,
     healthy_drive,
+    healthy_drive_on_hills,
     healthy_drive_with_load_transfer,
     simulated_drive,
 )
@@ -92,6 +93,27 @@ def test_a_vehicle_whose_braking_in_turns_moves_load_is_calibrated_with_its_cg_h
     assert not any("no centre-of-gravity height" in note for note in res.notes)
     reason = _refusal([drive])
     assert "cannot identify front_cornering_stiffness_npr" in reason and "give the data sheet's cg_height_m" in reason
+
+
+def test_a_recording_on_hills_calibrates_with_its_grade_as_on_level_ground(result):
+    """The same minute on a road from -3 % to +5 %: with the grade the car reported, the longitudinal parameters
+    come back as from level ground (synth.calibration.level_ground, docs/math.md 12.6); without it the weight's
+    pull reads as a mass that cannot be identified, and the refusal says the grade would explain it."""
+    hills = healthy_drive_on_hills()
+    assert hills.grade is not None and hills.grade.max() > 0.04
+    res = calibrate([hills], BASE)
+    for name, truth in (
+        ("effective_mass_kg", CAR.effective_mass_kg),
+        ("rolling_resistance_n", CAR.rolling_resistance_n),
+    ):
+        assert res.estimates[name].value == pytest.approx(truth, rel=0.01), name
+        assert res.estimates[name].value == pytest.approx(result.estimates[name].value, rel=0.005), name
+    reason = _refusal([dataclasses.replace(hills, grade=None)])
+    assert "cannot identify effective_mass_kg" in reason and "a grade column" in reason
+    broken = hills.grade.copy()
+    broken[7] = np.nan
+    assert "row 8 has a non-finite grade" in _refusal([dataclasses.replace(hills, grade=broken)])
+    assert "must give mass_kg" in _refusal([hills], {k: v for k, v in BASE.items() if k != "mass_kg"})
 
 
 def test_a_stated_cg_height_the_recordings_do_not_show_is_refused_as_such(healthy):
