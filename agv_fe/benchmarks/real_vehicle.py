@@ -72,7 +72,7 @@ from synth.design import synthesize
 from synth.effectiveness import EffectivenessStep
 from synth.errors import SynthesisError
 from synth.gains import ObserverGains
-from synth.model import FloatArray
+from synth.model import FloatArray, payload_torque
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
 
@@ -925,6 +925,7 @@ class SetRuns:
     faults: list[mb.MultibodyRun]
     sensitivity: list[mb.MultibodyRun]
     payload: list[mb.MultibodyRun]  # the loaded healthy drives, then the loaded fault run
+    hills: list[mb.MultibodyRun]  # the healthy drives on hills, then the fault run on hills
 
 
 def evaluate_set(
@@ -987,6 +988,8 @@ def evaluate_set(
         "sensitivity": sensitivity,
         "payload": payload_figures(parameter_set, report, runs.payload, plan),
     }
+    print(f"  set {parameter_set}: hills, calibrated on level ground ...", flush=True)
+    result["hills"] = hill_figures(report, runs.hills, plan)
     result["must_show"] = must_show(result)
     return result
 
@@ -1037,23 +1040,31 @@ def payload_figures(
     """Alarms on the loaded healthy drives without the payload and told it, and the told observer's delays on
     the loaded fault run."""
     load = payload_kg(parameter_set)
+    blind = observer_factory(report.gains)
+    told = payload_factory(blind, report.gains.params, load)
+    healthy, fault = list(runs[:-1]), runs[-1]
+    out = told_and_blind(report, plan, (blind, healthy), (told, healthy), (told, fault))
+    return {"payload_kg": load, "share_of_mass": PAYLOAD_SHARE, **out}
+
+
+def told_and_blind(
+    report: CalibrationReport,
+    plan: Plan,
+    blind: tuple[EstimatorFactory, Sequence[mb.MultibodyRun]],
+    told: tuple[EstimatorFactory, Sequence[mb.MultibodyRun]],
+    fault: tuple[EstimatorFactory, mb.MultibodyRun],
+) -> dict[str, Any]:
+    """A condition the vehicle reports (a payload, the road's grade): alarms on its healthy drives estimated as
+    if nothing were reported (``blind``) and as the service estimates them told it (``told``), and the told
+    observer's delays on the fault run (the first fault case)."""
     alarms = report.profile.alarms
     period = report.profile.params.sample_period_s
-    estimators = {
-        "blind": observer_factory(report.gains),
-        "told": payload_factory(observer_factory(report.gains), report.gains.params, load),
-    }
-    healthy, fault = list(runs[:-1]), runs[-1]
-    out: dict[str, Any] = {
-        "payload_kg": load,
-        "share_of_mass": PAYLOAD_SHARE,
-        "driving": driving_figures(healthy),
-    }
-    for name, factory in estimators.items():
-        out[name] = healthy_figures(healthy, estimate_runs(factory, healthy, alarms), alarms, period)
+    out: dict[str, Any] = {"driving": driving_figures(list(blind[1]))}
+    for name, (factory, runs) in (("blind", blind), ("told", told)):
+        out[name] = healthy_figures(list(runs), estimate_runs(factory, runs, alarms), alarms, period)
     case = FAULT_CASES[PAYLOAD_FAULT_CASE]
-    (told_fault,) = estimate_runs(estimators["told"], [fault], alarms)
-    seeds = [fault_run_figures(case, fault, told_fault, alarms, plan.fault_onset_s)]
+    (told_fault,) = estimate_runs(fault[0], [fault[1]], alarms)
+    seeds = [fault_run_figures(case, fault[1], told_fault, alarms, plan.fault_onset_s)]
     out["fault"] = {"label": case.label, "seeds": seeds, "meets_target": meets(case, seeds)}
     return out
 
@@ -1061,35 +1072,41 @@ def payload_figures(
 def payload_must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
     """The loaded drives: told the payload, no alarm and the torque bias detected in time; without it, shown."""
     load = result["payload"]
+    what = f"{load['payload_kg']:.0f} kg payload ({100 * load['share_of_mass']:g} % of the mass), calibrated empty"
+    return told_and_blind_must_show(load, what, ("payload reported", "payload not reported"))
+
+
+def told_and_blind_must_show(entry: dict[str, Any], what: str, labels: tuple[str, str]) -> list[dict[str, Any]]:
+    """The must-show lines of a :func:`told_and_blind` entry: told, no alarm and the fault in time; blind,
+    shown. ``labels``: (told, blind)."""
     counts = {
         name: ", ".join(
-            f"{SYMBOLS[c]} {load[name]['channels'][c]['warn_raised']} WARN / "
-            f"{load[name]['channels'][c]['fault_raised']} FAULT"
+            f"{SYMBOLS[c]} {entry[name]['channels'][c]['warn_raised']} WARN / "
+            f"{entry[name]['channels'][c]['fault_raised']} FAULT"
             for c in CHANNELS
         )
         for name in ("blind", "told")
     }
-    what = f"{load['payload_kg']:.0f} kg payload ({100 * load['share_of_mass']:g} % of the mass), calibrated empty"
-    minutes = f"{load['driving']['minutes']:.0f} min"
+    minutes = f"{entry['driving']['minutes']:.0f} min"
     told_quiet = all(
-        load["told"]["channels"][c]["warn_raised"] == 0 and load["told"]["channels"][c]["fault_raised"] == 0
+        entry["told"]["channels"][c]["warn_raised"] == 0 and entry["told"]["channels"][c]["fault_raised"] == 0
         for c in CHANNELS
     )
-    fault = load["fault"]
+    fault = entry["fault"]
     case = FAULT_CASES[PAYLOAD_FAULT_CASE]
     return [
         {
-            "target": f"payload reported, healthy driving ({what}): no WARN and no FAULT",
+            "target": f"{labels[0]}, healthy driving ({what}): no WARN and no FAULT",
             "figure": f"{minutes}: {counts['told']}",
             "passed": told_quiet,
         },
         {
-            "target": f"payload not reported, healthy driving ({what}): what the report prevents",
+            "target": f"{labels[1]}, healthy driving ({what}): what the report prevents",
             "figure": f"{minutes}: {counts['blind']}",
             "passed": None,
         },
         {
-            "target": f"payload reported, {fault['label']} ({what}): {_target_text(case)}",
+            "target": f"{labels[0]}, {fault['label']} ({what}): {_target_text(case)}",
             "figure": _delays_text(fault["seeds"], case),
             "passed": bool(fault["meets_target"]),
         },
@@ -1099,20 +1116,29 @@ def payload_must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
 def _payload_section(result: dict[str, Any]) -> list[str]:
     """The report's table of the loaded drives for one set."""
     load = result["payload"]
-    lines = [
-        f"### Set {result['parameter_set']}: a payload, calibrated empty\n",
+    intro = (
         f"The first {load['driving']['drives']} healthy drives again ({load['driving']['minutes']:.0f} min), the "
         f"vehicle carrying {load['payload_kg']:.0f} kg ({100 * load['share_of_mass']:g} % of its mass) spread like "
         "its body (`multibody.loaded_parameters`); the observer calibrated empty, without the payload and told it "
         "(`PUT /vehicles/{id}/payload`; `edge_client.simulation.payload_factory` here). Held peak / WARN as in "
-        "the healthy-driving table.\n",
+        "the healthy-driving table.\n"
+    )
+    title = f"### Set {result['parameter_set']}: a payload, calibrated empty\n"
+    return _told_and_blind_table(load, title, intro, ("payload not reported", "payload reported"))
+
+
+def _told_and_blind_table(entry: dict[str, Any], title: str, intro: str, labels: tuple[str, str]) -> list[str]:
+    """A :func:`told_and_blind` entry as a report section; ``labels``: (blind, told)."""
+    lines = [
+        title,
+        intro,
         "| observer | T_f WARN / FAULT | T_f held peak / WARN | delta_f WARN / FAULT | delta_f held peak / WARN |",
         "|---|---|---|---|---|",
     ]
-    for name, label in (("blind", "payload not reported"), ("told", "payload reported")):
+    for name, label in zip(("blind", "told"), labels, strict=True):
         cells = []
         for c in ("torque", "steer"):
-            ch = load[name]["channels"][c]
+            ch = entry[name]["channels"][c]
             cells += [
                 f"{ch['warn_raised']} / {ch['fault_raised']}",
                 f"{ch['held_peak_abs_estimate'] / ch['warn_threshold']:.2f}",
@@ -1120,6 +1146,86 @@ def _payload_section(result: dict[str, Any]) -> list[str]:
         lines.append(f"| {label} | {' | '.join(cells)} |")
     lines.append("")
     return lines
+
+
+# --------------------------------------------------------------------------- hills, the grade reported
+#
+# A grade pulls the whole mass back with M_v g sin(theta), which an observer that does not know it reads as a
+# torque fault; told the grade (flag bit 1 of the measurement), the service feeds the model the torque that moves
+# the profile's vehicle on level ground as the vehicle moves on the hill (synth.model.payload_torque, docs/math.md
+# 12.6). Each set drives the first HILL_DRIVES healthy drives of the plan again on a road that climbs and descends
+# (multibody.on_hills), and one torque-bias run there; the vehicle reports the grade with the sensor's noise.
+
+#: How many of the plan's healthy drives run on hills (one in quick mode).
+HILL_DRIVES = 6
+#: Added to a drive's seed for its road's grades (the road differs from drive to drive).
+HILL_SEED_OFFSET = 500
+
+
+def hill_jobs(parameter_set: int, plan: Plan, nominal_torque_nm: float) -> list[mb.MultibodyJob]:
+    """The healthy drives on hills, then the fault run on hills."""
+    healthy = [
+        dataclasses.replace(job, drive=mb.on_hills(drive, np.random.default_rng(HILL_SEED_OFFSET + job.seed)))
+        for job in healthy_jobs(parameter_set, plan)[: 1 if plan.quick else HILL_DRIVES]
+        if isinstance(drive := job.drive, mb.Drive)
+    ]
+    case = FAULT_CASES[PAYLOAD_FAULT_CASE]
+    seed = plan.fault_seeds[0]
+    drive = fault_drive(case, seed, parameter_set, plan)
+    fault = mb.MultibodyJob(
+        drive=mb.on_hills(drive, np.random.default_rng(HILL_SEED_OFFSET + seed)),
+        parameter_set=parameter_set,
+        faults=case.faults(nominal_torque_nm, plan.fault_onset_s),
+        seed=seed,
+    )
+    return [*healthy, fault]
+
+
+def told_the_grade(run: mb.MultibodyRun, params: VehicleParams) -> mb.MultibodyRun:
+    """``run`` with the torque the service gives the model when the vehicle reports the grade: T_d less
+    R_w M_v g sin(theta) of the reported grade (synth.model.payload_torque)."""
+    if run.grade_rad is None:
+        return run
+    torque, _ = payload_torque(run.y[:, 0], run.u[:, 0], 0.0, params, run.grade_rad)
+    return dataclasses.replace(run, u=np.column_stack([torque, run.u[:, 1]]))
+
+
+def hill_figures(report: CalibrationReport, runs: Sequence[mb.MultibodyRun], plan: Plan) -> dict[str, Any]:
+    """Alarms on the healthy drives on hills without the grade and told it, and the told observer's delays on the
+    fault run on hills."""
+    observer = observer_factory(report.gains)
+    told = [told_the_grade(run, report.gains.params) for run in runs]
+    healthy = list(runs[:-1])
+    grades = np.concatenate([run.grade_rad for run in healthy if run.grade_rad is not None])
+    out = told_and_blind(report, plan, (observer, healthy), (observer, told[:-1]), (observer, told[-1]))
+    return {
+        "road_max_grade_rad": mb.HILL_GRADE_RAD,
+        "max_reported_grade_rad": float(np.abs(grades).max()),
+        "grade_sigma_rad": mb.DEFAULT_GRADE_SIGMA_RAD,
+        **out,
+    }
+
+
+def hill_must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
+    """On hills: told the grade, no alarm and the torque bias detected in time; without it, shown."""
+    hills = result["hills"]
+    what = f"grades within +-{100 * math.tan(hills['road_max_grade_rad']):.0f} %, calibrated on level ground"
+    return told_and_blind_must_show(hills, what, ("grade reported", "grade not reported"))
+
+
+def _hill_section(result: dict[str, Any]) -> list[str]:
+    """The report's table of the drives on hills for one set."""
+    hills = result["hills"]
+    intro = (
+        f"The first {hills['driving']['drives']} healthy drives again ({hills['driving']['minutes']:.0f} min) on "
+        f"a road that climbs and descends (`multibody.on_hills`: grades uniform within +-"
+        f"{100 * math.tan(hills['road_max_grade_rad']):.0f} %, each held 8 to 25 s and reached over 5 s); the vehicle "
+        f"reports the grade with {hills['grade_sigma_rad']:g} rad of noise, and its speed controller compensates "
+        "the grade. The observer calibrated on level ground, without the grade and told it (flag bit 1 of the "
+        "measurement; `told_the_grade` here). Held peak / WARN as in the healthy-driving table.\n"
+    )
+    title = f"### Set {result['parameter_set']}: hills\n"
+    return _told_and_blind_table(hills, title, intro, ("grade not reported", "grade reported"))
 
 
 def refused_set(parameter_set: int, reason: str) -> dict[str, Any]:
@@ -1181,6 +1287,7 @@ def must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
         ]
     lines += effectiveness_must_show(result)
     lines += payload_must_show(result)
+    lines += hill_must_show(result)
     lines.append(
         {
             "target": "the other channel stays OK after the warm-up in every fault case and seed (calibrated observer)",
@@ -1334,7 +1441,7 @@ def measure(plan: Plan) -> dict[str, Any]:
         except SynthesisError as exc:  # CalibrationRefused, Infeasible, ...: the product's answer, reported
             refused[s] = f"{type(exc).__name__}: {exc}"
     jobs: list[mb.MultibodyJob] = []
-    spans: dict[int, tuple[int, int, int, int]] = {}
+    spans: dict[int, tuple[int, int, int, int, int]] = {}
     for s in reports:
         start = len(jobs)
         jobs += healthy_jobs(s, plan)
@@ -1342,7 +1449,9 @@ def measure(plan: Plan) -> dict[str, Any]:
         jobs += fault_jobs(s, reports[s].nominal_torque_nm, plan)
         loaded = len(jobs)
         jobs += payload_jobs(s, plan, reports[s].nominal_torque_nm)
-        spans[s] = (start, middle, loaded, len(jobs))
+        hilly = len(jobs)
+        jobs += hill_jobs(s, plan, reports[s].nominal_torque_nm)
+        spans[s] = (start, middle, loaded, hilly, len(jobs))
     simulated_s = sum(job.drive.n_samples for job in jobs) * mb.SAMPLE_PERIOD_S
     print(f"  simulating {len(jobs)} drives ({simulated_s / 60:.0f} min) in {plan.workers} processes ...", flush=True)
     simulated = mb.simulate_many(jobs, plan.workers)
@@ -1352,13 +1461,14 @@ def measure(plan: Plan) -> dict[str, Any]:
         if s in refused:
             results.append(refused_set(s, refused[s]))
             continue
-        start, middle, loaded, end = spans[s]
+        start, middle, loaded, hilly, end = spans[s]
         runs = SetRuns(
             calibration=cal_run,
             healthy=simulated[start:middle],
             faults=simulated[middle:loaded],
             sensitivity=random_runs[s],
-            payload=simulated[loaded:end],
+            payload=simulated[loaded:hilly],
+            hills=simulated[hilly:end],
         )
         results.append(evaluate_set(s, reports[s], runs, paper_gains, plan))
     return {
@@ -1457,6 +1567,7 @@ def render(document: dict[str, Any]) -> str:
         lines += _sensitivity_section(result)
         lines += _fault_section(result, plan)
         lines += _payload_section(result)
+        lines += _hill_section(result)
     lines += _how_measured(plan)
     return "\n".join(lines) + "\n"
 

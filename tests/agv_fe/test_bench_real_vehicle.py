@@ -453,3 +453,44 @@ def test_a_payload_calibrated_empty_is_driven_without_it_and_told_it(outcome, fi
     assert loaded.m == pytest.approx(mb.vehicle_parameters(SET).m + 100.0) and loaded.a == mb.vehicle_parameters(SET).a
     with pytest.raises(mb.MultibodyError, match="payload_kg must be finite"):
         mb.loaded_parameters(SET, -1.0)
+
+
+def test_hills_are_driven_without_the_grade_and_told_it(outcome, figures):
+    """The drives on hills: the same healthy drive on a road that climbs and descends, estimated blind and told
+    the reported grade; told, no alarm and the torque bias found in time (the plan's must-show), blind shown."""
+    _, text, _ = outcome
+    hills = figures["hills"]
+    assert hills["road_max_grade_rad"] == mb.HILL_GRADE_RAD
+    assert 0.02 < hills["max_reported_grade_rad"] <= mb.HILL_GRADE_RAD + 6 * mb.DEFAULT_GRADE_SIGMA_RAD
+    assert hills["driving"]["drives"] == 1 and hills["fault"]["label"] == bench.FAULT_CASES[0].label
+    # the not-told torque channel reads the grade's pull: its held peak well above the told one's
+    held = {name: hills[name]["channels"]["torque"]["held_peak_abs_estimate"] for name in ("blind", "told")}
+    assert held["blind"] > 2.0 * held["told"]
+    lines = [m for m in figures["must_show"] if "grade" in m["target"]]
+    assert len(lines) == 3 and lines[1]["passed"] is None
+    assert lines[0]["passed"] == all(
+        hills["told"]["channels"][c][k] == 0 for c in ("torque", "steer") for k in ("warn_raised", "fault_raised")
+    )
+    assert lines[2]["passed"] == hills["fault"]["meets_target"]
+    assert f"### Set {SET}: hills" in text
+
+
+def test_a_hill_pulls_the_multibody_vehicle_back_by_g_sin_grade():
+    """multibody.on_hills: the grade's force acts on the whole mass through the MB's own equation for v_x. With
+    the speed controller's feed-forward of the grade, the demanded torque follows R_w m g sin(grade); the reported
+    grade is the drive's plus the sensor's noise; level ground draws no extra noise (the runs stay as they were)."""
+    drive = mb.straight_drive(15.0, 40.0)
+    hilly = mb.on_hills(drive, np.random.default_rng(3))
+    assert hilly.grade_rad is not None and np.abs(hilly.grade_rad).max() > 0.01
+    run = mb.simulate(hilly, SET, seed=4)
+    level = mb.simulate(drive, SET, seed=4)
+    p = mb.vehicle_parameters(SET)
+    pull = p.R_w * p.m * mb.GRAVITY_MPS2 * np.sin(hilly.grade_rad)
+    late = slice(1000, None)  # after the controller's integral settled
+    assert np.abs(run.u[late, 0] - level.u[late, 0] - pull[late]).mean() < 0.05 * np.abs(pull[late]).mean()
+    assert run.grade_rad is not None and level.grade_rad is None
+    noise = run.grade_rad - hilly.grade_rad
+    assert 0.5 * mb.DEFAULT_GRADE_SIGMA_RAD < noise.std() < 1.5 * mb.DEFAULT_GRADE_SIGMA_RAD
+    np.testing.assert_array_equal(level.y, mb.simulate(drive, SET, seed=4).y)
+    with pytest.raises(mb.MultibodyError, match="max_grade_rad"):
+        mb.on_hills(drive, np.random.default_rng(0), 0.7)
