@@ -2,7 +2,8 @@
 out, on the 10 ms grid.
 
 The same mapping file as `agv-fe can2csv` (edge_client/can_log.py) names, for each of the four signals, the DBC
-message and signal and the affine map to the protocol's unit. :class:`CanSource` listens to a python-can bus
+message and signal and the affine map to the protocol's unit; when it names the road's grade too, the grade is held
+like them and each measurement carries it (``grade_rad``). :class:`CanSource` listens to a python-can bus
 (SocketCAN ``can0`` on a vehicle; any python-can interface: ``pcan``, ``kvaser``, ``vector``, ``slcan``,
 ``virtual``...) with a :class:`can.Notifier`, decodes each mapped frame and keeps the latest value of each column
 (:class:`~edge_client.grid.LiveSource`, the grid rule of edge_client/grid.py); the 100 Hz publisher
@@ -53,7 +54,7 @@ class CanSource(LiveSource):
     ) -> None:
         import can
 
-        super().__init__(vehicle_id, mapping.sample_period_s, mapping.max_age_s, wait_s, clock)
+        super().__init__(vehicle_id, mapping.sample_period_s, mapping.max_age_s, wait_s, clock, mapping.signals())
         self.mapping = mapping
         self.database = database
         self.wanted: dict[int, list[tuple[str, CanSignal]]] = resolve(database, mapping, dbc_name)

@@ -3,7 +3,9 @@
 A vehicle carries v_x, r, the drive-torque demand and the steering demand as CAN
 signals, in its own units and at its own rates. A mapping file names, for each of
 the recording's columns, the DBC message and signal and the affine map to the
-protocol's unit (docs/protocol.md), value = scale x decoded + offset:
+protocol's unit (docs/protocol.md), value = scale x decoded + offset; optionally
+``grade`` too, the road's grade [rad, + uphill] (not the body's pitch), which then
+fills the recording's grade column by the same rule:
 
 .. code-block:: yaml
 
@@ -11,6 +13,7 @@ protocol's unit (docs/protocol.md), value = scale x decoded + offset:
     r:      {message: IMU_RATES, signal: YawRate, scale: 0.0174532925}          # deg/s -> rad/s
     torque: {message: DRIVE_DEMAND, signal: WheelTorqueDemand}                  # N m at the driven wheels
     steer:  {message: STEER_DEMAND, signal: RoadWheelAngleDemand}               # rad
+    grade:  {message: ROAD_GRADE, signal: GradeDeg, scale: 0.0174532925}        # optional; deg -> rad
 
 The log is read with python-can (candump ``.log``, Vector ``.asc`` and ``.blf``,
 ``.trc``, ``.csv``... by its extension) and decoded with cantools. Resampling (the rule of edge_client/grid.py):
@@ -34,7 +37,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from edge_client.grid import COLUMNS, hold_on_grid
-from edge_client.recording import Recording, RecordingError
+from edge_client.recording import OPTIONAL_COLUMNS, Recording, RecordingError
 
 
 class CanSignal(BaseModel):
@@ -49,7 +52,7 @@ class CanSignal(BaseModel):
 
 
 class CanMapping(BaseModel):
-    """The recording's four columns as CAN signals, and the grid they are sampled on."""
+    """The recording's four columns (and optionally its grade) as CAN signals, and the grid they are sampled on."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -57,16 +60,20 @@ class CanMapping(BaseModel):
     r: CanSignal
     torque: CanSignal
     steer: CanSignal
+    grade: CanSignal | None = Field(None, description="optional: the road's grade [rad], + uphill (not the pitch)")
     sample_period_s: float = Field(0.01, gt=0, le=1, description="the recording's sample period [s]")
     max_age_s: float = Field(0.1, gt=0, le=10, description="a value older than this at a grid point is missing [s]")
 
     def signals(self) -> dict[str, CanSignal]:
-        return {column: getattr(self, column) for column in COLUMNS}
+        """Column -> its signal: the four :data:`~edge_client.grid.COLUMNS`, then the optional ones mapped."""
+        optional = [column for column in OPTIONAL_COLUMNS if getattr(self, column) is not None]
+        return {column: getattr(self, column) for column in (*COLUMNS, *optional)}
 
 
 @dataclass
 class CanStats:
-    """What the conversion read: frames used per column, frames of other messages, frames that failed to decode."""
+    """What the conversion read: frames used per mapped column, frames of other messages, frames that failed to
+    decode."""
 
     frames: int = 0
     used: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COLUMNS, 0))
@@ -96,7 +103,7 @@ def read_can_log(log: str | Path, dbc: str | Path, mapping: CanMapping) -> tuple
     wanted = resolve(database, mapping, dbc)
     try:
         messages: Iterable[Any] = can.LogReader(str(log))
-        samples, stats = _decode(messages, database, wanted)
+        samples, stats = _decode(messages, database, wanted, tuple(mapping.signals()))
     except (OSError, ValueError, can.CanError) as exc:
         raise RecordingError(f"{log}: cannot read the CAN log: {exc}") from exc
     recording, stats.first_complete_s = hold_on_grid(samples, mapping.sample_period_s, mapping.max_age_s, str(log))
@@ -120,18 +127,18 @@ def resolve(database: Any, mapping: CanMapping, dbc: str | Path) -> dict[int, li
 
 
 def _decode(
-    messages: Iterable[Any], database: Any, wanted: dict[int, list[tuple[str, CanSignal]]]
+    messages: Iterable[Any], database: Any, wanted: dict[int, list[tuple[str, CanSignal]]], columns: tuple[str, ...]
 ) -> tuple[dict[str, tuple[list[float], list[float]]], CanStats]:
-    """Per column: (time stamps [s], values in the protocol's unit), in log order."""
-    stats = CanStats()
-    samples: dict[str, tuple[list[float], list[float]]] = {column: ([], []) for column in COLUMNS}
+    """Per mapped column (``columns``): (time stamps [s], values in the protocol's unit), in log order."""
+    stats = CanStats(used=dict.fromkeys(columns, 0))
+    samples: dict[str, tuple[list[float], list[float]]] = {column: ([], []) for column in columns}
     for frame in messages:
         stats.frames += 1
-        columns = wanted.get(frame.arbitration_id)
-        if columns is None:
+        carried = wanted.get(frame.arbitration_id)
+        if carried is None:
             stats.other += 1
             continue
-        decoded = decode_frame(database, frame, columns)
+        decoded = decode_frame(database, frame, carried)
         if decoded is None:
             stats.undecodable += 1
             continue

@@ -3,7 +3,8 @@
 A ROS 2 vehicle publishes v_x, r, the drive-torque demand and the steering demand (docs/protocol.md, "What each
 signal is") as fields of its own topics. A mapping file names, for each column, the topic, its message type, the
 field path inside the message and the affine map to the protocol's unit, value = scale x field + offset (a negative
-scale flips the sign):
+scale flips the sign); optionally ``grade`` too, the road's grade [rad, + uphill] (not the body's pitch), which a
+bag's recording then carries as its grade column and the live bridge sends with each measurement:
 
 .. code-block:: yaml
 
@@ -11,6 +12,7 @@ scale flips the sign):
     r:      {topic: /imu, type: sensor_msgs/msg/Imu, field: angular_velocity.z}
     torque: {topic: /drive_torque, type: std_msgs/msg/Float64, field: data, scale: 2.0}   # per wheel -> total
     steer:  {topic: /cmd, type: ackermann_msgs/msg/AckermannDriveStamped, field: drive.steering_angle}
+    grade:  {topic: /road_grade, type: std_msgs/msg/Float64, field: data}   # optional [rad]
     domain_id: 0          # the live bridge's ROS_DOMAIN_ID
     types: {}             # message definitions (.msg text) of custom types, by name
 
@@ -32,7 +34,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from edge_client.grid import COLUMNS, hold_on_grid
-from edge_client.recording import Recording, RecordingError
+from edge_client.recording import OPTIONAL_COLUMNS, Recording, RecordingError
 
 #: Message types that vehicles use and rosbags' ROS 2 store lacks, registered from their .msg text
 #: (ackermann_msgs 2.0: AckermannDrive.msg, AckermannDriveStamped.msg).
@@ -59,7 +61,8 @@ class RosSignal(BaseModel):
 
 
 class RosMapping(BaseModel):
-    """The recording's four columns as ROS 2 message fields, the grid, the domain and custom message types."""
+    """The recording's four columns (and optionally its grade) as ROS 2 message fields, the grid, the domain and
+    custom message types."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -67,6 +70,7 @@ class RosMapping(BaseModel):
     r: RosSignal
     torque: RosSignal
     steer: RosSignal
+    grade: RosSignal | None = Field(None, description="optional: the road's grade [rad], + uphill (not the pitch)")
     sample_period_s: float = Field(0.01, gt=0, le=1, description="the recording's sample period [s]")
     max_age_s: float = Field(0.1, gt=0, le=10, description="a value older than this at a grid point is missing [s]")
     domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID of the vehicle's nodes (the live bridge)")
@@ -81,7 +85,9 @@ class RosMapping(BaseModel):
         return types
 
     def signals(self) -> dict[str, RosSignal]:
-        return {column: getattr(self, column) for column in COLUMNS}
+        """Column -> its signal: the four :data:`~edge_client.grid.COLUMNS`, then the optional ones mapped."""
+        optional = [column for column in OPTIONAL_COLUMNS if getattr(self, column) is not None]
+        return {column: getattr(self, column) for column in (*COLUMNS, *optional)}
 
     def topics(self) -> dict[str, list[tuple[str, RosSignal]]]:
         """Topic -> the columns it carries (one topic may carry several, e.g. v_x and r from one odometry)."""
@@ -93,7 +99,7 @@ class RosMapping(BaseModel):
 
 @dataclass
 class RosStats:
-    """What was read: messages of the mapped topics, values used per column, and those refused, by reason."""
+    """What was read: messages of the mapped topics, values used per mapped column, and those refused, by reason."""
 
     messages: int = 0
     used: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COLUMNS, 0))
@@ -185,8 +191,9 @@ def read_bag(path: str | Path, mapping: RosMapping) -> tuple[Recording, RosStats
 
     store = typestore_for(mapping)
     wanted = mapping.topics()
-    samples: dict[str, tuple[list[float], list[float]]] = {column: ([], []) for column in COLUMNS}
-    stats = RosStats()
+    columns = tuple(mapping.signals())
+    samples: dict[str, tuple[list[float], list[float]]] = {column: ([], []) for column in columns}
+    stats = RosStats(used=dict.fromkeys(columns, 0))
     try:
         with AnyReader([Path(path)], default_typestore=store) as reader:
             connections = _connections(reader, wanted, str(path))

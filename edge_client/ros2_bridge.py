@@ -10,7 +10,8 @@ GID) is not needed here: a message counts when it arrives, as a controller subsc
 
 :class:`Ros2Source` subscribes to the mapped topics (edge_client/ros2.py's mapping) on those keys, with any type
 type, decodes each message with rosbags and keeps the latest value of each column (edge_client/grid.py's
-:class:`~edge_client.grid.LiveHold`). It is a :class:`~edge_client.sources.SampleSource`: the 100 Hz publisher
+:class:`~edge_client.grid.LiveHold`; the road's grade too when the mapping names it, which each measurement then
+carries as ``grade_rad``). It is a :class:`~edge_client.sources.SampleSource`: the 100 Hz publisher
 (edge_client/publisher.py) samples it at each tick and sends the measurement in the service's protocol, with its
 pacing, sequence numbers, buffering and the estimates that come back. A tick at which a column is older than the
 mapping's ``max_age_s`` sends nothing (the stale column is counted by name); its sequence number is skipped, so
@@ -75,7 +76,7 @@ class Ros2Source(LiveSource):
         wait_s: float = 30.0,
         clock: Callable[[], int] = time.monotonic_ns,
     ) -> None:
-        super().__init__(vehicle_id, mapping.sample_period_s, mapping.max_age_s, wait_s, clock)
+        super().__init__(vehicle_id, mapping.sample_period_s, mapping.max_age_s, wait_s, clock, mapping.signals())
         self.mapping = mapping
         self.store = typestore_for(mapping)
         self.stats = BridgeStats()

@@ -49,11 +49,12 @@ REFERENCE_INTEGRATION_ATOL = 1e-13
 QUANTISATION_SLACK = 1e-9
 #: A signal decoded from CAN against its value before encoding: half the scaling step of the test DBC
 #: (tests/edge_client/test_can_log.py) in the protocol's units, plus the slack: 0.01 km/h [m/s], 0.01 deg/s
-#: [rad/s], 0.0001 rad [rad], 0.5 N m [N m].
+#: [rad/s], 0.0001 rad [rad], 0.5 N m [N m], 0.001 deg of road grade [rad].
 CAN_SPEED_ATOL_MPS = 0.01 / 3.6 / 2 + QUANTISATION_SLACK
 CAN_YAW_RATE_ATOL_RADPS = math.radians(0.01) / 2 + QUANTISATION_SLACK
 CAN_STEER_ATOL_RAD = 0.0001 / 2 + QUANTISATION_SLACK
 CAN_TORQUE_ATOL_NM = 0.5 / 2 + QUANTISATION_SLACK
+CAN_GRADE_ATOL_RAD = math.radians(0.001) / 2 + QUANTISATION_SLACK
 #: Sample standard deviation of 2,000 samples of simulated sensor noise against its sigma, relative.
 NOISE_SIGMA_RTOL = 0.1
 

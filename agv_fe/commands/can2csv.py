@@ -15,8 +15,9 @@ def register(sub: Any) -> None:
         help="turn a CAN log and its DBC into a recording for replay and calibrate",
         description="Decode a CAN log (candump .log, .asc, .blf, .trc, ... by extension) with its DBC file, take the "
         "four signals a mapping file names (message, signal, scale and offset to the protocol's units: "
-        "docs/usage.md), and write them on the 10 ms grid (the latest value at each grid point) as the recording "
-        "CSV that `agv-fe replay` and `agv-fe calibrate` read. Needs the 'can' extra (cantools, python-can).",
+        "docs/usage.md; and the road's grade when it names one), and write them on the 10 ms grid (the latest "
+        "value at each grid point) as the recording CSV that `agv-fe replay` and `agv-fe calibrate` read. Needs "
+        "the 'can' extra (cantools, python-can).",
     )
     parser.add_argument("log", metavar="LOG", help="CAN log")
     parser.add_argument("--dbc", required=True, metavar="FILE.dbc", help="the vehicle's CAN database")
@@ -44,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
         return fail(exc)
     out = Path(args.out)
     try:
-        write_recording(out, recording.t, recording.y, recording.u)
+        grade = None if recording.grade is None else {"grade": recording.grade}
+        write_recording(out, recording.t, recording.y, recording.u, extra=grade)
     except OSError as exc:
         return fail(CommandError(f"{out}: cannot write: {exc.strerror}"))
     used = ", ".join(f"{column} {count}" for column, count in stats.used.items())

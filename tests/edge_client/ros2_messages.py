@@ -1,5 +1,6 @@
 """Real ROS 2 messages for the bag and bridge tests, serialised by rosbags' typestore: a drive's sample k as an
-odometry (v_x), an IMU sample (r), an Ackermann command (steering) and a Float64 torque demand."""
+odometry (v_x), an IMU sample (r), an Ackermann command (steering) and a Float64 torque demand; and a road that
+climbs and descends, whose grade a Float64 topic carries (the CAN tests use the road too)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,9 @@ r: {topic: /imu, type: sensor_msgs/msg/Imu, field: angular_velocity.z, scale: -1
 torque: {topic: /drive_torque, type: std_msgs/msg/Float64, field: data, scale: 0.5}   # published doubled
 steer: {topic: /cmd, type: ackermann_msgs/msg/AckermannDriveStamped, field: drive.steering_angle}
 """
+#: :data:`MAPPING` with the road's grade, in radians on a topic of its own (:func:`grade_message`).
+GRADE_MAPPING = MAPPING + "grade: {topic: /road_grade, type: std_msgs/msg/Float64, field: data}\n"
+GRADE_TOPIC, GRADE_TYPE = "/road_grade", "std_msgs/msg/Float64"
 TOPICS = {
     "/odom": "nav_msgs/msg/Odometry",
     "/imu": "sensor_msgs/msg/Imu",
@@ -24,6 +28,16 @@ TOPICS = {
 
 def store(mapping: RosMapping) -> Any:
     return typestore_for(mapping)
+
+
+def grade_message(ts: Any, grade_rad: float) -> bytes:
+    """The CDR bytes of one road-grade message [rad] on :data:`GRADE_TOPIC`."""
+    return bytes(ts.serialize_cdr(ts.types[GRADE_TYPE](data=grade_rad), GRADE_TYPE))
+
+
+def road_grade(t_s: np.ndarray) -> np.ndarray:
+    """A road that climbs and descends, +-0.05 rad (5 %) over 7.5 s [rad], at the times ``t_s`` [s]."""
+    return 0.05 * np.sin(2 * np.pi * t_s / 7.5)
 
 
 def _header(ts: Any, stamp_ns: int) -> Any:

@@ -1,5 +1,6 @@
 """A recording from a CAN log and a DBC (edge_client/can_log.py, `agv-fe can2csv`): a simulated drive encoded into
-frames at the vehicle's own rates and units, written as a candump log by python-can, decoded back onto the grid."""
+frames at the vehicle's own rates and units, written as a candump log by python-can, decoded back onto the grid;
+with a road-grade signal mapped, the recording's grade column too."""
 
 from __future__ import annotations
 
@@ -16,18 +17,31 @@ cantools = pytest.importorskip("cantools")
 from agv_fe.benchmarks.can_bridge import DBC, MAPPING  # noqa: E402
 from agv_fe.cli import main  # noqa: E402 - after the optional-dependency check
 from edge_client.can_log import load_mapping, read_can_log  # noqa: E402
-from edge_client.recording import RecordingError, write_recording  # noqa: E402
+from edge_client.recording import RecordingError, read_recording, write_recording  # noqa: E402
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint  # noqa: E402
 from edge_client.simulation import simulate_plant  # noqa: E402
+from tests.edge_client.ros2_messages import road_grade  # noqa: E402
 from tests.tolerances import (  # noqa: E402
+    CAN_GRADE_ATOL_RAD,
     CAN_SPEED_ATOL_MPS,
     CAN_STEER_ATOL_RAD,
     CAN_TORQUE_ATOL_NM,
     CAN_YAW_RATE_ATOL_RADPS,
+    CSV_ROUND_TRIP_ATOL,
+    CSV_ROUND_TRIP_RTOL,
 )
 
 # the vehicle's CAN database and mapping: the CAN bridge benchmark's (km/h and deg/s as on many vehicles)
 T0 = 1_700_000_000.0
+#: The vehicle's road grade in degrees, a message the benchmark's DBC lacks, and the mapping that takes it (to rad).
+GRADE_DBC = (
+    DBC
+    + """
+BO_ 260 ROAD_GRADE: 8 ECU
+ SG_ GradeDeg : 0|16@1- (0.001,0) [-32.768|32.767] "deg" Vector__XXX
+"""
+)
+GRADE_MAPPING = MAPPING + "grade: {message: ROAD_GRADE, signal: GradeDeg, scale: 0.017453292519943295}\n"
 
 
 @pytest.fixture(scope="module")
@@ -45,15 +59,20 @@ def drive():
     return simulate_plant([scenario])
 
 
-def write_log(path: Path, drive, stop_speed_after_s: float | None = None) -> Path:
+def write_log(
+    path: Path, drive, stop_speed_after_s: float | None = None, *, grade=None, stop_grade_after_s: float | None = None
+) -> Path:
     """The drive as frames: speed and yaw rate at 100 Hz, steering at 100 Hz, torque at 50 Hz, each message
-    at its own phase within the period, a body message at 10 Hz, and one truncated yaw frame."""
-    db = cantools.database.load_string(DBC, "dbc")
+    at its own phase within the period, a body message at 10 Hz, and one truncated yaw frame; with ``grade`` [rad]
+    (one per sample of the drive), the road grade in degrees at 50 Hz too."""
+    db = cantools.database.load_string(GRADE_DBC, "dbc")
     y, u, t = drive.y[:, 0], drive.u[:, 0], drive.t
     frames: list[tuple[float, int, bytes]] = []
     for k, tk in enumerate(t):
         if stop_speed_after_s is None or tk < stop_speed_after_s:
             frames.append((tk + 0.0002, 256, db.encode_message(256, {"VehicleSpeed": y[k, 0] * 3.6})))
+        if grade is not None and k % 2 == 0 and (stop_grade_after_s is None or tk < stop_grade_after_s):
+            frames.append((tk + 0.0003, 260, db.encode_message(260, {"GradeDeg": math.degrees(grade[k])})))
         frames.append((tk + 0.0004, 257, db.encode_message(257, {"YawRate": math.degrees(y[k, 1])})))
         frames.append((tk + 0.0006, 259, db.encode_message(259, {"RoadWheelAngleDemand": u[k, 1]})))
         if k % 2 == 0:
@@ -103,6 +122,7 @@ def test_can2csv_writes_a_recording_that_replay_reads(tmp_path, files, drive, ca
                  "--out", str(out)])  # fmt: skip
     printed = capsys.readouterr().out
     assert code == 0 and "1 undecodable" in printed and f"{len(drive.t) - 1} samples" in printed
+    assert read_recording(out).grade is None  # no grade mapped: no grade column
     # replayed, the CAN recording gives the estimates of the drive's own CSV to within the DBC's resolution
     original = tmp_path / "original.csv"
     n = len(drive.t) - 1
@@ -133,3 +153,51 @@ def test_what_cannot_be_decoded_is_said(tmp_path, files, drive):
     (tmp_path / "typo.yaml").write_text(MAPPING.replace("scale: 0.2777777777777778", "scale: fast"))
     with pytest.raises(RecordingError, match=r"vx\.scale"):
         load_mapping(tmp_path / "typo.yaml")
+
+
+@pytest.fixture(scope="module")
+def graded(tmp_path_factory, drive):
+    """The drive's log with the road's grade (ROAD_GRADE frames), the DBC that has them and the mapping that maps
+    them."""
+    root = tmp_path_factory.mktemp("can-grade")
+    (root / "vehicle.dbc").write_text(GRADE_DBC)
+    (root / "map.yaml").write_text(GRADE_MAPPING)
+    return root, write_log(root / "drive.log", drive, grade=road_grade(drive.t))
+
+
+def test_a_mapped_grade_signal_fills_the_grade_column_and_an_unmapped_one_changes_nothing(files, graded, drive):
+    plain, _ = read_can_log(files[1], files[0] / "vehicle.dbc", load_mapping(files[0] / "map.yaml"))
+    root, log = graded
+    samples, grade = len(drive.t), road_grade(drive.t)
+    # the grade frames in the log, the mapping without them: other messages, and the recording of the plain log
+    unmapped, unmapped_stats = read_can_log(log, root / "vehicle.dbc", load_mapping(files[0] / "map.yaml"))
+    assert unmapped.grade is None and list(unmapped_stats.used) == ["vx", "r", "torque", "steer"]
+    assert unmapped_stats.other == math.ceil(samples / 10) + (samples + 1) // 2
+    # mapped: the same grid and signals, and the grade as encoded (0.001 deg steps, deg -> rad by the mapping's
+    # scale), fresh on even samples (50 Hz), held on odd ones
+    recording, stats = read_can_log(log, root / "vehicle.dbc", load_mapping(root / "map.yaml"))
+    for got in (unmapped, recording):
+        np.testing.assert_array_equal(got.t, plain.t)
+        np.testing.assert_array_equal(got.y, plain.y)
+        np.testing.assert_array_equal(got.u, plain.u)
+    n = len(recording)
+    assert recording.grade is not None and recording.grade.shape == (n,)
+    np.testing.assert_allclose(recording.grade[::2], grade[:n:2], atol=CAN_GRADE_ATOL_RAD)
+    np.testing.assert_allclose(recording.grade[1::2], grade[: n - 1 : 2], atol=CAN_GRADE_ATOL_RAD)
+    assert stats.used["grade"] == (samples + 1) // 2 and stats.other == math.ceil(samples / 10)
+
+
+def test_can2csv_writes_the_mapped_grade_and_a_stale_grade_is_refused_by_name(tmp_path, graded, drive, capsys):
+    root, log = graded
+    out = tmp_path / "rec.csv"
+    code = main(["can2csv", str(log), "--dbc", str(root / "vehicle.dbc"), "--map", str(root / "map.yaml"),
+                 "--out", str(out)])  # fmt: skip
+    assert code == 0 and f"grade {(len(drive.t) + 1) // 2};" in capsys.readouterr().out
+    recording, _ = read_can_log(log, root / "vehicle.dbc", load_mapping(root / "map.yaml"))
+    written = read_recording(out)
+    assert written.grade is not None and recording.grade is not None
+    np.testing.assert_allclose(written.grade, recording.grade, rtol=CSV_ROUND_TRIP_RTOL, atol=CSV_ROUND_TRIP_ATOL)
+    # the grade frames stop at 8 s: refused at the first grid point the grade is missing, by name, like the others
+    stopped = write_log(tmp_path / "stopped.log", drive, grade=road_grade(drive.t), stop_grade_after_s=8.0)
+    with pytest.raises(RecordingError, match=r"grade not received for 0\.1\d+ s at t = 8\.\d+ s"):
+        read_can_log(stopped, root / "vehicle.dbc", load_mapping(root / "map.yaml"))

@@ -1,5 +1,6 @@
 """ROS 2 bags (edge_client/ros2.py, `agv-fe replay --map`): a simulated drive written as real rosbag2 recordings
-(sqlite3 and mcap) by rosbags' writer and serialiser, replayed to the estimates of the equivalent CSV."""
+(sqlite3 and mcap) by rosbags' writer and serialiser, replayed to the estimates of the equivalent CSV; with a road
+grade topic mapped, the recording's grade column too."""
 
 from __future__ import annotations
 
@@ -21,7 +22,17 @@ from edge_client.recording import RecordingError  # noqa: E402
 from edge_client.ros2 import RosMapping, load_ros_mapping, read_bag  # noqa: E402
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint  # noqa: E402
 from edge_client.simulation import simulate_plant  # noqa: E402
-from tests.edge_client.ros2_messages import MAPPING, TOPICS, messages, store  # noqa: E402
+from tests.edge_client.ros2_messages import (  # noqa: E402
+    GRADE_MAPPING,
+    GRADE_TOPIC,
+    GRADE_TYPE,
+    MAPPING,
+    TOPICS,
+    grade_message,
+    messages,
+    road_grade,
+    store,
+)
 
 #: each topic's phase within the 10 ms period [ns]: the grid starts at the last one (the torque's)
 PHASE_NS = {"/odom": 200_000, "/imu": 400_000, "/cmd": 600_000, "/drive_torque": 800_000}
@@ -46,16 +57,28 @@ def drive():
     return result
 
 
-def write_bag(path: Path, drive, plugin: StoragePlugin, stop_odom_after_s: float | None = None) -> Path:
-    """Each sample's four messages at their phases, a 10 Hz topic the mapping ignores, one truncated torque message."""
+def write_bag(
+    path: Path,
+    drive,
+    plugin: StoragePlugin,
+    stop_odom_after_s: float | None = None,
+    *,
+    grade=None,
+    stop_grade_after_s: float | None = None,
+) -> Path:
+    """Each sample's four messages at their phases, a 10 Hz topic the mapping ignores, one truncated torque message;
+    with ``grade`` [rad] (one per sample of the drive), the road grade on its own topic at 50 Hz too."""
     mapping = load_ros_mapping_text(MAPPING)
     ts = store(mapping)
     y, u, t = drive.y[:, 0], drive.u[:, 0], drive.t
     with Writer(path, version=9, storage_plugin=plugin) as writer:
         conns = {topic: writer.add_connection(topic, kind, typestore=ts) for topic, kind in TOPICS.items()}
         other = writer.add_connection("/battery", "std_msgs/msg/Float64", typestore=ts)
+        graded = None if grade is None else writer.add_connection(GRADE_TOPIC, GRADE_TYPE, typestore=ts)
         for k, tk in enumerate(t):
             base = T0_NS + round(tk * 1e9)
+            if graded is not None and k % 2 == 0 and (stop_grade_after_s is None or tk < stop_grade_after_s):
+                writer.write(graded, base + 300_000, grade_message(ts, float(grade[k])))
             for topic, raw in messages(ts, y[k, 0], y[k, 1], u[k, 0], u[k, 1], base).items():
                 if topic == "/odom" and stop_odom_after_s is not None and tk >= stop_odom_after_s:
                     continue
@@ -97,6 +120,7 @@ def test_a_bag_decodes_onto_the_grid_as_the_drive_was_sampled(bags, drive):
         np.testing.assert_array_equal(recording.y, drive.y[:n, 0])  # float64 fields, sign and scale undone exactly
         np.testing.assert_array_equal(recording.u, drive.u[:n, 0])
         assert stats.undecodable == 1 and stats.used["torque"] == len(drive.t) and stats.non_finite == 0
+        assert recording.grade is None and list(stats.used) == ["vx", "r", "torque", "steer"]  # no grade mapped
 
 
 def test_replaying_a_bag_gives_the_estimates_of_the_equivalent_csv(tmp_path, bags, drive, capsys):
@@ -154,3 +178,51 @@ def test_calibrate_reads_bags_with_the_mapping(tmp_path, bags, capsys):
     assert "1 undecodable" in captured.out and "calibration refused" in captured.err
     command[1] = str(tmp_path / "no-bag")
     assert main(command) == 2 and "cannot read the bag" in capsys.readouterr().err
+
+
+def test_a_mapped_grade_topic_fills_the_grade_column_and_replays_as_the_csv_with_it(tmp_path, bags, drive, capsys):
+    root, paths = bags
+    plain, _ = read_bag(paths["mcap"], load_ros_mapping(root / "map.yaml"))
+    grade = road_grade(drive.t)
+    bag = write_bag(tmp_path / "graded", drive, StoragePlugin.MCAP, grade=grade)
+    # the grade topic in the bag, the mapping without it: the recording of the plain bag
+    unmapped, unmapped_stats = read_bag(bag, load_ros_mapping_text(MAPPING))
+    assert unmapped.grade is None and list(unmapped_stats.used) == ["vx", "r", "torque", "steer"]
+    # mapped: the same grid and signals, and the grade as published (float64 [rad]), fresh on even samples
+    # (50 Hz), held on odd ones
+    recording, stats = read_bag(bag, load_ros_mapping_text(GRADE_MAPPING))
+    for got in (unmapped, recording):
+        np.testing.assert_array_equal(got.t, plain.t)
+        np.testing.assert_array_equal(got.y, plain.y)
+        np.testing.assert_array_equal(got.u, plain.u)
+    n = len(recording)
+    assert recording.grade is not None and recording.grade.shape == (n,)
+    np.testing.assert_array_equal(recording.grade[::2], grade[:n:2])
+    np.testing.assert_array_equal(recording.grade[1::2], grade[: n - 1 : 2])
+    assert stats.used["grade"] == (len(drive.t) + 1) // 2
+    # `replay --map` of the bag gives the estimates of the CSV with the grade column, digit for digit (the grade
+    # applied: not those of the plain bag)
+    original = tmp_path / "graded.csv"
+    with original.open("w", newline="") as handle:
+        rows = np.column_stack([recording.t, recording.y, recording.u, recording.grade])
+        csv.writer(handle).writerows(
+            [["t", "vx", "r", "torque", "steer", "grade"], *([repr(float(v)) for v in row] for row in rows)]
+        )
+    (tmp_path / "map.yaml").write_text(GRADE_MAPPING)
+    for name, command in (("csv", [str(original)]), ("bag", [str(bag), "--map", str(tmp_path / "map.yaml")]),
+                          ("plain", [str(paths["mcap"]), "--map", str(root / "map.yaml")])):  # fmt: skip
+        assert main(["replay", *command, "--out", str(tmp_path / f"{name}-est.csv")]) == 0, name
+    assert f"grade {(len(drive.t) + 1) // 2}; 1 undecodable" in capsys.readouterr().out
+    graded_estimates = _estimates(tmp_path / "bag-est.csv")
+    assert graded_estimates == _estimates(tmp_path / "csv-est.csv")
+    assert graded_estimates != _estimates(tmp_path / "plain-est.csv")
+
+
+def test_a_grade_topic_that_stops_is_refused_by_name(tmp_path, drive):
+    stopped = write_bag(tmp_path / "stopped", drive, StoragePlugin.SQLITE3, grade=road_grade(drive.t),
+                        stop_grade_after_s=6.0)  # fmt: skip
+    with pytest.raises(RecordingError, match=r"grade not received for 0\.1\d+ s at t = 6\.\d+ s"):
+        read_bag(stopped, load_ros_mapping_text(GRADE_MAPPING))
+    # a mapped grade topic the bag does not have is named too
+    with pytest.raises(RecordingError, match=r"no topic /road_grade in the bag \(mapped to grade\)"):
+        read_bag(write_bag(tmp_path / "level", drive, StoragePlugin.SQLITE3), load_ros_mapping_text(GRADE_MAPPING))
