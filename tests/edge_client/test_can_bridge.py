@@ -2,7 +2,7 @@
 vehicle's DBC and sent on a python-can bus (its in-process ``virtual`` interface: no SocketCAN here, and vcan needs a
 kernel module this machine lacks), the bridge's command running in the same process, a real router and service
 answering with estimates; a frame that does not decode, frames of other messages and a signal that stops are counted
-while the bridge keeps running."""
+while the bridge keeps running; a mapped road grade goes with each measurement."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import time
 import uuid
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 can = pytest.importorskip("can")
@@ -23,9 +24,10 @@ cantools = pytest.importorskip("cantools")
 from agv_fe.cli import main  # noqa: E402 - after the optional-dependency check
 from edge_client.can_log import decode_frame, load_mapping, resolve  # noqa: E402
 from edge_client.transport import close_session, open_session  # noqa: E402
-from tests.edge_client.test_can_log import DBC, MAPPING  # noqa: E402
+from tests.edge_client.ros2_messages import road_grade  # noqa: E402
+from tests.edge_client.test_can_log import DBC, GRADE_DBC, GRADE_MAPPING, MAPPING  # noqa: E402
 from tests.edge_client.test_publisher import Counter  # noqa: E402
-from tests.edge_client.test_ros2_bridge import _drive  # noqa: E402
+from tests.edge_client.test_ros2_bridge import _drive, grid_account  # noqa: E402
 
 pytestmark = pytest.mark.network
 
@@ -34,13 +36,15 @@ VEHICLE = "can-car-1"
 MAX_PERIODS = 3_000
 
 
-def _frames(db, vx: float, r: float, torque: float, steer: float) -> list:
+def _frames(db, vx: float, r: float, torque: float, steer: float, grade: float | None = None) -> list:
     signals = {
         256: {"VehicleSpeed": vx * 3.6},
         257: {"YawRate": math.degrees(r)},
         258: {"WheelTorqueDemand": torque},
         259: {"RoadWheelAngleDemand": steer},
     }
+    if grade is not None:
+        signals[260] = {"GradeDeg": math.degrees(grade)}
     return [
         can.Message(arbitration_id=frame_id, data=db.encode_message(frame_id, values), is_extended_id=False)
         for frame_id, values in signals.items()
@@ -57,6 +61,35 @@ def _documented_command(tmp_path: Path, channel: str, endpoint: str) -> list[str
     replace = {"vehicle.dbc": str(tmp_path / "vehicle.dbc"), "can-map.yaml": str(tmp_path / "map.yaml"),
                "socketcan": "virtual", "can0": channel, "car-1": VEHICLE, "tcp/127.0.0.1:7447": endpoint}  # fmt: skip
     return [replace.get(word, word) for word in words[1:]]
+
+
+def _send(bus, db, wanted, counter, stop, decoded, signals, silent_id: int) -> None:
+    """The vehicle's ECUs, at 100 Hz, until ``stop`` (bounded by MAX_PERIODS): sample k of ``signals`` (y, u and the
+    grade, or None) as frames; from 200 periods after the first measurement arrived, no frame of ``silent_id`` for
+    0.5 s; once each at 100 periods, a truncated frame and a frame of another message. ``decoded`` collects what
+    the frames carry, per column, in the protocol's units."""
+    y, u, grade = signals
+    first = None
+    deadline = time.monotonic()
+    for period in range(MAX_PERIODS):
+        if stop.is_set():
+            return
+        with counter.lock:
+            seen = len(counter.meas[VEHICLE])
+        first = period if first is None and seen else first
+        since = -1 if first is None else period - first
+        k = period % len(y)
+        for frame in _frames(db, y[k, 0], y[k, 1], u[k, 0], u[k, 1], None if grade is None else grade[k]):
+            if frame.arbitration_id == silent_id and 200 <= since < 250:
+                continue
+            bus.send(frame)
+            for column, value in decode_frame(db, frame, wanted[frame.arbitration_id]) or []:
+                decoded[column].add(value)
+        if since == 100:  # bad input, once each: a truncated frame, a frame of another message
+            bus.send(can.Message(arbitration_id=257, data=b"\x01", is_extended_id=False))
+            bus.send(can.Message(arbitration_id=2047, data=bytes(8), is_extended_id=False))
+        deadline += 0.01
+        time.sleep(max(deadline - time.monotonic(), 0.0))
 
 
 def test_the_bridge_turns_can_frames_into_measurements_and_estimates_come_back(
@@ -77,31 +110,8 @@ def test_the_bridge_turns_can_frames_into_measurements_and_estimates_come_back(
     args = [*_documented_command(tmp_path, channel, router.endpoint), *extra]
     decoded: dict[str, set[float]] = {column: set() for column in ("vx", "r", "torque", "steer")}
     stop = threading.Event()
-
-    def send() -> None:  # the vehicle's ECUs, at 100 Hz, until the bridge is done (bounded by MAX_PERIODS)
-        first = None
-        deadline = time.monotonic()
-        for period in range(MAX_PERIODS):
-            if stop.is_set():
-                return
-            with counter.lock:
-                seen = len(counter.meas[VEHICLE])
-            first = period if first is None and seen else first
-            since = -1 if first is None else period - first
-            k = period % len(y)
-            for frame in _frames(db, y[k, 0], y[k, 1], u[k, 0], u[k, 1]):
-                if frame.arbitration_id == 256 and 200 <= since < 250:  # the speed stops for 0.5 s
-                    continue
-                bus.send(frame)
-                for column, value in decode_frame(db, frame, wanted[frame.arbitration_id]) or []:
-                    decoded[column].add(value)
-            if since == 100:  # bad input, once each: a truncated frame, a frame of another message
-                bus.send(can.Message(arbitration_id=257, data=b"\x01", is_extended_id=False))
-                bus.send(can.Message(arbitration_id=2047, data=bytes(8), is_extended_id=False))
-            deadline += 0.01
-            time.sleep(max(deadline - time.monotonic(), 0.0))
-
-    sender = threading.Thread(target=send, daemon=True)
+    signals = (y, u, None)  # and the speed (frame 256) stops for 0.5 s
+    sender = threading.Thread(target=_send, args=(bus, db, wanted, counter, stop, decoded, signals, 256), daemon=True)
     sender.start()
     try:
         code = main(args)  # the bridge in this thread: it handles Ctrl-C, which only the main thread may
@@ -124,11 +134,54 @@ def test_the_bridge_turns_can_frames_into_measurements_and_estimates_come_back(
     assert all(m.vx_mps in decoded["vx"] and m.r_radps in decoded["r"] for m in meas)
     assert all(m.torque_nm in decoded["torque"] and m.steer_rad in decoded["steer"] for m in meas)
     assert len({m.vx_mps for m in meas}) > 30  # the signal followed (in 0.01 km/h steps), not one value held
+    assert all(m.grade_rad is None for m in meas) and re.search(r"used vx \d+, r \d+, torque \d+, steer \d+;", out)
     back = [json.loads(line) for line in (tmp_path / "back.jsonl").read_text().splitlines()]
     estimates = [b["message"] for b in back if b["type"] == "estimate"]
     assert len(estimates) > 250 and {e["vehicle"] for e in estimates} == {VEHICLE}
     assert {e["seq"] for e in estimates} <= set(seqs)
     assert f"sent {len(meas)} measurements" in out
+
+
+def test_a_mapped_grade_goes_with_each_measurement_and_a_grade_that_stops_is_counted_by_name(router, tmp_path, capsys):
+    """The documented command with the grade mapped (ROAD_GRADE, in degrees): every measurement carries the grade
+    of a frame, in rad; 0.5 s without it is a gap counted under ``grade``, as the speed's is. No service: the
+    test's subscriber takes the measurements."""
+    (tmp_path / "vehicle.dbc").write_text(GRADE_DBC)
+    (tmp_path / "map.yaml").write_text(GRADE_MAPPING)
+    db = cantools.database.load_string(GRADE_DBC, "dbc")
+    wanted = resolve(db, load_mapping(tmp_path / "map.yaml"), "DBC")
+    channel = f"agv-fe-{uuid.uuid4().hex[:8]}"
+    y, u = _drive()
+    vehicle = open_session(router.client())
+    counter = Counter(vehicle)
+    counter.routed(router)
+    bus = can.Bus(interface="virtual", channel=channel)
+    args = [*_documented_command(tmp_path, channel, router.endpoint), "--duration", "4", "--wait", "60"]
+    decoded: dict[str, set[float]] = {column: set() for column in ("vx", "r", "torque", "steer", "grade")}
+    stop = threading.Event()
+    signals = (y, u, road_grade(0.01 * np.arange(len(y))))  # and the grade (frame 260) stops for 0.5 s
+    sender = threading.Thread(target=_send, args=(bus, db, wanted, counter, stop, decoded, signals, 260), daemon=True)
+    sender.start()
+    try:
+        code = main(args)
+    finally:
+        stop.set()
+        sender.join(timeout=30)
+        bus.shutdown()
+        counter.close()
+        close_session(vehicle)
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert re.search(r"used vx \d+, r \d+, torque \d+, steer \d+, grade \d+;", out), out
+    sampled, _, stale = grid_account(out)
+    # 0.5 s without the grade frame, less the 0.1 s it may be held; the grade alone
+    assert stale["grade"] >= 35 and stale["grade"] - stale.get("vx", 0) <= 60, out
+    meas = counter.meas[VEHICLE]
+    seqs = [m.seq for m in meas]
+    assert seqs[0] == 0 and len(meas) > 200 and len(meas) == sampled, (seqs[:3], out)
+    assert all(m.grade_rad is not None and m.grade_rad in decoded["grade"] for m in meas)
+    assert len({m.grade_rad for m in meas}) > 30  # the grade followed, not one value held
+    assert all(m.vx_mps in decoded["vx"] and m.steer_rad in decoded["steer"] for m in meas)
 
 
 def test_a_silent_bus_and_an_interface_that_cannot_open_are_named(router, tmp_path, capsys):

@@ -1,7 +1,8 @@
 """`agv-fe ros2-bridge` (edge_client/ros2_bridge.py) against real parts: CDR messages put by a zenoh session on the
 exact rmw_zenoh key expressions (with rmw_zenoh's attachment), the bridge in its own process, the real service
 answering with estimates and alarms, both republished as ROS 2 topics; bad input (malformed CDR, another type
-definition, a NaN, a topic that stops) counted while the bridge keeps running."""
+definition, a NaN, a topic that stops) counted while the bridge keeps running; a mapped road-grade topic goes with
+each measurement."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import json
 import re
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -22,7 +24,17 @@ from edge_client.ros2_bridge import dds_type_name, rmw_attachment, topic_key
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint
 from edge_client.simulation import simulate_plant
 from edge_client.transport import ChannelSubscription, close_session, open_session
-from tests.edge_client.ros2_messages import MAPPING, TOPICS, messages, store
+from tests.edge_client.ros2_messages import (
+    GRADE_MAPPING,
+    GRADE_TOPIC,
+    GRADE_TYPE,
+    MAPPING,
+    TOPICS,
+    grade_message,
+    messages,
+    road_grade,
+    store,
+)
 from tests.edge_client.test_publisher import Counter
 
 pytestmark = pytest.mark.network
@@ -54,6 +66,16 @@ def test_the_rmw_zenoh_key_of_a_topic():
     assert rmw_attachment(7, 1_700_000_000_000_000_000, GID) == (
         (7).to_bytes(8, "little") + (1_700_000_000_000_000_000).to_bytes(8, "little") + b"\x10" + GID
     )
+
+
+def grid_account(out: str) -> tuple[int, int, dict[str, int]]:
+    """A bridge's grid account in its output: the ticks sampled, the ticks, and per column the ticks not sent as it
+    was stale. A tick at which the test's sending was late by more than max_age_s (a busy machine) counts under
+    every column."""
+    grid = re.search(r"grid: (\d+) of (\d+) ticks sampled; ticks not sent for a stale column: (.*)", out)
+    assert grid is not None, out
+    stale = {column: int(n) for column, n in (item.split() for item in grid[3].split(", ") if item != "none")}
+    return int(grid[1]), int(grid[2]), stale
 
 
 def _drive():
@@ -140,12 +162,7 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
         close_session(vehicle)
     assert bridge.returncode == 0, err
     assert "1 undecodable, 1 not finite, 2 of another type or type definition" in out, out
-    # the grid's account: the ticks sampled, and per column the ticks not sent as it was stale; a tick at which this
-    # test's publishing was late by more than max_age_s (a busy machine) counts under every column
-    grid = re.search(r"grid: (\d+) of (\d+) ticks sampled; ticks not sent for a stale column: (.*)", out)
-    assert grid is not None, out
-    sampled, ticks = int(grid[1]), int(grid[2])
-    stale = {column: int(n) for column, n in (item.split() for item in grid[3].split(", "))}
+    sampled, ticks, stale = grid_account(out)
     # 0.5 s without odometry, less the 0.1 s it may be held; v_x alone (r is stale only when everything is)
     assert stale["vx"] >= 35 and stale["vx"] - stale.get("r", 0) <= 60, out
     meas = counter.meas[VEHICLE]
@@ -155,6 +172,7 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
     # every value sent is one the vehicle's messages carried, sign and scale undone (torque halved, r negated)
     assert all(m.vx_mps in sent["vx"] and m.r_radps in sent["r"] for m in meas)
     assert all(m.torque_nm in sent["torque"] and m.steer_rad in sent["steer"] for m in meas)
+    assert all(m.grade_rad is None for m in meas)  # no grade mapped: the measurements carry none
     back = [json.loads(line) for line in (tmp_path / "back.jsonl").read_text().splitlines()]
     estimates = [b["message"] for b in back if b["type"] == "estimate"]
     assert len(estimates) > 300 and {e["vehicle"] for e in estimates} == {VEHICLE}
@@ -311,3 +329,70 @@ def test_a_topic_that_never_comes_is_named(router, tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "missing or stale: vx (0/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_" in err, err
     assert "steer (0/cmd/ackermann_msgs::msg::dds_::AckermannDriveStamped_/RIHS01_" in err
+
+
+@pytest.mark.network
+def test_a_mapped_grade_topic_goes_with_each_measurement_and_a_grade_that_stops_is_counted_by_name(
+    router, tmp_path, capsys
+):
+    """The bridge with the grade mapped (a Float64 topic [rad]): every measurement carries a grade that was
+    published; 0.5 s without it is a gap counted under ``grade``. No service: the test's subscriber takes the
+    measurements."""
+    from agv_fe.cli import main
+
+    ts = store(RosMapping.model_validate(yaml.safe_load(GRADE_MAPPING)))
+    (tmp_path / "map.yaml").write_text(GRADE_MAPPING)
+    y, u = _drive()
+    grade = road_grade(0.01 * np.arange(len(y)))
+    vehicle = open_session(router.client())
+    counter = Counter(vehicle)
+    counter.routed(router)
+    kinds = {**TOPICS, GRADE_TOPIC: GRADE_TYPE}
+    publishers = {t: vehicle.declare_publisher(topic_key(0, t, k, ts.hash_rihs01(k))) for t, k in kinds.items()}
+    sent_grades: set[float] = set()
+    stop = threading.Event()
+
+    def send() -> None:  # the vehicle's nodes, at 100 Hz, until the bridge is done (bounded by MAX_PERIODS)
+        first = None
+        deadline = time.monotonic()
+        for period in range(MAX_PERIODS):
+            if stop.is_set():
+                return
+            with counter.lock:
+                first = period if first is None and counter.meas[VEHICLE] else first
+            since = -1 if first is None else period - first
+            k = period % len(y)
+            now_ns = time.time_ns()
+            raws = messages(ts, y[k, 0], y[k, 1], u[k, 0], u[k, 1], now_ns)
+            if not 200 <= since < 250:  # the grade stops for 0.5 s
+                raws[GRADE_TOPIC] = grade_message(ts, float(grade[k]))
+                sent_grades.add(float(grade[k]))
+            for topic, raw in raws.items():
+                publishers[topic].put(raw, attachment=rmw_attachment(period, now_ns, GID))
+            deadline += 0.01
+            time.sleep(max(deadline - time.monotonic(), 0.0))
+
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
+    try:
+        code = main(["ros2-bridge", "--map", str(tmp_path / "map.yaml"), "--vehicle", VEHICLE, "--connect",
+                     router.endpoint, "--duration", "4", "--wait", "60"])  # fmt: skip
+    finally:
+        stop.set()
+        sender.join(timeout=30)
+        counter.close()
+        for publisher in publishers.values():
+            publisher.undeclare()
+        close_session(vehicle)
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert topic_key(0, GRADE_TOPIC, GRADE_TYPE, ts.hash_rihs01(GRADE_TYPE)) in out  # subscribed to its key
+    assert re.search(r"used vx \d+, r \d+, torque \d+, steer \d+, grade \d+;", out), out
+    sampled, _, stale = grid_account(out)
+    # 0.5 s without the grade, less the 0.1 s it may be held; the grade alone
+    assert stale["grade"] >= 35 and stale["grade"] - stale.get("vx", 0) <= 60, out
+    meas = counter.meas[VEHICLE]
+    assert len(meas) == sampled and len(meas) > 200, out
+    assert all(m.grade_rad is not None and m.grade_rad in sent_grades for m in meas)
+    assert len({m.grade_rad for m in meas}) > 30  # the grade followed, not one value held
+    assert all(m.vx_mps in set(y[:, 0]) and m.torque_nm in set(u[:, 0]) for m in meas)
