@@ -213,7 +213,6 @@ def calibrate_profile(
     gains, thresholds, estimates = _best_design(
         result, chosen, drives, gusts, alarm_base, false_alarms_per_1000_h, nominal, say
     )
-    design_options = gains.options
     # the effectiveness stage's measurement noise: the observer's healthy RMS, its bias steps: the gust's (the
     # stage stays off unless asked)
     stage = EffectivenessOptions(
@@ -235,7 +234,7 @@ def calibrate_profile(
         or f"calibrated from {len(drives)} recording(s), {result.duration_s:.0f} s of healthy driving",
         params=params,
         bounds=result.bounds,
-        design=design_options,
+        design=gains.options,
         alarms=AlarmThresholds.model_validate(alarm_settings.model_dump()),
         effectiveness=stage,
     )

@@ -301,25 +301,7 @@ class ProfileBank:
             u, stage_u, rho = self._model_input(slots, y, u, grade, rt.gains.params)
         restarted = self.needs_init[slots]
         if restarted.any():
-            rows = slots[restarted]
-            warm = self.warm[rows]
-            has_warm = ~np.isnan(warm).any(axis=1)
-            x0 = np.zeros((len(rows), 3 + 2))
-            x0[:, 0] = y[restarted, 0]
-            x0[:, 2] = y[restarted, 1]
-            x0[has_warm] = warm[has_warm]
-            if rho is not None:  # the last estimate's torque fault in the model's frame
-                x0[:, 3] *= rho[restarted]
-            self.z[rows] = initial_observer_state(rt, y[restarted], x0, u[restarted])
-            self.switch_stat[rows] = 0.0
-            self.fast_left[rows] = rt.start_samples
-            self.needs_init[rows] = False
-            self.warm[rows] = np.nan
-            self.faults.restart(rows, t_ns[restarted])
-            self.domain.reset(rows, keep_level=True)
-            self.effectiveness.reset(rows, keep_level=True)
-            if self.stage is not None:
-                self.stage.reset(rows, stage_u[restarted])
+            self._restart_rows(rt, slots, restarted, y, u, stage_u, rho, t_ns)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             if rt.switched:
                 z_next, stat, left, res = switched_step(
@@ -367,6 +349,39 @@ class ProfileBank:
             restarted=restarted,
             fast=res.fast if rt.switched else None,
         )
+
+    def _restart_rows(
+        self,
+        rt: RuntimeGains,
+        slots: np.ndarray,
+        restarted: np.ndarray,
+        y: FloatArray,
+        u: FloatArray,
+        stage_u: FloatArray,
+        rho: FloatArray | None,
+        t_ns: np.ndarray,
+    ) -> None:
+        """Start the observer (and the detectors, the stage) of the ``restarted`` ones of ``slots`` from this sample:
+        from the last estimate where one is kept (a hand-over), else from the measurement."""
+        rows = slots[restarted]
+        warm = self.warm[rows]
+        has_warm = ~np.isnan(warm).any(axis=1)
+        x0 = np.zeros((len(rows), 3 + 2))
+        x0[:, 0] = y[restarted, 0]
+        x0[:, 2] = y[restarted, 1]
+        x0[has_warm] = warm[has_warm]
+        if rho is not None:  # the last estimate's torque fault in the model's frame
+            x0[:, 3] *= rho[restarted]
+        self.z[rows] = initial_observer_state(rt, y[restarted], x0, u[restarted])
+        self.switch_stat[rows] = 0.0
+        self.fast_left[rows] = rt.start_samples
+        self.needs_init[rows] = False
+        self.warm[rows] = np.nan
+        self.faults.restart(rows, t_ns[restarted])
+        self.domain.reset(rows, keep_level=True)
+        self.effectiveness.reset(rows, keep_level=True)
+        if self.stage is not None:
+            self.stage.reset(rows, stage_u[restarted])
 
     def _model_input(
         self, slots: np.ndarray, y: FloatArray, u: FloatArray, grade: FloatArray | None, params: VehicleParams
