@@ -718,6 +718,37 @@ def test_a_road_grade_in_the_measurement_keeps_a_hill_from_reading_as_a_torque_f
     assert engine.vehicles["told"].rejected["non_finite"] == 1
 
 
+def test_a_loaded_vehicle_on_a_hill_told_both_reads_no_torque_fault(fast_gains):
+    """The payload and the grade together (docs/math.md 12.5, 12.6): the project's plant carrying 100 kg on a hill,
+    the weight's pull being (M_v + 100) g sin(theta); told the payload and sent the grade, the observer reads no
+    torque fault; told only one of them, it reads the other."""
+    from edge_client.faults import SinusoidalFault, fault_tables
+    from synth.params import STANDARD_GRAVITY_MPS2
+
+    p = VehicleParams()
+    weight_torque = p.wheel_radius_m * (p.mass_kg + 100.0) * STANDARD_GRAVITY_MPS2
+    pull = SinusoidalFault(channel="torque", amplitude=60.0, omega_radps=0.8, offset=-80.0, phase_from_zero=True)
+    heavy = p.model_copy(update={"effective_mass_kg": p.effective_mass_kg + 100.0})
+    samples = plant_measurements(
+        ["v"], 900, scenario=paper_1().model_copy(update={"vehicle": heavy, "faults": (pull,)})
+    )
+    t = np.arange(900) * p.sample_period_s
+    grade = np.arcsin(-fault_tables((pull,), t)[0][:, 0] / weight_torque)
+    engine = make_engine(fast_gains)
+    for v in ("both", "payload-only"):
+        engine.register(v, "default")
+        engine.set_payload(v, 100.0)
+    torque: dict[str, list[float]] = {"both": [], "payload-only": [], "grade-only": []}
+    for k, (m,) in enumerate(samples):
+        frames = [dataclasses.replace(m, vehicle_id=v, grade_rad=None if v == "payload-only" else float(grade[k]))
+                  for v in torque]  # fmt: skip
+        for e in decoded(engine.process(pairs(frames))):
+            torque[e.vehicle].append(e.torque_fault)
+    rms = {v: float(np.sqrt(np.mean(np.square(torque[v][300:])))) for v in torque}
+    assert all(len(torque[v]) == 900 for v in torque)
+    assert rms["both"] < 0.05 * min(rms["payload-only"], rms["grade-only"]), rms
+
+
 def test_a_payload_with_the_effectiveness_stage_scales_the_torque_bias_and_total_not_alpha(robust_gains_default):
     """With the stage on, a loaded vehicle's row steps the stage on the payload torque too: its estimates are the
     offline stage's on that torque, the torque bias and total fault divided by rho, alpha as it is."""
