@@ -92,6 +92,26 @@ def _send(bus, db, wanted, counter, stop, decoded, signals, silent_id: int) -> N
         time.sleep(max(deadline - time.monotonic(), 0.0))
 
 
+def _bridge_beside_sender(args, link, decoded, signals, gap_frame, vehicle) -> int:
+    """Run the bridge (``main(args)``) in this thread, which handles Ctrl-C as only the main thread may, while
+    :func:`_send` puts ``signals`` on the bus (``link``: bus, DBC, wanted frames, counter; ``gap_frame`` stops for
+    0.5 s) and records what it sent in ``decoded``; then close the bus, the counter and the test's session."""
+    bus, db, wanted, counter = link
+    stop = threading.Event()
+    sender = threading.Thread(
+        target=_send, args=(bus, db, wanted, counter, stop, decoded, signals, gap_frame), daemon=True
+    )
+    sender.start()
+    try:
+        return int(main(args))
+    finally:
+        stop.set()
+        sender.join(timeout=30)
+        bus.shutdown()
+        counter.close()
+        close_session(vehicle)
+
+
 def test_the_bridge_turns_can_frames_into_measurements_and_estimates_come_back(
     router, estimation_service, tmp_path, capsys
 ):
@@ -109,18 +129,8 @@ def test_the_bridge_turns_can_frames_into_measurements_and_estimates_come_back(
     extra = ["--duration", "5", "--wait", "60", "--log", str(tmp_path / "back.jsonl")]
     args = [*_documented_command(tmp_path, channel, router.endpoint), *extra]
     decoded: dict[str, set[float]] = {column: set() for column in ("vx", "r", "torque", "steer")}
-    stop = threading.Event()
     signals = (y, u, None)  # and the speed (frame 256) stops for 0.5 s
-    sender = threading.Thread(target=_send, args=(bus, db, wanted, counter, stop, decoded, signals, 256), daemon=True)
-    sender.start()
-    try:
-        code = main(args)  # the bridge in this thread: it handles Ctrl-C, which only the main thread may
-    finally:
-        stop.set()
-        sender.join(timeout=30)
-        bus.shutdown()
-        counter.close()
-        close_session(vehicle)
+    code = _bridge_beside_sender(args, (bus, db, wanted, counter), decoded, signals, 256, vehicle)
     out = capsys.readouterr().out
     assert code == 0, out
     assert "refused 1 undecodable, 0 not finite" in out and "; 1 of other messages" in out, out
@@ -158,18 +168,8 @@ def test_a_mapped_grade_goes_with_each_measurement_and_a_grade_that_stops_is_cou
     bus = can.Bus(interface="virtual", channel=channel)
     args = [*_documented_command(tmp_path, channel, router.endpoint), "--duration", "4", "--wait", "60"]
     decoded: dict[str, set[float]] = {column: set() for column in ("vx", "r", "torque", "steer", "grade")}
-    stop = threading.Event()
     signals = (y, u, road_grade(0.01 * np.arange(len(y))))  # and the grade (frame 260) stops for 0.5 s
-    sender = threading.Thread(target=_send, args=(bus, db, wanted, counter, stop, decoded, signals, 260), daemon=True)
-    sender.start()
-    try:
-        code = main(args)
-    finally:
-        stop.set()
-        sender.join(timeout=30)
-        bus.shutdown()
-        counter.close()
-        close_session(vehicle)
+    code = _bridge_beside_sender(args, (bus, db, wanted, counter), decoded, signals, 260, vehicle)
     out = capsys.readouterr().out
     assert code == 0, out
     assert re.search(r"used vx \d+, r \d+, torque \d+, steer \d+, grade \d+;", out), out
