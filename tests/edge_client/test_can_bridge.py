@@ -11,7 +11,6 @@ import math
 import re
 import shlex
 import threading
-import time
 import uuid
 from pathlib import Path
 
@@ -24,6 +23,7 @@ cantools = pytest.importorskip("cantools")
 from agv_fe.cli import main  # noqa: E402 - after the optional-dependency check
 from edge_client.can_log import decode_frame, load_mapping, resolve  # noqa: E402
 from edge_client.transport import close_session, open_session  # noqa: E402
+from tests.edge_client.bridge_checks import paced_periods  # noqa: E402
 from tests.edge_client.ros2_messages import road_grade  # noqa: E402
 from tests.edge_client.test_can_log import DBC, GRADE_DBC, GRADE_MAPPING, MAPPING  # noqa: E402
 from tests.edge_client.test_publisher import Counter  # noqa: E402
@@ -69,15 +69,7 @@ def _send(bus, db, wanted, counter, stop, decoded, signals, silent_id: int) -> N
     0.5 s; once each at 100 periods, a truncated frame and a frame of another message. ``decoded`` collects what
     the frames carry, per column, in the protocol's units."""
     y, u, grade = signals
-    first = None
-    deadline = time.monotonic()
-    for period in range(MAX_PERIODS):
-        if stop.is_set():
-            return
-        with counter.lock:
-            seen = len(counter.meas[VEHICLE])
-        first = period if first is None and seen else first
-        since = -1 if first is None else period - first
+    for period, since in paced_periods(counter, VEHICLE, MAX_PERIODS, lambda: not stop.is_set()):
         k = period % len(y)
         for frame in _frames(db, y[k, 0], y[k, 1], u[k, 0], u[k, 1], None if grade is None else grade[k]):
             if frame.arbitration_id == silent_id and 200 <= since < 250:
@@ -88,8 +80,6 @@ def _send(bus, db, wanted, counter, stop, decoded, signals, silent_id: int) -> N
         if since == 100:  # bad input, once each: a truncated frame, a frame of another message
             bus.send(can.Message(arbitration_id=257, data=b"\x01", is_extended_id=False))
             bus.send(can.Message(arbitration_id=2047, data=bytes(8), is_extended_id=False))
-        deadline += 0.01
-        time.sleep(max(deadline - time.monotonic(), 0.0))
 
 
 def _bridge_beside_sender(args, link, decoded, signals, gap_frame, vehicle) -> int:

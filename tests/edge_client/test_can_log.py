@@ -20,6 +20,7 @@ from edge_client.can_log import load_mapping, read_can_log  # noqa: E402
 from edge_client.recording import RecordingError, read_recording, write_recording  # noqa: E402
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint  # noqa: E402
 from edge_client.simulation import simulate_plant  # noqa: E402
+from tests.edge_client.bridge_checks import assert_grade_held  # noqa: E402
 from tests.edge_client.ros2_messages import road_grade  # noqa: E402
 from tests.tolerances import (  # noqa: E402
     CAN_GRADE_ATOL_RAD,
@@ -176,14 +177,7 @@ def test_a_mapped_grade_signal_fills_the_grade_column_and_an_unmapped_one_change
     # mapped: the same grid and signals, and the grade as encoded (0.001 deg steps, deg -> rad by the mapping's
     # scale), fresh on even samples (50 Hz), held on odd ones
     recording, stats = read_can_log(log, root / "vehicle.dbc", load_mapping(root / "map.yaml"))
-    for got in (unmapped, recording):
-        np.testing.assert_array_equal(got.t, plain.t)
-        np.testing.assert_array_equal(got.y, plain.y)
-        np.testing.assert_array_equal(got.u, plain.u)
-    n = len(recording)
-    assert recording.grade is not None and recording.grade.shape == (n,)
-    np.testing.assert_allclose(recording.grade[::2], grade[:n:2], atol=CAN_GRADE_ATOL_RAD)
-    np.testing.assert_allclose(recording.grade[1::2], grade[: n - 1 : 2], atol=CAN_GRADE_ATOL_RAD)
+    assert_grade_held(plain, unmapped, recording, grade, CAN_GRADE_ATOL_RAD)
     assert stats.used["grade"] == (samples + 1) // 2 and stats.other == math.ceil(samples / 10)
 
 

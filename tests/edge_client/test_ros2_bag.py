@@ -22,6 +22,7 @@ from edge_client.recording import RecordingError  # noqa: E402
 from edge_client.ros2 import RosMapping, load_ros_mapping, read_bag  # noqa: E402
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint  # noqa: E402
 from edge_client.simulation import simulate_plant  # noqa: E402
+from tests.edge_client.bridge_checks import assert_grade_held  # noqa: E402
 from tests.edge_client.ros2_messages import (  # noqa: E402
     GRADE_MAPPING,
     GRADE_TOPIC,
@@ -191,14 +192,7 @@ def test_a_mapped_grade_topic_fills_the_grade_column_and_replays_as_the_csv_with
     # mapped: the same grid and signals, and the grade as published (float64 [rad]), fresh on even samples
     # (50 Hz), held on odd ones
     recording, stats = read_bag(bag, load_ros_mapping_text(GRADE_MAPPING))
-    for got in (unmapped, recording):
-        np.testing.assert_array_equal(got.t, plain.t)
-        np.testing.assert_array_equal(got.y, plain.y)
-        np.testing.assert_array_equal(got.u, plain.u)
-    n = len(recording)
-    assert recording.grade is not None and recording.grade.shape == (n,)
-    np.testing.assert_array_equal(recording.grade[::2], grade[:n:2])
-    np.testing.assert_array_equal(recording.grade[1::2], grade[: n - 1 : 2])
+    assert_grade_held(plain, unmapped, recording, grade)
     assert stats.used["grade"] == (len(drive.t) + 1) // 2
     # `replay --map` of the bag gives the estimates of the CSV with the grade column, digit for digit (the grade
     # applied: not those of the plain bag)

@@ -24,6 +24,7 @@ from edge_client.ros2_bridge import dds_type_name, rmw_attachment, topic_key
 from edge_client.scenario import REALISTIC_NOISE, Manoeuvre, Scenario, SpeedPoint
 from edge_client.simulation import simulate_plant
 from edge_client.transport import ChannelSubscription, close_session, open_session
+from tests.edge_client.bridge_checks import paced_periods
 from tests.edge_client.ros2_messages import (
     GRADE_MAPPING,
     GRADE_TOPIC,
@@ -119,17 +120,9 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
     )  # fmt: skip
     sent = {column: set() for column in ("vx", "r", "torque", "steer")}
     try:
-        first_meas = None
-        deadline = time.monotonic()
-        for period in range(MAX_PERIODS):
-            if bridge.poll() is not None:
-                break
+        for period, since in paced_periods(counter, VEHICLE, MAX_PERIODS, lambda: bridge.poll() is None):
             k = period % len(y)
             now_ns = time.time_ns()
-            with counter.lock:
-                seen = len(counter.meas[VEHICLE])
-            first_meas = period if first_meas is None and seen else first_meas
-            since = -1 if first_meas is None else period - first_meas
             # the command's steering angle is a float32, as _drive's u already is
             steer = float(np.float32(u[k, 1] + (STEER_BIAS_RAD if since >= STEER_BIAS_FROM else 0.0)))
             for topic, raw in messages(ts, y[k, 0], y[k, 1], u[k, 0], steer, now_ns).items():
@@ -142,8 +135,6 @@ def test_the_bridge_turns_rmw_zenoh_topics_into_measurements_and_estimates_come_
                 other_definition.put(messages(ts, 1.0, 1.0, 1.0, 1.0, now_ns)["/imu"])
                 other_type.put(messages(ts, 1.0, 1.0, 1.0, 1.0, now_ns)["/drive_torque"])
                 publishers["/odom"].put(messages(ts, float("nan"), 0.0, 0.0, 0.0, now_ns)["/odom"])
-            deadline += 0.01
-            time.sleep(max(deadline - time.monotonic(), 0.0))
         out, err = bridge.communicate(timeout=60)
     finally:
         if bridge.poll() is None:
@@ -353,14 +344,7 @@ def test_a_mapped_grade_topic_goes_with_each_measurement_and_a_grade_that_stops_
     stop = threading.Event()
 
     def send() -> None:  # the vehicle's nodes, at 100 Hz, until the bridge is done (bounded by MAX_PERIODS)
-        first = None
-        deadline = time.monotonic()
-        for period in range(MAX_PERIODS):
-            if stop.is_set():
-                return
-            with counter.lock:
-                first = period if first is None and counter.meas[VEHICLE] else first
-            since = -1 if first is None else period - first
+        for period, since in paced_periods(counter, VEHICLE, MAX_PERIODS, lambda: not stop.is_set()):
             k = period % len(y)
             now_ns = time.time_ns()
             raws = messages(ts, y[k, 0], y[k, 1], u[k, 0], u[k, 1], now_ns)
@@ -369,8 +353,6 @@ def test_a_mapped_grade_topic_goes_with_each_measurement_and_a_grade_that_stops_
                 sent_grades.add(float(grade[k]))
             for topic, raw in raws.items():
                 publishers[topic].put(raw, attachment=rmw_attachment(period, now_ns, GID))
-            deadline += 0.01
-            time.sleep(max(deadline - time.monotonic(), 0.0))
 
     sender = threading.Thread(target=send, daemon=True)
     sender.start()
