@@ -159,6 +159,8 @@ class VehicleStatus(BaseModel):
                     "gain_version": "3f9a1c0b7d2e",
                     "gain_set": None,
                     "payload_kg": 0.0,
+                    "grade_rad": 0.021,
+                    "grade_seq": 12003,
                     "counters": _COUNTERS_EXAMPLE,
                     "rejected": _REJECTED_EXAMPLE,
                 }
@@ -189,6 +191,17 @@ class VehicleStatus(BaseModel):
         0.0,
         description="what the vehicle carries [kg] (PUT /vehicles/{id}/payload): its model's drive torque follows "
         "it, so that a load does not read as a torque fault; 0 for the profile's vehicle as calibrated",
+    )
+    grade_rad: float | None = Field(
+        None,
+        description="the road grade [rad, + uphill] of the last accepted sample that carried one (measurement flag "
+        "bit 1, docs/protocol.md): the model's drive torque takes the weight's pull on it out, so that a hill does "
+        "not read as a torque fault; null when no sample has carried one",
+    )
+    grade_seq: int | None = Field(
+        None,
+        description="that sample's sequence number: last_seq when the latest sample carried a grade, lower when the "
+        "vehicle has stopped sending it (its later samples are modelled on level ground); null when none has",
     )
     counters: dict[str, int] = Field(
         description="accepted samples, estimates computed and published, missing samples, gaps, observer restarts"

@@ -94,6 +94,9 @@ class ProfileBank:
         # each row's payload [kg] (synth.model.payload_torque) and how many used rows carry one
         self.payload_kg = np.zeros(cap)
         self.loaded_rows = 0
+        # the road grade of each row's last sample that carried one [rad] and that sample's seq (-1: none has)
+        self.grade_rad = np.zeros(cap)
+        self.grade_seq = np.full(cap, -1, dtype=np.int64)
         a = spec.alarms
         # the fault channels' detectors and warm-up rule (shared with `agv-fe replay`)
         self.faults = FaultLevels(cap, a, spec.params.sample_period_s)
@@ -201,8 +204,15 @@ class ProfileBank:
         self.loaded_rows += int(payload_kg > 0.0) - int(self.payload_kg[slot] > 0.0)
         self.payload_kg[slot] = payload_kg
 
+    def note_grade(self, slots: np.ndarray, seq: np.ndarray, grade: FloatArray) -> None:
+        """``slots`` (distinct) accepted samples ``seq`` that carried the road grades ``grade`` [rad]."""
+        self.grade_rad[slots] = grade
+        self.grade_seq[slots] = seq
+
     def _clear_row(self, slot: int) -> None:
         self.set_payload(slot, 0.0)
+        self.grade_rad[slot] = 0.0
+        self.grade_seq[slot] = -1
         self.needs_init[slot] = True
         self.warm[slot] = np.nan
         self.last_values[slot] = np.nan
@@ -247,6 +257,8 @@ class ProfileBank:
         self.published = pad(self.published, 0)
         self.phase = pad(self.phase, 0)
         self.payload_kg = pad(self.payload_kg, 0.0)
+        self.grade_rad = pad(self.grade_rad, 0.0)
+        self.grade_seq = pad(self.grade_seq, -1)
         self.faults.grow(capacity)
         self.domain.grow(capacity)
         self.effectiveness.grow(capacity)

@@ -106,16 +106,29 @@ def _limits_row(spec: ProfileSpec) -> tuple[float, float, float, float, float, f
     )
 
 
-def _graded(header: np.ndarray) -> tuple[np.ndarray, FloatArray | None]:
+#: flag bits of a plain frame (one the plausibility stage checks without reading its bytes 56-63 as a grade)
+_PLAIN_FLAGS = KNOWN_FLAGS & ~FLAG_ROAD_GRADE
+
+
+def _note_grade(
+    bank: ProfileBank, graded: np.ndarray, slots: np.ndarray, seq: np.ndarray, grade: FloatArray | None
+) -> None:
+    """Keep the road grade of the stepped samples of ``slots`` that carried one (``graded``), for the status."""
+    if grade is not None and graded.any():
+        bank.note_grade(slots[graded], seq[graded], grade[graded])
+
+
+def _graded(header: np.ndarray) -> tuple[np.ndarray, FloatArray | None, np.ndarray | None]:
     """Which frames conform when a frame may carry a road grade (flag bit 1: bytes 56-63 are its grade, f64; zero
-    without the flag), and the grades (0 where a frame carries none), None when no frame carries one."""
+    without the flag), the grades (0 where a frame carries none) and which frames carry one; None, None when no
+    frame does."""
     flags = header["flags"]
     known = (flags & ~np.uint8(KNOWN_FLAGS)) == 0
     graded = (flags & np.uint8(FLAG_ROAD_GRADE)) != 0
     if not graded.any():
-        return known & (header["reserved"] == 0), None
+        return known & (header["reserved"] == 0), None, None
     grade = np.where(graded, header["reserved"].view(np.float64), 0.0)
-    return known & (graded | (header["reserved"] == 0)), grade
+    return known & (graded | (header["reserved"] == 0)), grade, graded
 
 
 def _classify(payload: bytes, vehicle_id: str) -> RejectReason:
@@ -459,10 +472,10 @@ class FleetEngine:
             bank_of = np.array([ordinal[v.bank.name] for v in frame_vehicles], dtype=np.intp)
         lim = self._limits[bank_of]
         finite = np.isfinite(values).all(axis=1)
-        conforming = ((header["flags"] & ~np.uint8(KNOWN_FLAGS)) == 0) & (header["reserved"] == 0)
-        grade = None
-        if not conforming.all():  # a road grade in the reserved bytes, or a frame that breaks the format
-            conforming, grade = _graded(header)
+        conforming = ((header["flags"] & ~np.uint8(_PLAIN_FLAGS)) == 0) & (header["reserved"] == 0)
+        grade = graded = None
+        if not conforming.all():  # a frame with a road grade (even of 0), or one that breaks the format
+            conforming, grade, graded = _graded(header)
             if grade is not None:
                 finite &= np.isfinite(grade)
         with np.errstate(invalid="ignore"):
@@ -477,7 +490,7 @@ class FleetEngine:
             )
             if grade is not None:
                 ok &= np.abs(grade) <= lim[:, 5]
-        return Checked(frame_vehicles, header, values, bank_of, ok, conforming, finite, grade)
+        return Checked(frame_vehicles, header, values, bank_of, ok, conforming, finite, grade, graded)
 
     def _sequence_in_order(
         self, tick: Checked, per_bank: dict[str, Rows], now_mono: float, now_ns: int, result: TickResult
@@ -734,6 +747,8 @@ class FleetEngine:
         if self._shortcuts and not rows.later and not rows.restart:  # the common tick: one sample each, no restart
             idx = np.arange(len(slots))
             out = bank.step(slots, values[:, :2], values[:, 2:], seq, t_ns, grade)
+            if tick.graded is not None:
+                _note_grade(bank, tick.graded[at], slots, seq, grade)
             self._after_step(bank, rows, idx, slots, out, seq, t_ns, values, result)
             result.accepted += len(slots)
             self.stats["accepted"] += len(slots)
@@ -757,6 +772,8 @@ class FleetEngine:
                 self.stats["restarts"] += len(again)
             round_grade = None if grade is None else grade[idx]
             out = bank.step(s, values[idx][:, [0, 1]], values[idx][:, [2, 3]], seq[idx], t_ns[idx], round_grade)
+            if tick.graded is not None:
+                _note_grade(bank, tick.graded[at[idx]], s, seq[idx], round_grade)
             self._after_step(bank, rows, idx, s, out, seq, t_ns, values, result)
         result.accepted += len(slots)
         self.stats["accepted"] += len(slots)
@@ -1040,6 +1057,7 @@ class FleetEngine:
         level: list[int] = [0] * len(vehicles)
         sample_counts: list[tuple[int, int, int]] = [(0, 0, 0)] * len(vehicles)
         gain_set: list[str | None] = [None] * len(vehicles)
+        grade: list[tuple[float | None, int | None]] = [(None, None)] * len(vehicles)
         for positions in by_bank.values():
             bank = vehicles[positions[0]].bank
             slots = np.array([vehicles[i].slot for i in positions], dtype=np.intp)
@@ -1051,6 +1069,9 @@ class FleetEngine:
             started = (bank.last_seq[slots] >= 0).tolist()
             for i, rank, count, chosen, seen in zip(positions, ranks.tolist(), counts, sets, started, strict=True):
                 level[i], sample_counts[i], gain_set[i] = rank, count, chosen if seen else None
+            graded_seq = bank.grade_seq[slots].tolist()
+            for i, seq, value in zip(positions, graded_seq, bank.grade_rad[slots].tolist(), strict=True):
+                grade[i] = (value, seq) if seq >= 0 else (None, None)
         out = []
         for i, vehicle in enumerate(vehicles):
             counters = dict(vehicle.base_counters)
@@ -1073,6 +1094,8 @@ class FleetEngine:
                     "gain_version": vehicle.bank.version,
                     "gain_set": gain_set[i],
                     "payload_kg": vehicle.payload_kg,
+                    "grade_rad": grade[i][0],
+                    "grade_seq": grade[i][1],
                     "counters": counters,
                     "rejected": dict(vehicle.rejected),
                 }

@@ -49,7 +49,7 @@ class Checked:
     seq and flags among them); values : (n, 4) [v_x, r, T_d, delta_d]; bank_of : each frame's profile ordinal;
     ok : plausible (conforming, finite, within limits); conforming, finite : the parts of ok that name a reject
     reason; grade : (n,) the road grade of the frames that carry one (flag bit 1), 0 for the others, or None when
-    none does.
+    none does; graded : (n,) which frames carry one, or None when none does.
     """
 
     vehicles: list[Vehicle]
@@ -60,3 +60,4 @@ class Checked:
     conforming: np.ndarray
     finite: np.ndarray
     grade: FloatArray | None = None
+    graded: np.ndarray | None = None

@@ -525,7 +525,16 @@ class DashboardHub:
             "effectiveness": vehicle.bank.stage is not None,
             "truth": trace is not None and trace.has_truth,
             "payload_kg": vehicle.payload_kg,
+            **self._grade(vehicle),
         }
+
+    @staticmethod
+    def _grade(vehicle: Vehicle) -> dict[str, float | int | None]:
+        """The road grade of the vehicle's last sample that carried one and that sample's seq, None when none has."""
+        seq = int(vehicle.bank.grade_seq[vehicle.slot])
+        if seq < 0:
+            return {"grade_rad": None, "grade_seq": None}
+        return {"grade_rad": float(vehicle.bank.grade_rad[vehicle.slot]), "grade_seq": seq}
 
     def _latched(self) -> list[dict[str, Any]]:
         records = sorted(self.engine.alarms.latched(), key=lambda r: r.updated_t_ns, reverse=True)

@@ -144,3 +144,5 @@ def test_publish_csv_sends_a_grade_column_as_the_measurements_road_grade(router,
     np.testing.assert_array_equal([m.grade_rad for m in sent], recording.grade)
     assert all(m.flags & 0x02 for m in sent) and "lost 0" in out.stdout
     assert "last estimate (seq 199)" in out.stdout  # the service took the graded samples
+    vehicle = estimation_service.get("/vehicles/hill-1").json()
+    assert (vehicle["grade_rad"], vehicle["grade_seq"]) == (recording.grade[-1], 199)

@@ -711,11 +711,25 @@ def test_a_road_grade_in_the_measurement_keeps_a_hill_from_reading_as_a_torque_f
     assert len(told_t) == len(blind_t) == 600
     assert blind_t.mean() > 20.0 and told_t.max() < 0.05 * blind_t.mean()
     assert sum(engine.rejected.values()) == 0
+    told_v, blind_v = engine.vehicles["told"], engine.vehicles["blind"]
+    status = engine.vehicle_status(told_v)
+    assert (status["grade_rad"], status["grade_seq"], status["last_seq"]) == (float(grade[-1]), 899, 899)
+    assert (engine.vehicle_status(blind_v)["grade_rad"], engine.vehicle_status(blind_v)["grade_seq"]) == (None, None)
     steep = dataclasses.replace(samples[0][0], vehicle_id="told", seq=900, timestamp_ns=T0_NS + 900 * PERIOD_NS)
     engine.process(pairs([dataclasses.replace(steep, grade_rad=0.5)]))
     engine.process(pairs([dataclasses.replace(steep, grade_rad=math.nan)]))
-    assert engine.vehicles["told"].rejected["out_of_range"] == 1
-    assert engine.vehicles["told"].rejected["non_finite"] == 1
+    assert told_v.rejected["out_of_range"] == 1
+    assert told_v.rejected["non_finite"] == 1
+    # a refused grade is not the vehicle's grade; a sample without one leaves the last one shown, with its seq
+    assert engine.vehicle_status(told_v)["grade_seq"] == 899
+    engine.process(pairs([steep]))
+    status = engine.vehicle_status(told_v)
+    assert (status["grade_rad"], status["grade_seq"], status["last_seq"]) == (float(grade[-1]), 899, 900)
+    # a grade of exactly 0 (level ground, flag bit 1) is a grade sent
+    level = dataclasses.replace(steep, seq=901, timestamp_ns=T0_NS + 901 * PERIOD_NS, grade_rad=0.0)
+    engine.process(pairs([level]))
+    status = engine.vehicle_status(told_v)
+    assert (status["grade_rad"], status["grade_seq"], status["last_seq"]) == (0.0, 901, 901)
 
 
 def test_a_loaded_vehicle_on_a_hill_told_both_reads_no_torque_fault(fast_gains):

@@ -110,8 +110,10 @@ def steer_bias(magnitude_rad: float, onset_s: float = 2.0) -> BiasFault:
 class LiveFleet:
     """Simulated vehicles publishing measurements and ground truth at 100 Hz in real time, in a thread.
 
-    ``silent_after_s`` makes a vehicle stop publishing after that long (it goes STALE). The thread
-    stops on :meth:`close` or after ``max_s``, whichever comes first.
+    ``silent_after_s`` makes a vehicle stop publishing after that long (it goes STALE); a vehicle in
+    ``grades`` sends that road grade [rad] with every sample (flag bit 1; the plant stays on level ground,
+    so send 0 to leave its estimates as they are). The thread stops on :meth:`close` or after ``max_s``,
+    whichever comes first.
     """
 
     def __init__(
@@ -120,10 +122,12 @@ class LiveFleet:
         scenarios: dict[str, Scenario],
         silent_after_s: dict[str, float] | None = None,
         max_s: float = FLEET_MAX_S,
+        grades: dict[str, float] | None = None,
     ) -> None:
         self.ids = list(scenarios)
         self.plant = PlantSimulator(list(scenarios.values()))
         self.silent_after_s = silent_after_s or {}
+        self.grades = grades or {}
         self.max_s = max_s
         self.session = open_session("client", endpoint)
         block = zenoh.CongestionControl.BLOCK
@@ -155,7 +159,8 @@ class LiveFleet:
                     continue
                 vx, r = s.y[i].tolist()
                 torque, steer = s.u[i].tolist()
-                self._meas[i].put(Measurement(vehicle_id, k, t_ns, vx, r, torque, steer).encode())
+                grade = self.grades.get(vehicle_id)
+                self._meas[i].put(Measurement(vehicle_id, k, t_ns, vx, r, torque, steer, grade_rad=grade).encode())
                 true_vx, true_vy, true_r = s.x[i].tolist()
                 true_tf, true_df = s.f[i].tolist()
                 truth = GroundTruth(

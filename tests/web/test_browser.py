@@ -55,7 +55,7 @@ def server(tmp_path_factory, chromium):
     }
     with (
         dashboard_server(settings) as srv,
-        live_fleet(settings.zenoh.endpoint, scenarios, silent_after_s={"agv-stale": 2.0}),
+        live_fleet(settings.zenoh.endpoint, scenarios, silent_after_s={"agv-stale": 2.0}, grades={"agv-02": 0.0}),
     ):
         wait_for(
             lambda: {v["id"]: v["level"] for v in srv.get("/vehicles").json()} == EXPECTED_LEVELS,
@@ -145,7 +145,18 @@ def test_a_vehicle_view_plots_live_estimates_with_thresholds_and_ground_truth(se
     expect(page.locator('figure[data-plot="vx"] .u-legend')).to_contain_text("measured")
     expect(page.locator("#vehicle-alarms .alarm")).to_have_count(1)
     expect(page.locator('#vehicle-facts [data-fact="payload"] dd')).to_have_text("none reported")
+    expect(page.locator('#vehicle-facts [data-fact="grade"] dd')).to_have_text("not sent")
     page.screenshot(path=str(output_dir / "vehicle.png"), full_page=True)
+
+
+def test_the_road_grade_a_vehicle_sends_shows_in_the_vehicle_view(server, page):
+    """agv-02 sends a grade of 0 with every sample (level ground, flag bit 1): the view shows it, as the REST
+    status does; the grade it shows is the latest sample's."""
+    status = server.get("/vehicles/agv-02").json()
+    assert status["grade_rad"] == 0.0 and status["grade_seq"] is not None and status["grade_seq"] > 0
+    assert server.get("/vehicles/agv-01").json()["grade_seq"] is None
+    page.goto(server.url + "/#/vehicle/agv-02")
+    expect(page.locator('#vehicle-facts [data-fact="grade"] dd')).to_have_text("0.0 %", timeout=UI_TIMEOUT_MS)
 
 
 def test_a_reported_payload_shows_in_the_vehicle_view(server, page):

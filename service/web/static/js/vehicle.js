@@ -85,6 +85,15 @@ function mergeByTime(a, b) {
   return { x, ia, ib };
 }
 
+/** The road grade the vehicle sends (measurement flag bit 1), in percent (100 tan theta, + uphill). */
+function roadGrade(status) {
+  if (status.grade_seq === null || status.grade_seq === undefined) return 'not sent';
+  const percent = 100 * Math.tan(status.grade_rad);
+  const shown = `${percent > 0 ? '+' : ''}${percent.toFixed(1)} %`;
+  if (status.grade_seq === status.last_seq) return shown;
+  return `not in the latest sample (${shown} at #${status.grade_seq})`;
+}
+
 export class VehicleView {
   constructor(alarms, onUnauthorized) {
     this.alarmsStore = alarms;
@@ -260,6 +269,7 @@ export class VehicleView {
       ['seen', 'Last seen', seen === null ? 'never' : age(nowS - seen)],
       ['seq', 'Last sample', status.last_seq === null ? '–' : `#${status.last_seq}`],
       ['payload', 'Payload', status.payload_kg > 0 ? `${status.payload_kg} kg` : 'none reported'],
+      ['grade', 'Road grade', roadGrade(status)],
       ['truth', 'Ground truth', status.truth ? 'shown' : 'none published'],
       ['torque', 'Torque thresholds', `WARN ${t.torque_warn_nm} / FAULT ${t.torque_fault_nm} N m`],
       ['steer', 'Steering thresholds', `WARN ${t.steer_warn_rad} / FAULT ${t.steer_fault_rad} rad`],
