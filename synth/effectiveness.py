@@ -525,7 +525,7 @@ class EffectivenessObserver:
         self.observer = FuzzyObserver(gains, y0, x_hat0, u0)
         self.stage = EffectivenessEstimator(gains, options, self.observer.n_vehicles, u0)
 
-    def step(self, y: ArrayLike, u: ArrayLike) -> EffectivenessStep:
+    def step(self, y: ArrayLike, u: ArrayLike, stage_u: ArrayLike | None = None) -> EffectivenessStep:
         """One observer step, then the loss-of-effectiveness stage on its fault estimates.
 
         Parameters
@@ -533,6 +533,9 @@ class EffectivenessObserver:
         y, u : (nv, 2) array_like
             Sample k's measured [v_x, r] and demanded [T_d, delta_d], in the units of
             :meth:`~synth.observer.FuzzyObserver.step`.
+        stage_u : (nv, 2) array_like, optional
+            The demand the stage regresses on, where it is not the observer's ``u``: on a road grade the observer
+            takes the level-ground torque and the stage the demanded one (synth.model.model_inputs).
 
         Returns
         -------
@@ -540,7 +543,7 @@ class EffectivenessObserver:
             The total faults with alpha, bias and the observer's own estimate.
         """
         result = self.observer.step(y, u)
-        second = self.stage.step(result, y, u)
+        second = self.stage.step(result, y, u if stage_u is None else stage_u)
         x_hat = np.array(result.x_hat, dtype=float)
         x_hat[:, FAULTS] = second.total
         return EffectivenessStep(

@@ -259,6 +259,46 @@ def level_torque(torque_nm: ArrayLike, grade_rad: ArrayLike, payload_kg: ArrayLi
     return np.asarray(np.asarray(torque_nm, dtype=float) - _grade_pull(grade_rad, payload_kg, p), dtype=float)
 
 
+def model_inputs(
+    y: FloatArray, u: FloatArray, payload_kg: FloatArray | float | None, grade_rad: FloatArray | None, p: VehicleParams
+) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+    """What the service steps for samples of a vehicle with a payload on a road with a grade (docs/math.md 12.5,
+    12.6): the observer's input, the effectiveness stage's input, and rho.
+
+    The observer takes the model's torque, :func:`payload_torque` with the grade; the effectiveness stage the same
+    without the grade's part (a loss of effectiveness scales the torque the actuator delivers, not the weight's
+    pull); a torque fault (and a torque bias) estimated on these is rho times the vehicle's.
+
+    Parameters
+    ----------
+    y, u : (k, 2) ndarray
+        Measured [v_x, r] and demanded [T_d, delta_d].
+    payload_kg : (k,) ndarray or float, optional
+        The payload [kg]; None for none.
+    grade_rad : (k,) ndarray, optional
+        The road grade [rad, + uphill]; None for level ground.
+    p : VehicleParams
+        The profile's vehicle.
+
+    Returns
+    -------
+    model_u, stage_u : (k, 2) ndarray
+        The observer's and the stage's [torque, delta_d]; ``u`` itself where nothing changes it.
+    rho : ndarray or None
+        m_eff / (m_eff + payload), shaped as v_x and ``payload_kg`` broadcast; None without a payload.
+    """
+    stage_u, rho = u, None
+    if payload_kg is not None:
+        torque, rho = payload_torque(y[:, 0], u[:, 0], payload_kg, p)
+        stage_u = u.copy()
+        stage_u[:, 0] = torque
+    if grade_rad is None:
+        return stage_u, stage_u, rho
+    model_u = stage_u.copy()
+    model_u[:, 0] -= grade_torque(grade_rad, 0.0 if payload_kg is None else payload_kg, p)
+    return model_u, stage_u, rho
+
+
 def _grade_pull(grade_rad: ArrayLike, payload_kg: ArrayLike, p: VehicleParams) -> FloatArray:
     """R_w (M_v + payload) g sin(theta): the wheel torque that holds the weight on the grade [N m]."""
     weight = (p.mass_kg + np.asarray(payload_kg, dtype=float)) * STANDARD_GRAVITY_MPS2

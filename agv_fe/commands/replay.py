@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +25,7 @@ from agv_fe.common import (
 
 if TYPE_CHECKING:
     from edge_client.recording import Recording
-    from edge_client.simulation import EstimatorFactory
+    from edge_client.simulation import EstimatorFactory, EstimatorOutput
     from service.profiles import AlarmThresholds, InputLimits
     from synth.gains import ObserverGains
     from synth.model import FloatArray
@@ -71,12 +70,22 @@ def register(sub: Any) -> None:
         default=0.0,
         metavar="KG",
         help="the vehicle carried this payload over the recording (at most the profile's mass_kg): the model's "
-        "drive torque follows it, as in the service after PUT /vehicles/{id}/payload (docs/math.md 12.5); "
-        "with the observer or the EKF, not with --effectiveness",
+        "drive torque follows it, as in the service after PUT /vehicles/{id}/payload (docs/math.md 12.5)",
     )
     add_design_arguments(parser, default_design="robust")
     add_estimator_argument(parser)
     parser.set_defaults(handler=run)
+
+
+@dataclass(frozen=True)
+class ServiceInputs:
+    """What the service steps for a recording's samples (synth.model.model_inputs): the observer's demand
+    ``model_u`` (K, 2), the effectiveness stage's ``stage_u`` (K, 2), and ``rho`` (K,) that a torque fault is seen
+    through (1 without a payload)."""
+
+    model_u: FloatArray
+    stage_u: FloatArray
+    rho: FloatArray
 
 
 @dataclass(frozen=True)
@@ -123,11 +132,10 @@ def run(args: argparse.Namespace) -> int:
             factory = effectiveness_factory(gains, options)
         else:
             factory = estimator_factory(args, gains)
-        factory = _with_payload(factory, args.payload_kg, gains, effectiveness)
-        level = _on_level_ground(recording, args.payload_kg, gains, effectiveness)
+        inputs = service_inputs(recording, args.payload_kg, gains)
     except CommandError as exc:
         return fail(exc)
-    result = replay(level, factory, x0, profile.alarms, profile.params.sample_period_s)
+    result = replay(recording, factory, x0, profile.alarms, profile.params.sample_period_s, inputs)
     names = np.array(LEVEL_NAMES)[result.levels]
     extra = (
         {}
@@ -171,19 +179,23 @@ def replay(
     x0: FloatArray | None,
     alarms: AlarmThresholds,
     sample_period_s: float = 0.01,
+    inputs: ServiceInputs | None = None,
 ) -> Replay:
     """Step the estimator over the recording and the fault channels' levels, as the service does per vehicle.
 
     The levels are :class:`service.fleet.alarms.FaultLevels` fed the fault estimates on the time stamps
     t_ns = round(t * 1e9) [ns], warm-up from the observer's start; with the effectiveness stage, each
     channel's level is the higher of that and :class:`~service.fleet.alarms.EffectivenessLevels` on alpha_hat and
-    its sigma.
+    its sigma. With ``inputs`` (a payload, a road grade) the estimator steps on their demands, and the torque fault
+    and torque bias are divided by rho, as in the service's bank; without, on the recording's demand.
     A non-finite estimate is not fed and restarts the estimator from the next measurement (cold, like the
     service's bank).
     """
     from service.fleet.alarms import EffectivenessLevels, FaultLevels
-    from synth.effectiveness import EffectivenessStep
+    from synth.effectiveness import EffectivenessObserver, EffectivenessStep
 
+    if inputs is None:
+        inputs = ServiceInputs(recording.u, recording.u, np.ones(len(recording)))
     n = len(recording)
     t_ns = np.rint(recording.t * 1e9).astype(np.int64)
     levels = FaultLevels(1, alarms, sample_period_s)
@@ -199,17 +211,23 @@ def replay(
     estimator = None
     restarts = 0
     for k in range(n):
-        y, u, t = recording.y[k : k + 1], recording.u[k : k + 1], t_ns[k : k + 1]
+        y, u, t = recording.y[k : k + 1], inputs.model_u[k : k + 1], t_ns[k : k + 1]
         if estimator is None:
             estimator = make(y, x0 if k == 0 else None, u)
             levels.restart(row, t)
             effectiveness.reset(row, keep_level=True)
-        step = estimator.step(y, u)
+        step: EstimatorOutput = (
+            estimator.step(y, u, inputs.stage_u[k : k + 1])
+            if isinstance(estimator, EffectivenessObserver)
+            else estimator.step(y, u)
+        )
         x_hat[k], f_hat[k], in_domain[k] = step.state[0], step.faults[0], step.in_domain[0]
+        f_hat[k, 0] /= inputs.rho[k]
         if isinstance(step, EffectivenessStep):
             if alpha is None or bias is None:
                 alpha, bias = np.ones((n, 2)), np.zeros((n, 2))
             alpha[k], bias[k], alpha_sigma = step.alpha[0], step.bias[0], step.alpha_sigma
+            bias[k, 0] /= inputs.rho[k]
         if np.isfinite(x_hat[k]).all() and np.isfinite(f_hat[k]).all():
             levels.update(row, f_hat[k : k + 1], t, certified=step.certified)
             if alpha is not None and t[0] - levels.started_t_ns[0] >= levels.warmup_ns:
@@ -224,38 +242,21 @@ def replay(
     return Replay(x_hat, f_hat, in_domain, level, restarts, bias, alpha)
 
 
-def _on_level_ground(recording: Recording, payload_kg: float, gains: ObserverGains, effectiveness: bool) -> Recording:
-    """A recording with a ``grade`` column as the service steps it: the torque that moves the vehicle on level
-    ground as the demand did on the grade (synth.model.level_torque, docs/math.md 12.6); one without, as it is."""
-    if recording.grade is None:
-        return recording
-    if effectiveness:
-        raise CommandError(
-            "a recording with a grade column replays with the observer or the EKF, not with the effectiveness stage "
-            "(the service runs the stage on the demanded torque and the observer on the level-ground one)"
-        )
-    from synth.model import level_torque
-
-    torque = level_torque(recording.u[:, 0], recording.grade, payload_kg, gains.params)
-    return dataclasses.replace(recording, u=np.column_stack([torque, recording.u[:, 1]]), grade=None)
-
-
-def _with_payload(
-    factory: EstimatorFactory, payload_kg: float, gains: ObserverGains, effectiveness: bool
-) -> EstimatorFactory:
-    """``factory`` for a vehicle carrying ``payload_kg`` (itself for none); a bad payload is a CommandError."""
-    if payload_kg == 0.0:
-        return factory
+def service_inputs(recording: Recording, payload_kg: float, gains: ObserverGains) -> ServiceInputs | None:
+    """The demands the service steps a vehicle carrying ``payload_kg`` on the recording's road grade (its ``grade``
+    column; level ground without one) with, None when neither changes them; a bad payload is a CommandError."""
     limit = gains.params.mass_kg
     if not (math.isfinite(payload_kg) and 0.0 <= payload_kg <= limit):
         raise CommandError(
             f"--payload-kg must be finite, >= 0 and at most the profile's mass_kg ({limit:g}), got {payload_kg}"
         )
-    if effectiveness:
-        raise CommandError("--payload-kg runs with the observer or the EKF, not with the effectiveness stage")
-    from edge_client.simulation import payload_factory
+    if payload_kg == 0.0 and recording.grade is None:
+        return None
+    from synth.model import model_inputs
 
-    return payload_factory(factory, gains.params, payload_kg)
+    payload = payload_kg if payload_kg > 0.0 else None
+    model_u, stage_u, rho = model_inputs(recording.y, recording.u, payload, recording.grade, gains.params)
+    return ServiceInputs(model_u, stage_u, np.broadcast_to(1.0 if rho is None else rho, (len(recording),)))
 
 
 def level_summary(t: FloatArray, levels: np.ndarray, profile: VehicleProfileFile) -> list[str]:

@@ -20,7 +20,7 @@ from service.fleet.alarms import Detector, EffectivenessLevels, FaultLevels, Lev
 from service.profiles import ProfileSpec
 from synth.effectiveness import EffectivenessEstimator
 from synth.gains import ObserverGains
-from synth.model import FloatArray, grade_torque, payload_torque
+from synth.model import FloatArray, model_inputs
 from synth.observer import RuntimeGains, initial_observer_state, observer_step, switched_step
 from synth.params import VehicleParams
 
@@ -407,16 +407,7 @@ class ProfileBank:
         graded = grade is not None and bool(grade.any())
         if not loaded and not graded:
             return u, u, None
-        stage_u, rho = u, None
-        if loaded:
-            torque, rho = payload_torque(y[:, 0], u[:, 0], payload, params)
-            stage_u = u.copy()
-            stage_u[:, 0] = torque
-        model_u = stage_u
-        if grade is not None and graded:
-            model_u = stage_u.copy()
-            model_u[:, 0] -= grade_torque(grade, payload, params)
-        return model_u, stage_u, rho
+        return model_inputs(y, u, payload if loaded else None, grade if graded else None, params)
 
     def _second_stage(
         self,

@@ -393,15 +393,18 @@ def test_a_vehicle_with_a_steering_lag_replays_as_the_fleet_engine_steps_it(tmp_
 
 
 def assert_the_engine_gives_the_replay(
-    body: dict[str, Any], gains: Any, recording: Path, rows: list[dict[str, str]]
+    body: dict[str, Any], gains: Any, recording: Path, rows: list[dict[str, str]], payload_kg: float = 0.0
 ) -> list[Estimate]:
     """Feed the recording's samples (with the road grade where it has a grade column) to an in-process fleet engine
-    with the profile ``body`` and ``gains``: its estimates are the replay's ``rows`` and its fault alarms change
-    level at the replay's transition samples.
+    with the profile ``body`` and ``gains`` (the vehicle carrying ``payload_kg``): its estimates are the replay's
+    ``rows`` and its fault alarms change level at the replay's transition samples.
     Returns the engine's estimates."""
     engine = FleetEngine(EngineConfig())
     engine.add_profile("default", ProfileSpec.model_validate(body))
     engine.activate("default", gains)
+    if payload_kg:
+        engine.register("veh-1", "default")
+        engine.set_payload("veh-1", payload_kg)
     estimates: list[Estimate] = []
     alarms = []
     for k, row in enumerate(read_rows(recording)):
@@ -416,6 +419,11 @@ def assert_the_engine_gives_the_replay(
     offline = np.array([[float(r[c]) for c in ("vx_hat", "vy_hat", "r_hat", "torque_fault_hat", "steer_fault_hat")]
                         for r in rows])  # fmt: skip
     np.testing.assert_allclose(online, offline, rtol=CSV_ROUND_TRIP_RTOL, atol=CSV_ROUND_TRIP_ATOL)
+    if "torque_bias_hat" in rows[0]:  # the effectiveness stage's columns too
+        stage = ("torque_bias", "steer_bias", "torque_alpha", "steer_alpha")
+        online = np.array([[getattr(e, c) for c in stage] for e in estimates], dtype=float)
+        offline = np.array([[float(r[f"{c}_hat"]) for c in stage] for r in rows])
+        np.testing.assert_allclose(online, offline, rtol=CSV_ROUND_TRIP_RTOL, atol=CSV_ROUND_TRIP_ATOL)
     for kind, column in (("torque_fault", "torque_level"), ("steer_fault", "steer_level")):
         service = [(a.t_ns - T0_NS, a.level if a.state == "raised" else "OK") for a in alarms if a.kind == kind]
         assert service == transitions(rows, column), kind
@@ -483,7 +491,8 @@ def test_a_recording_with_a_grade_column_replays_on_level_ground_as_the_service_
 ):
     """The default vehicle on a road that climbs and descends, no fault, the grade in the recording's grade column:
     the replay reads no torque fault where the same recording without the column reads the weight's pull as one,
-    and the engine fed the grade in its measurements (flag bit 1) gives the replay's estimates to the digit."""
+    and the engine fed the grade in its measurements (flag bit 1) gives the replay's estimates to the digit; so it
+    does with the effectiveness stage, unloaded and carrying a payload (its bias and effectiveness columns too)."""
     from edge_client.faults import SinusoidalFault, fault_tables
     from synth.params import STANDARD_GRAVITY_MPS2
 
@@ -508,5 +517,16 @@ def test_a_recording_with_a_grade_column_replays_on_level_ground_as_the_service_
         torque[name] = np.array([float(r["torque_fault_hat"]) for r in read_rows(out)])[300:]
     assert np.sqrt(np.mean(torque["blind"] ** 2)) > 3.0 * np.sqrt(np.mean(torque["told"] ** 2))
     assert_the_engine_gives_the_replay({}, robust_gains_default, graded, read_rows(tmp_path / "told.csv"))
-    code, _, err = replay(capsys, graded, tmp_path / "x.csv", "--gains", str(gains_file), "--effectiveness")
-    assert code != 0 and "a recording with a grade column replays with the observer or the EKF" in err
+    # with the effectiveness stage and a payload too: the observer on the level-ground torque, the stage on the
+    # demanded one, both for the loaded vehicle, as the service's bank steps them
+    body = {"effectiveness": {"enabled": True, "torque_sigma_nm": 6.0}}
+    profile = tmp_path / "stage.json"
+    profile.write_text(json.dumps(body))
+    for payload in (0.0, 60.0):
+        out = tmp_path / f"stage-{payload:g}.csv"
+        args = ("--gains", str(gains_file), "--params", str(profile), "--payload-kg", str(payload))
+        code, _, err = replay(capsys, graded, out, *args)
+        assert code == 0, err
+        rows = read_rows(out)
+        assert "torque_alpha_hat" in rows[0]
+        assert_the_engine_gives_the_replay(body, robust_gains_default, graded, rows, payload)
