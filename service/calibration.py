@@ -39,7 +39,7 @@ from synth.calibration import CalibrationOptions, CalibrationResult, Drive, cali
 from synth.design import synthesize
 from synth.effectiveness import EffectivenessObserver
 from synth.gains import ObserverGains
-from synth.model import FloatArray, rk4_step
+from synth.model import FloatArray, model_inputs, rk4_step
 from synth.observer import FuzzyObserver
 from synth.options import DesignOptions, EffectivenessOptions, NoiseModel
 from synth.params import OperatingBounds, VehicleParams
@@ -198,10 +198,11 @@ def calibrate_profile(
     if not (false_alarms_per_1000_h > 0 and math.isfinite(false_alarms_per_1000_h)):
         raise ValueError(f"false_alarms_per_1000_h must be positive, got {false_alarms_per_1000_h}")
     say = progress or (lambda _line: None)
-    drives = [level_ground(d, base) for d in drives]  # the torque the service gives the model for a graded sample
-    result = stated_bounds(calibrate(drives, base, options), bounds)
+    leveled = [level_ground(d, base) for d in drives]  # the fits take the level-ground torque of a graded sample
+    result = stated_bounds(calibrate(leveled, base, options), bounds)
     say(f"parameters identified from {result.duration_s:.0f} s of driving")
     params = result.params
+    drives = [served_drive(d, params) for d in drives]  # the threshold replays step what the service steps
     chosen = dict(design or {})
     noise = noise_model(result)
     if isinstance(chosen.get("noise"), dict):
@@ -248,6 +249,15 @@ def calibrate_profile(
         warnings=warnings,
         gust_n=gust_n,
     )
+
+
+def served_drive(drive: Drive, params: VehicleParams) -> Drive:
+    """``drive`` with the demand the service's observer steps for its samples (synth.model.model_inputs): on a
+    grade, the level-ground torque and the load-transfer angle of the torque sent; as it is on level ground."""
+    if drive.grade is None:
+        return drive
+    model_u, _, _ = model_inputs(drive.y, drive.u, None, drive.grade, params)
+    return Drive(t=drive.t, y=drive.y, u=model_u, name=drive.name)
 
 
 def _alarm_settings(

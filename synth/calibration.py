@@ -51,7 +51,7 @@ import scipy.signal
 
 from synth.errors import SynthesisError
 from synth.model import FloatArray, grade_torque, lagged_steer
-from synth.params import OperatingBounds, VehicleParams
+from synth.params import STANDARD_GRAVITY_MPS2, OperatingBounds, VehicleParams
 
 #: Standard gravity [m/s^2].
 GRAVITY = 9.81
@@ -82,13 +82,14 @@ class CalibrationRefused(SynthesisError):
 class Drive:
     """One recording: t (K,) [s], y (K, 2) measured [v_x [m/s], r [rad/s]], u (K, 2) demanded [T_d [N m],
     delta_d [rad]]; ``name`` for messages; ``grade`` (K,) the road grade the vehicle reported [rad, + uphill], or
-    None on level ground (:func:`level_ground`)."""
+    None on level ground; ``leveled``: u's torque is already the level-ground one (:func:`level_ground`)."""
 
     t: FloatArray
     y: FloatArray
     u: FloatArray
     name: str = "recording"
     grade: FloatArray | None = None
+    leveled: bool = False
 
     def __len__(self) -> int:
         return int(self.t.size)
@@ -176,8 +177,10 @@ class CalibrationResult:
 def level_ground(drive: Drive, base: dict[str, Any]) -> Drive:
     """``drive`` as the profile's vehicle would have driven it on level ground: the torque T_d less the grade's
     R_w M_v g sin(theta) (synth.model.grade_torque, docs/math.md 12.6), which is what the service gives the model
-    for a measurement that carries the grade; a drive without a grade is returned as it is."""
-    if drive.grade is None:
+    for a measurement that carries the grade; the grade is kept (the load the tyres' force moves between the axles
+    follows the torque, not the acceleration the grade slows). A drive without a grade, or one leveled already, is
+    returned as it is."""
+    if drive.grade is None or drive.leveled:
         return drive
     bad = np.flatnonzero(~np.isfinite(drive.grade))
     if bad.size:
@@ -190,7 +193,7 @@ def level_ground(drive: Drive, base: dict[str, Any]) -> Drive:
     vehicle = VehicleParams(mass_kg=base["mass_kg"], wheel_radius_m=base["wheel_radius_m"])
     u = drive.u.astype(float).copy()
     u[:, 0] -= grade_torque(drive.grade, 0.0, vehicle)
-    return Drive(t=drive.t, y=drive.y, u=u, name=drive.name)
+    return Drive(t=drive.t, y=drive.y, u=u, name=drive.name, grade=drive.grade, leveled=True)
 
 
 def calibrate(
@@ -285,7 +288,7 @@ class _Prepared:
     v_x: FloatArray  # smoothed, floored at 1 m/s
     v_x_raw: FloatArray
     r: FloatArray
-    accel: FloatArray  # dv_x/dt, the same fit's derivative
+    accel: FloatArray  # dv_x/dt, the same fit's derivative, + g sin(theta) on a grade: what moves load
     torque: FloatArray
     steer: FloatArray
     moving: np.ndarray  # v_x above min_speed
@@ -316,8 +319,12 @@ def _prepare(drive: Drive, s: float, options: CalibrationOptions) -> _Prepared:
     window = min(21, v_raw.size - (1 - v_raw.size % 2))
     v_x = scipy.signal.savgol_filter(v_raw, window, 2) if window >= 5 else v_raw.copy()
     v_x = np.maximum(v_x, 1.0)
-    # dv_x/dt of the same fit: the longitudinal acceleration that moves load between the axles
+    # dv_x/dt of the same fit, and on a grade g sin(theta) more: the acceleration the tyres' force on the road
+    # gives, m (a_x + g sin(theta)), which moves load between the axles (the weight's pull acts at the centre of
+    # gravity and moves none)
     accel = scipy.signal.savgol_filter(v_raw, window, 2, deriv=1, delta=s) if window >= 5 else np.gradient(v_raw, s)
+    if drive.grade is not None:
+        accel = accel + STANDARD_GRAVITY_MPS2 * np.sin(drive.grade)
     r = drive.y[:, 1].astype(float)
     moving = v_x >= options.min_speed_mps
     hard = np.abs(v_x * scipy.signal.savgol_filter(r, window, 2) if window >= 5 else v_x * r)

@@ -177,6 +177,19 @@ def load_transfer_steer_rad(v_x: ArrayLike, r: ArrayLike, torque_nm: ArrayLike, 
     return np.asarray(-gain * a_x * (v_x * np.asarray(r, dtype=float)), dtype=float)
 
 
+def load_transfer_steer_change(
+    v_x: ArrayLike, r: ArrayLike, torque_change_nm: ArrayLike, p: VehicleParams
+) -> FloatArray:
+    """How much :func:`load_transfer_steer_rad` changes when the torque changes by ``torque_change_nm`` at the same
+    v_x and r: -G Delta T / (R_w m_eff) v_x r [rad] (it is affine in the torque); 0 without a centre-of-gravity
+    height."""
+    gain = p.load_transfer_gain
+    if gain == 0.0:
+        return np.zeros(np.broadcast_shapes(np.shape(v_x), np.shape(r), np.shape(torque_change_nm)))
+    scale = -gain / (p.wheel_radius_m * p.effective_mass_kg)
+    return np.asarray(scale * np.asarray(torque_change_nm, dtype=float) * np.asarray(v_x) * np.asarray(r), dtype=float)
+
+
 def model_demand(y: ArrayLike, u_d: ArrayLike, p: VehicleParams) -> FloatArray:
     """The demand the model takes, [T_d, delta_d + the load transfer's angle] (:func:`load_transfer_steer_rad`),
     from the measurement y = [v_x, r] and the demand u_d = [T_d, delta_d], (..., 2) each; ``u_d`` itself (as an
@@ -267,7 +280,11 @@ def model_inputs(
 
     The observer takes the model's torque, :func:`payload_torque` with the grade; the effectiveness stage the same
     without the grade's part (a loss of effectiveness scales the torque the actuator delivers, not the weight's
-    pull); a torque fault (and a torque bias) estimated on these is rho times the vehicle's.
+    pull); a torque fault (and a torque bias) estimated on these is rho times the vehicle's. On a grade the
+    observer's steering demand also carries :func:`load_transfer_steer_change` of the grade's part, so that the
+    model's load-transfer angle (:func:`model_demand`) is the one of the torque without it: load moves between the
+    axles with the force the tyres put on the road, m (a_x + g sin(theta)), which the grade leaves as it is for
+    a given torque, not with the acceleration it slows (docs/math.md 12.6).
 
     Parameters
     ----------
@@ -295,7 +312,10 @@ def model_inputs(
     if grade_rad is None:
         return stage_u, stage_u, rho
     model_u = stage_u.copy()
-    model_u[:, 0] -= grade_torque(grade_rad, 0.0 if payload_kg is None else payload_kg, p)
+    pull = grade_torque(grade_rad, 0.0 if payload_kg is None else payload_kg, p)
+    model_u[:, 0] -= pull
+    if p.cg_height_m != 0.0:
+        model_u[:, 1] += load_transfer_steer_change(y[:, 0], y[:, 1], pull, p)
     return model_u, stage_u, rho
 
 

@@ -67,6 +67,17 @@ def healthy_drive_on_hills() -> Drive:
     """The same minute on a road that climbs and descends (grades from -3 % to +5 %, period 23 s), with the grade
     the car reports: the weight's pull R_w M_v g sin(grade) acts on it as a torque fault would (docs/math.md
     12.6)."""
+    return _on_hills(CAR)
+
+
+@lru_cache(maxsize=1)
+def healthy_drive_on_hills_with_load_transfer() -> Drive:
+    """The minute on hills by the car with a centre-of-gravity height: its load transfer follows the torque it
+    sends (the tyres' force on the road), the weight's pull moves none (docs/math.md 12.6)."""
+    return _on_hills(CAR.model_copy(update={"cg_height_m": CG_HEIGHT_M}))
+
+
+def _on_hills(vehicle: VehicleParams) -> Drive:
     import dataclasses
 
     import numpy as np
@@ -74,11 +85,11 @@ def healthy_drive_on_hills() -> Drive:
     from edge_client.faults import SinusoidalFault, fault_tables
     from synth.params import STANDARD_GRAVITY_MPS2
 
-    weight_torque = CAR.wheel_radius_m * CAR.mass_kg * STANDARD_GRAVITY_MPS2
+    weight_torque = vehicle.wheel_radius_m * vehicle.mass_kg * STANDARD_GRAVITY_MPS2
     pull = SinusoidalFault(
         channel="torque", amplitude=0.04 * weight_torque, omega_radps=0.27, offset=-0.01 * weight_torque
     )
-    drive = _healthy(CAR, (pull,))
+    drive = _healthy(vehicle, (pull,))
     grade = np.arcsin(-fault_tables((pull,), drive.t)[0][:, 0] / weight_torque)
     return dataclasses.replace(drive, name="hills", grade=grade)
 

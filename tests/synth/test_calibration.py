@@ -15,6 +15,7 @@ from tests.calibration_data import (
     CG_HEIGHT_M,
     healthy_drive,
     healthy_drive_on_hills,
+    healthy_drive_on_hills_with_load_transfer,
     healthy_drive_with_load_transfer,
     simulated_drive,
 )
@@ -114,6 +115,18 @@ def test_a_recording_on_hills_calibrates_with_its_grade_as_on_level_ground(resul
     broken[7] = np.nan
     assert "row 8 has a non-finite grade" in _refusal([dataclasses.replace(hills, grade=broken)])
     assert "must give mass_kg" in _refusal([hills], {k: v for k, v in BASE.items() if k != "mass_kg"})
+
+
+def test_on_hills_the_load_transfer_is_fitted_on_the_tyres_force_not_the_acceleration():
+    """The car with a CG height on the same hills: the load its turns move between the axles follows the torque
+    it sends, m (a_x + g sin(theta)), not the acceleration the grade slows (docs/math.md 12.6). Told the grade,
+    calibration gives the stiffnesses it gives on level ground; fitted on the measured acceleration alone, the
+    grade's g sin(theta) would be read as braking in the turns (+40 % on both axles, a probe of 2026-11-28)."""
+    base = {**BASE, "cg_height_m": CG_HEIGHT_M}
+    level = calibrate([healthy_drive_with_load_transfer()], base)
+    hills = calibrate([healthy_drive_on_hills_with_load_transfer()], base)
+    for name in ("front_cornering_stiffness_npr", "rear_cornering_stiffness_npr", "effective_mass_kg"):
+        assert hills.estimates[name].value == pytest.approx(level.estimates[name].value, rel=0.01), name
 
 
 def test_a_stated_cg_height_the_recordings_do_not_show_is_refused_as_such(healthy):

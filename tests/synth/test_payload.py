@@ -5,7 +5,15 @@ import numpy as np
 import pytest
 
 from synth.design import synthesize
-from synth.model import continuous_dynamics, grade_torque, level_torque, payload_torque, rk4_step
+from synth.model import (
+    continuous_dynamics,
+    grade_torque,
+    level_torque,
+    model_demand,
+    model_inputs,
+    payload_torque,
+    rk4_step,
+)
 from synth.observer import FuzzyObserver
 from synth.options import DesignOptions
 from synth.params import STANDARD_GRAVITY_MPS2, VehicleParams
@@ -101,3 +109,48 @@ def test_an_observer_told_the_payload_reads_the_torque_fault_and_only_it():
     assert np.abs(told).max() < 0.05 * np.abs(blind).max()
     y, u = _accelerating(heavy, -200.0)
     assert np.median(torque_fault(y, u, PAYLOAD_KG)[late]) == pytest.approx(-200.0, rel=0.03)
+
+
+def _turning_on_a_hill(p: VehicleParams, grade_amplitude_rad: float) -> tuple[np.ndarray, ...]:
+    """A vehicle turning left and right at 12 m/s on a road that climbs and descends, its speed held (the torque
+    sent carries the weight's pull); the plant's load transfer follows the torque sent (the tyres' force on the
+    road), the pull acts at the centre of gravity. Noise-free (y, u, grade) per sample."""
+    s = p.sample_period_s
+    t = np.arange(round(24.0 / s)) * s
+    grade = grade_amplitude_rad * np.sin(2 * np.pi * t / 12.0)
+    pull = grade_torque(grade, 0.0, p)
+    x = np.array([12.0, 0.0, 0.0])
+    y, u = np.zeros((t.size, 2)), np.zeros((t.size, 2))
+    for k in range(t.size):
+        hold = p.wheel_radius_m * (p.longitudinal_drag_coeff * x[0] ** 2 + p.rolling_resistance_n)
+        y[k], u[k] = x[[0, 2]], [hold + pull[k], 0.04 * np.sin(2 * np.pi * t[k] / 5.0)]
+        x = rk4_step(x, model_demand(x[[0, 2]], u[k], p), 0.0, np.array([-pull[k], 0.0]), p, s)
+    return y, u, grade
+
+
+def test_on_a_grade_the_load_transfer_follows_the_torque_sent_not_the_acceleration():
+    """Load moves between the axles with the force the tyres put on the road, m (a_x + g sin(theta)); the weight's
+    pull acts at the centre of gravity and moves none (docs/math.md 12.6). A vehicle with a CG height turning on a
+    6 % hill: told the grade (synth.model.model_inputs), the observer estimates as on level ground; given the
+    level-ground torque with the demanded angle alone, its load transfer follows the acceleration, and the grade's
+    g sin(theta) a_y reads as a steering fault."""
+    p = PROFILE.model_copy(update={"cg_height_m": 0.6})
+    gains = synthesize(p, options=DesignOptions())
+    y, u, grade = _turning_on_a_hill(p, 0.06)
+    model_u, stage_u, rho = model_inputs(y, u, None, grade, p)
+    assert rho is None and stage_u is u
+    np.testing.assert_allclose(model_u[:, 0], u[:, 0] - grade_torque(grade, 0.0, p), rtol=1e-12)
+    # the model's load-transfer angle is the one of the torque sent
+    np.testing.assert_allclose(model_demand(y, model_u, p)[:, 1], model_demand(y, u, p)[:, 1], rtol=0, atol=1e-15)
+
+    def steer_fault(y: np.ndarray, demand: np.ndarray) -> np.ndarray:
+        obs = FuzzyObserver(gains, y[:1], None, demand[:1])
+        return np.array([obs.step(y[k : k + 1], demand[k : k + 1]).faults[0, 1] for k in range(len(y))])
+
+    level_y, level_u, _ = _turning_on_a_hill(p, 0.0)
+    level = steer_fault(level_y, level_u)
+    told = steer_fault(y, model_u) - level
+    acceleration_driven = steer_fault(y, np.column_stack([model_u[:, 0], u[:, 1]])) - level
+    # G g sin(theta) a_y: 0.6 mrad at the crests here
+    assert np.abs(acceleration_driven).max() > 4e-4
+    assert np.abs(told).max() < 0.02 * np.abs(acceleration_driven).max()
