@@ -35,7 +35,7 @@ import numpy as np
 import scipy.stats
 
 from service.profiles import AlarmThresholds, ProfileSpec
-from synth.calibration import CalibrationOptions, CalibrationResult, Drive, calibrate, level_ground
+from synth.calibration import CalibrationOptions, CalibrationResult, Drive, calibrate
 from synth.design import synthesize
 from synth.effectiveness import EffectivenessObserver
 from synth.gains import ObserverGains
@@ -198,8 +198,7 @@ def calibrate_profile(
     if not (false_alarms_per_1000_h > 0 and math.isfinite(false_alarms_per_1000_h)):
         raise ValueError(f"false_alarms_per_1000_h must be positive, got {false_alarms_per_1000_h}")
     say = progress or (lambda _line: None)
-    leveled = [level_ground(d, base) for d in drives]  # the fits take the level-ground torque of a graded sample
-    result = stated_bounds(calibrate(leveled, base, options), bounds)
+    result = stated_bounds(calibrate(drives, base, options), bounds)  # a graded drive's fits on level ground
     say(f"parameters identified from {result.duration_s:.0f} s of driving")
     params = result.params
     drives = [served_drive(d, params) for d in drives]  # the threshold replays step what the service steps
