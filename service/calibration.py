@@ -201,7 +201,6 @@ def calibrate_profile(
     result = stated_bounds(calibrate(drives, base, options), bounds)  # a graded drive's fits on level ground
     say(f"parameters identified from {result.duration_s:.0f} s of driving")
     params = result.params
-    drives = [served_drive(d, params) for d in drives]  # the threshold replays step what the service steps
     chosen = dict(design or {})
     noise = noise_model(result)
     if isinstance(chosen.get("noise"), dict):
@@ -248,15 +247,6 @@ def calibrate_profile(
         warnings=warnings,
         gust_n=gust_n,
     )
-
-
-def served_drive(drive: Drive, params: VehicleParams) -> Drive:
-    """``drive`` with the demand the service's observer steps for its samples (synth.model.model_inputs): on a
-    grade, the level-ground torque and the load-transfer angle of the torque sent; as it is on level ground."""
-    if drive.grade is None:
-        return drive
-    model_u, _, _ = model_inputs(drive.y, drive.u, None, drive.grade, params)
-    return Drive(t=drive.t, y=drive.y, u=model_u, name=drive.name)
 
 
 def _alarm_settings(
@@ -398,14 +388,25 @@ def healthy_fault_estimates(
     gains: ObserverGains, drives: Sequence[Drive], warmup_s: float, stage: EffectivenessOptions | None = None
 ) -> FloatArray:
     """The fault estimates [T_f, delta_f] over the healthy drives, each after its warm-up, (K, 2): the observer's,
-    or with an enabled ``stage`` the loss-of-effectiveness stage's total faults."""
+    or with an enabled ``stage`` the loss-of-effectiveness stage's total faults. A drive with a road grade is
+    stepped as the service steps its samples (synth.model.model_inputs: the observer on the level-ground torque,
+    the stage on the torque sent)."""
     make = observer_stepper(gains) if stage is None or not stage.enabled else effectiveness_stepper(gains, stage)
     parts = []
     for drive in drives:
-        observer = make(drive.y[:1], drive.u[:1])
+        u, stage_u = drive.u, drive.u
+        if drive.grade is not None and not drive.leveled:
+            u, stage_u, _ = model_inputs(drive.y, drive.u, None, drive.grade, gains.params)
+        observer = make(drive.y[:1], u[:1])
         faults = np.empty((len(drive), 2))
         for k in range(len(drive)):
-            faults[k] = observer.step(drive.y[k : k + 1], drive.u[k : k + 1]).faults[0]
+            y_k, u_k = drive.y[k : k + 1], u[k : k + 1]
+            step = (
+                observer.step(y_k, u_k, stage_u[k : k + 1])
+                if isinstance(observer, EffectivenessObserver)
+                else observer.step(y_k, u_k)
+            )
+            faults[k] = step.faults[0]
         start = round(warmup_s / gains.params.sample_period_s)
         parts.append(faults[start:])
     return np.concatenate(parts) if parts else np.zeros((0, 2))

@@ -72,7 +72,7 @@ from synth.design import synthesize
 from synth.effectiveness import EffectivenessStep
 from synth.errors import SynthesisError
 from synth.gains import ObserverGains
-from synth.model import FloatArray, payload_torque
+from synth.model import FloatArray, model_inputs
 from synth.options import DesignOptions
 from synth.params import OperatingBounds, VehicleParams
 
@@ -1182,12 +1182,13 @@ def hill_jobs(parameter_set: int, plan: Plan, nominal_torque_nm: float) -> list[
 
 
 def told_the_grade(run: mb.MultibodyRun, params: VehicleParams) -> mb.MultibodyRun:
-    """``run`` with the torque the service gives the model when the vehicle reports the grade: T_d less
-    R_w M_v g sin(theta) of the reported grade (synth.model.payload_torque)."""
+    """``run`` with the demand the service gives the observer when the vehicle reports the grade
+    (synth.model.model_inputs): T_d less R_w M_v g sin(theta) of the reported grade, and with a CG height the
+    load-transfer angle of the torque sent."""
     if run.grade_rad is None:
         return run
-    torque, _ = payload_torque(run.y[:, 0], run.u[:, 0], 0.0, params, run.grade_rad)
-    return dataclasses.replace(run, u=np.column_stack([torque, run.u[:, 1]]))
+    model_u, _, _ = model_inputs(run.y, run.u, None, run.grade_rad, params)
+    return dataclasses.replace(run, u=model_u)
 
 
 def hill_figures(report: CalibrationReport, runs: Sequence[mb.MultibodyRun], plan: Plan) -> dict[str, Any]:

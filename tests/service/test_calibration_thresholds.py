@@ -112,3 +112,43 @@ def test_a_gust_shows_as_its_steady_state_steering_equivalent_and_the_floor_ride
             assert (highest >= WARN).all()
         else:
             assert (highest == OK).all()
+
+
+def test_a_graded_drive_is_replayed_for_the_thresholds_as_the_service_steps_it():
+    """The healthy minute on hills with its grade (the project's model): the threshold replay with the
+    effectiveness stage gives the fleet engine's total torque and steering faults for the same samples sent with
+    their grade, to the digit (the observer on the level-ground torque, the stage on the torque sent); the same
+    minute without its grade reads the weight's pull as a torque fault."""
+    import dataclasses
+
+    from agv_protocol.wire import Estimate, Measurement, vehicle_key
+    from service.calibration import healthy_fault_estimates
+    from service.fleet import EngineConfig, FleetEngine
+    from service.profiles import ProfileSpec
+    from synth.design import synthesize
+    from synth.options import DesignOptions, EffectivenessOptions
+    from tests.calibration_data import CAR, healthy_drive_on_hills
+
+    hills = healthy_drive_on_hills()
+    assert hills.grade is not None
+    gains = synthesize(CAR, options=DesignOptions())
+    stage = EffectivenessOptions(enabled=True, torque_sigma_nm=6.0)
+    replayed = healthy_fault_estimates(gains, [hills], 0.0, stage)
+    engine = FleetEngine(EngineConfig())
+    engine.add_profile("hills", ProfileSpec(params=CAR, effectiveness=stage))
+    engine.activate("hills", gains)
+    engine.register("car", "hills")
+    online = []
+    for k in range(len(hills)):
+        vx, r = hills.y[k]
+        torque, steer = hills.u[k]
+        grade = float(hills.grade[k])
+        m = Measurement("car", k, 1_000_000_000 + k * 10_000_000, vx, r, torque, steer, grade_rad=grade)
+        for _, doc in engine.process([(vehicle_key("car", "meas"), m.encode())]).estimates:
+            e = Estimate.decode(doc)
+            online.append([e.torque_fault, e.steer_fault])
+    np.testing.assert_allclose(np.array(online), replayed, rtol=1e-9, atol=1e-9)
+    blind = healthy_fault_estimates(gains, [dataclasses.replace(hills, grade=None)], 0.0)
+    told = healthy_fault_estimates(gains, [hills], 0.0)
+    late = slice(300, None)
+    assert np.sqrt(np.mean(blind[late, 0] ** 2)) > 5.0 * np.sqrt(np.mean(told[late, 0] ** 2))
