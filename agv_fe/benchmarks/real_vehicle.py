@@ -400,8 +400,9 @@ def fault_jobs(parameter_set: int, nominal_torque_nm: float, plan: Plan) -> list
 
 
 def recording(run: mb.MultibodyRun) -> Recording:
-    """What the vehicle sends (t, y, u) as a calibration recording."""
-    return Recording(t=run.t, y=run.y, u=run.u, name=f"{run.name} (set {run.parameter_set}, seed {run.seed})")
+    """What the vehicle sends (t, y, u, and the grade on a drive with one) as a calibration recording."""
+    name = f"{run.name} (set {run.parameter_set}, seed {run.seed})"
+    return Recording(t=run.t, y=run.y, u=run.u, name=name, grade=run.grade_rad)
 
 
 # --------------------------------------------------------------------------- estimators and alarm levels
@@ -989,7 +990,7 @@ def evaluate_set(
         "payload": payload_figures(parameter_set, report, runs.payload, plan),
     }
     print(f"  set {parameter_set}: hills, calibrated on level ground ...", flush=True)
-    result["hills"] = hill_figures(report, runs.hills, plan)
+    result["hills"] = hill_figures(parameter_set, report, runs.hills, plan)
     result["must_show"] = must_show(result)
     return result
 
@@ -1178,7 +1179,9 @@ def hill_jobs(parameter_set: int, plan: Plan, nominal_torque_nm: float) -> list[
         faults=case.faults(nominal_torque_nm, plan.fault_onset_s),
         seed=seed,
     )
-    return [*healthy, fault]
+    calibration = calibration_job(parameter_set)
+    hilly = mb.on_hills(mb.calibration_drive(), np.random.default_rng(HILL_SEED_OFFSET + calibration.seed))
+    return [*healthy, fault, dataclasses.replace(calibration, drive=hilly)]
 
 
 def told_the_grade(run: mb.MultibodyRun, params: VehicleParams) -> mb.MultibodyRun:
@@ -1191,12 +1194,15 @@ def told_the_grade(run: mb.MultibodyRun, params: VehicleParams) -> mb.MultibodyR
     return dataclasses.replace(run, u=model_u)
 
 
-def hill_figures(report: CalibrationReport, runs: Sequence[mb.MultibodyRun], plan: Plan) -> dict[str, Any]:
-    """Alarms on the healthy drives on hills without the grade and told it, and the told observer's delays on the
-    fault run on hills."""
+def hill_figures(
+    parameter_set: int, report: CalibrationReport, runs: Sequence[mb.MultibodyRun], plan: Plan
+) -> dict[str, Any]:
+    """Alarms on the healthy drives on hills without the grade and told it, the told observer's delays on the
+    fault run on hills, and the calibration drive on hills calibrated with the grade (the runs of
+    :func:`hill_jobs`)."""
+    *healthy, fault, calibration = runs
     observer = observer_factory(report.gains)
-    told = [told_the_grade(run, report.gains.params) for run in runs]
-    healthy = list(runs[:-1])
+    told = [told_the_grade(run, report.gains.params) for run in [*healthy, fault]]
     grades = np.concatenate([run.grade_rad for run in healthy if run.grade_rad is not None])
     out = told_and_blind(report, plan, (observer, healthy), (observer, told[:-1]), (observer, told[-1]))
     return {
@@ -1204,14 +1210,54 @@ def hill_figures(report: CalibrationReport, runs: Sequence[mb.MultibodyRun], pla
         "max_reported_grade_rad": float(np.abs(grades).max()),
         "grade_sigma_rad": mb.DEFAULT_GRADE_SIGMA_RAD,
         **out,
+        "calibration": hill_calibration(parameter_set, report, calibration),
     }
+
+
+#: How close calibration on hills, told the grade, must come to calibration on level ground (each parameter).
+HILL_CALIBRATION_TOLERANCE = 0.02
+
+
+def hill_calibration(parameter_set: int, level: CalibrationReport, run: mb.MultibodyRun) -> dict[str, Any]:
+    """The scripted calibration drive on hills, the grade reported, calibrated as the product does: each parameter
+    of REFERENCES against the level-ground calibration ``level`` and the MB's value; or why it was refused."""
+    try:
+        hills = calibrate(parameter_set, run)
+    except SynthesisError as exc:
+        return {"refused": f"{type(exc).__name__}: {exc}"}
+    reference = mb.reference_values(parameter_set)
+    parameters = [
+        {
+            "name": name,
+            "hills": hills.calibration.estimates[name].value,
+            "level": level.calibration.estimates[name].value,
+            "reference": reference[REFERENCES[name][0]],
+        }
+        for name in REFERENCES
+        if name in hills.calibration.estimates and name in level.calibration.estimates
+    ]
+    return {"refused": None, "drive": run.name, "noise_seed": run.seed, "parameters": parameters}
 
 
 def hill_must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
     """On hills: told the grade, no alarm and the torque bias detected in time; without it, shown."""
     hills = result["hills"]
     what = f"grades within +-{100 * math.tan(hills['road_max_grade_rad']):.0f} %, calibrated on level ground"
-    return told_and_blind_must_show(hills, what, ("grade reported", "grade not reported"))
+    lines = told_and_blind_must_show(hills, what, ("grade reported", "grade not reported"))
+    calibration = hills.get("calibration")
+    if calibration is None:
+        return lines
+    target = (
+        "calibration on hills, the grade reported: each identified parameter the MB has a value for within "
+        f"{100 * HILL_CALIBRATION_TOLERANCE:g} % of the level-ground calibration"
+    )
+    if calibration["refused"] is not None:
+        return [*lines, {"target": target, "figure": calibration["refused"], "passed": False}]
+    errors = [row["hills"] / row["level"] - 1.0 for row in calibration["parameters"]]
+    rows = calibration["parameters"]
+    figure = ", ".join(f"{row['name']} {100 * e:+.2f} %" for row, e in zip(rows, errors, strict=True))
+    passed = bool(errors) and max(abs(e) for e in errors) <= HILL_CALIBRATION_TOLERANCE
+    return [*lines, {"target": target, "figure": figure, "passed": passed}]
 
 
 def _hill_section(result: dict[str, Any]) -> list[str]:
@@ -1226,7 +1272,27 @@ def _hill_section(result: dict[str, Any]) -> list[str]:
         "measurement; `told_the_grade` here). Held peak / WARN as in the healthy-driving table.\n"
     )
     title = f"### Set {result['parameter_set']}: hills\n"
-    return _told_and_blind_table(hills, title, intro, ("grade not reported", "grade reported"))
+    lines = _told_and_blind_table(hills, title, intro, ("grade not reported", "grade reported"))
+    calibration = hills.get("calibration")
+    if calibration is None:
+        return lines
+    if calibration["refused"] is not None:
+        return [*lines, f"Calibration on hills was refused: {calibration['refused']}\n"]
+    return [
+        *lines,
+        "Calibrated on hills instead: the scripted calibration drive on the same kind of road (noise seed "
+        f"{calibration['noise_seed']}), the grade reported as above; calibration takes it into its fits "
+        "(`synth.calibration.level_ground`, the load transfer on dv_x/dt + g sin(theta)).\n",
+        "| parameter | on hills | on level ground | hills / level - 1 | the MB's value | hills against it |",
+        "|---|---|---|---|---|---|",
+        *(
+            f"| {row['name']} | {row['hills']:.6g} | {row['level']:.6g} | "
+            f"{100 * (row['hills'] / row['level'] - 1):+.2f} % | {row['reference']:.6g} | "
+            f"{100 * (row['hills'] / row['reference'] - 1):+.2f} % |"
+            for row in calibration["parameters"]
+        ),
+        "",
+    ]
 
 
 def refused_set(parameter_set: int, reason: str) -> dict[str, Any]:

@@ -467,12 +467,23 @@ def test_hills_are_driven_without_the_grade_and_told_it(outcome, figures):
     held = {name: hills[name]["channels"]["torque"]["held_peak_abs_estimate"] for name in ("blind", "told")}
     assert held["blind"] > 2.0 * held["told"]
     lines = [m for m in figures["must_show"] if "grade" in m["target"]]
-    assert len(lines) == 3 and lines[1]["passed"] is None
+    assert len(lines) == 4 and lines[1]["passed"] is None
     assert lines[0]["passed"] == all(
         hills["told"]["channels"][c][k] == 0 for c in ("torque", "steer") for k in ("warn_raised", "fault_raised")
     )
     assert lines[2]["passed"] == hills["fault"]["meets_target"]
     assert f"### Set {SET}: hills" in text
+    # the calibration drive on hills, calibrated with the grade, against the level-ground calibration
+    calibration = hills["calibration"]
+    assert calibration["refused"] is None and calibration["drive"].endswith("_hills")
+    rows = {row["name"]: row for row in calibration["parameters"]}
+    assert {"effective_mass_kg", "front_cornering_stiffness_npr", "rear_cornering_stiffness_npr"} <= set(rows)
+    assert set(rows) <= set(bench.REFERENCES)
+    level = {row["name"]: row["value"] for row in figures["calibration"]["parameters"]}
+    assert all(rows[name]["level"] == level[name] for name in rows)
+    worst = max(abs(row["hills"] / row["level"] - 1.0) for row in rows.values())
+    assert lines[3]["passed"] == (worst <= bench.HILL_CALIBRATION_TOLERANCE)
+    assert "Calibrated on hills instead" in text
 
 
 def test_a_hill_pulls_the_multibody_vehicle_back_by_g_sin_grade():
