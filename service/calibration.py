@@ -388,15 +388,18 @@ def healthy_fault_estimates(
     gains: ObserverGains, drives: Sequence[Drive], warmup_s: float, stage: EffectivenessOptions | None = None
 ) -> FloatArray:
     """The fault estimates [T_f, delta_f] over the healthy drives, each after its warm-up, (K, 2): the observer's,
-    or with an enabled ``stage`` the loss-of-effectiveness stage's total faults. A drive with a road grade is
-    stepped as the service steps its samples (synth.model.model_inputs: the observer on the level-ground torque,
-    the stage on the torque sent)."""
+    or with an enabled ``stage`` the loss-of-effectiveness stage's total faults. A drive with a road grade or a
+    payload is stepped as the service steps the samples of a vehicle that reported them (synth.model.model_inputs:
+    the observer on the level-ground torque of the vehicle without the payload, the stage on the torque sent
+    without the payload; the torque fault scaled back by rho)."""
     make = observer_stepper(gains) if stage is None or not stage.enabled else effectiveness_stepper(gains, stage)
     parts = []
     for drive in drives:
-        u, stage_u = drive.u, drive.u
-        if drive.grade is not None and not drive.leveled:
-            u, stage_u, _ = model_inputs(drive.y, drive.u, None, drive.grade, gains.params)
+        u, stage_u, rho = drive.u, drive.u, None
+        graded = drive.grade is not None and not drive.leveled
+        if graded or drive.payload_kg > 0.0:
+            payload = drive.payload_kg if drive.payload_kg > 0.0 else None
+            u, stage_u, rho = model_inputs(drive.y, drive.u, payload, drive.grade if graded else None, gains.params)
         observer = make(drive.y[:1], u[:1])
         faults = np.empty((len(drive), 2))
         for k in range(len(drive)):
@@ -407,6 +410,8 @@ def healthy_fault_estimates(
                 else observer.step(y_k, u_k)
             )
             faults[k] = step.faults[0]
+        if rho is not None:  # at the vehicle's scale, as the service reports it
+            faults[:, 0] /= rho
         start = round(warmup_s / gains.params.sample_period_s)
         parts.append(faults[start:])
     return np.concatenate(parts) if parts else np.zeros((0, 2))
@@ -630,7 +635,8 @@ def base_from_profile(spec: ProfileSpec) -> dict[str, Any]:
 def run_calibration(request: dict[str, Any]) -> dict[str, Any]:
     """Worker-process entry point of ``POST /profiles/{name}/calibration``: plain data in and out.
 
-    request : {"base": {"params", "design"?, "alarms"?, "description"?}, "recordings": [{"name", "csv"}],
+    request : {"base": {"params", "design"?, "alarms"?, "description"?}, "recordings": [{"name", "csv",
+    "payload_kg"?}],
     "false_alarms_per_1000_h", "nominal_torque_nm", "gust_n"?, "effectiveness"?}. Returns {"ok": True, "profile",
     "report"} or {"ok": False, "error": "bad_recording" | "refused" | "design_failed" | "bad_request", "reason"}.
     """
@@ -646,7 +652,8 @@ def run_calibration(request: dict[str, Any]) -> dict[str, Any]:
             rec = parse_recording(item["csv"].splitlines(), period, source=item["name"])
         except RecordingError as exc:
             return {"ok": False, "error": "bad_recording", "reason": str(exc)}
-        drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=item["name"], grade=rec.grade))
+        payload = float(item.get("payload_kg", 0.0))
+        drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=item["name"], grade=rec.grade, payload_kg=payload))
     try:
         report = calibrate_from_base(
             drives,

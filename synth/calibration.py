@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -50,7 +50,7 @@ import scipy.optimize
 import scipy.signal
 
 from synth.errors import SynthesisError
-from synth.model import FloatArray, grade_torque, lagged_steer
+from synth.model import FloatArray, grade_torque, lagged_steer, payload_torque
 from synth.params import STANDARD_GRAVITY_MPS2, OperatingBounds, VehicleParams
 
 #: Standard gravity [m/s^2].
@@ -82,7 +82,8 @@ class CalibrationRefused(SynthesisError):
 class Drive:
     """One recording: t (K,) [s], y (K, 2) measured [v_x [m/s], r [rad/s]], u (K, 2) demanded [T_d [N m],
     delta_d [rad]]; ``name`` for messages; ``grade`` (K,) the road grade the vehicle reported [rad, + uphill], or
-    None on level ground; ``leveled``: u's torque is already the level-ground one (:func:`level_ground`)."""
+    None on level ground; ``leveled``: u's torque is already the level-ground one (:func:`level_ground`);
+    ``payload_kg`` the load the vehicle carried through the recording, beyond the profile's vehicle [kg]."""
 
     t: FloatArray
     y: FloatArray
@@ -90,6 +91,7 @@ class Drive:
     name: str = "recording"
     grade: FloatArray | None = None
     leveled: bool = False
+    payload_kg: float = 0.0
 
     def __len__(self) -> int:
         return int(self.t.size)
@@ -178,10 +180,23 @@ def level_ground(drive: Drive, base: dict[str, Any]) -> Drive:
     """``drive`` as the profile's vehicle would have driven it on level ground: the torque T_d less the grade's
     R_w M_v g sin(theta) (synth.model.grade_torque, docs/math.md 12.6), which is what the service gives the model
     for a measurement that carries the grade; the grade is kept (the load the tyres' force moves between the axles
-    follows the torque, not the acceleration the grade slows). A drive without a grade, or one leveled already, is
-    returned as it is."""
+    follows the torque, not the acceleration the grade slows). A drive without a grade, one leveled already, or
+    one with a payload (calibration takes its grade with the payload, :func:`_fit_with_payloads`) is returned as
+    it is."""
     if drive.grade is None or drive.leveled:
         return drive
+    _check_grade(drive, base)
+    if drive.payload_kg > 0.0:
+        return drive
+    vehicle = VehicleParams(mass_kg=base["mass_kg"], wheel_radius_m=base["wheel_radius_m"])
+    u = drive.u.astype(float).copy()
+    u[:, 0] -= grade_torque(drive.grade, 0.0, vehicle)
+    return Drive(t=drive.t, y=drive.y, u=u, name=drive.name, grade=drive.grade, leveled=True)
+
+
+def _check_grade(drive: Drive, base: dict[str, Any]) -> None:
+    """Refuse a drive whose grade is not finite, not one per sample, or without the base's mass and wheel radius."""
+    assert drive.grade is not None
     bad = np.flatnonzero(~np.isfinite(drive.grade))
     if bad.size:
         raise CalibrationRefused(f"{drive.name}: row {int(bad[0]) + 1} has a non-finite grade")
@@ -190,10 +205,6 @@ def level_ground(drive: Drive, base: dict[str, Any]) -> Drive:
     missing = [name for name in ("mass_kg", "wheel_radius_m") if name not in base]
     if missing:
         raise CalibrationRefused(f"a recording with a road grade needs {' and '.join(missing)} in the base profile")
-    vehicle = VehicleParams(mass_kg=base["mass_kg"], wheel_radius_m=base["wheel_radius_m"])
-    u = drive.u.astype(float).copy()
-    u[:, 0] -= grade_torque(drive.grade, 0.0, vehicle)
-    return Drive(t=drive.t, y=drive.y, u=u, name=drive.name, grade=drive.grade, leveled=True)
 
 
 def calibrate(
@@ -207,7 +218,8 @@ def calibrate(
     Parameters
     ----------
     drives : sequence of Drive
-        The healthy recordings (100 Hz); one with a road grade is taken on level ground (:func:`level_ground`).
+        The healthy recordings (100 Hz); one with a road grade is taken on level ground (:func:`level_ground`),
+        one with a payload to the vehicle without it (:func:`_fit_with_payloads`).
     base : dict
         Vehicle parameters by their field names (synth.params.VehicleParams).
     options : CalibrationOptions, optional
@@ -241,7 +253,7 @@ def calibrate(
     _check_load_transfer(prepared, fixed, lateral, noise, options)
     params_lat = fixed.model_copy(update=lateral.params)
     sims = [_simulate_lateral(p, params_lat, lateral.steer_offset) for p in prepared]
-    longitudinal = _fit_longitudinal(prepared, sims, params_lat, base, noise, options)
+    prepared, longitudinal = _fit_with_payloads(drives, prepared, sims, params_lat, base, noise, options)
     params = params_lat.model_copy(update=longitudinal.params)
     params = VehicleParams.model_validate(params.model_dump())  # re-validated as a whole
     _check_fault_blocks(prepared, sims, longitudinal, lateral, params, options)
@@ -253,16 +265,7 @@ def calibrate(
     residuals = {**lateral.residuals, **longitudinal.residuals}
     bounds = operating_bounds(prepared, sims, params, lateral.steer_offset)
     peak_ay = max(float(np.max(np.abs(p.v_x * p.r), initial=0.0)) for p in prepared)
-    notes = [
-        f"cornering stiffnesses fitted where |a_y| <= {options.linear_lateral_accel_mps2:.2f} m/s^2 "
-        f"(the tyres' linear range); the recordings reach {peak_ay:.1f} m/s^2",
-    ]
-    if params.cg_height_m == 0.0:
-        notes.append(
-            "no centre-of-gravity height (cg_height_m) in the base: the model leaves out the load that braking and "
-            "accelerating move between the axles, so braking hard in a turn reads as a steering fault "
-            "(docs/math.md 12.4); give the data sheet's height"
-        )
+    notes = _notes(drives, params, options, peak_ay)
     return CalibrationResult(
         params=params,
         bounds=bounds,
@@ -274,6 +277,24 @@ def calibrate(
         peak_lateral_accel_mps2=peak_ay,
         notes=notes,
     )
+
+
+def _notes(drives: Sequence[Drive], params: VehicleParams, options: CalibrationOptions, peak_ay: float) -> list[str]:
+    """What the report says beside the figures: the stiffnesses' range, the payloads left out, a missing CG height."""
+    notes = [
+        f"cornering stiffnesses fitted where |a_y| <= {options.linear_lateral_accel_mps2:.2f} m/s^2 "
+        f"(the tyres' linear range); the recordings reach {peak_ay:.1f} m/s^2",
+    ]
+    carried = [f"{d.name} {d.payload_kg:g} kg" for d in drives if d.payload_kg > 0.0]
+    if carried:
+        notes.append(f"identified without the payloads the recordings carried ({', '.join(carried)})")
+    if params.cg_height_m == 0.0:
+        notes.append(
+            "no centre-of-gravity height (cg_height_m) in the base: the model leaves out the load that braking and "
+            "accelerating move between the axles, so braking hard in a turn reads as a steering fault "
+            "(docs/math.md 12.4); give the data sheet's height"
+        )
+    return notes
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -311,6 +332,11 @@ def _check_inputs(drives: Sequence[Drive], base: dict[str, Any]) -> None:
                 raise CalibrationRefused(f"{drive.name}: row {int(bad[0]) + 1} has a non-finite {label} value")
         if len(drive) < 2:
             raise CalibrationRefused(f"{drive.name}: fewer than 2 samples")
+        if not (math.isfinite(drive.payload_kg) and 0.0 <= drive.payload_kg <= float(base["mass_kg"])):
+            raise CalibrationRefused(
+                f"{drive.name}: a payload must be finite, 0 kg or more and at most the vehicle's mass_kg "
+                f"({float(base['mass_kg']):g} kg), got {drive.payload_kg:g} kg"
+            )
 
 
 def _prepare(drive: Drive, s: float, options: CalibrationOptions) -> _Prepared:
@@ -725,6 +751,66 @@ def _fit_longitudinal(
         theta=theta_full,
         window_samples=n,
     )
+
+
+#: The payloads' fixed point (:func:`_fit_with_payloads`) ends when no longitudinal parameter moves by more than
+#: this share of itself in a pass (of 1e-3 for the drag coefficient and 1 N for the rolling resistance near zero).
+PAYLOAD_FIT_TOLERANCE = 1e-9
+#: ... or refuses after this many passes (each moves the effective mass's error by payload / (m_eff + payload)
+#: of it: under 0.5, at most 30 passes for the largest payload)
+PAYLOAD_FIT_PASSES = 60
+
+
+def _fit_with_payloads(
+    drives: Sequence[Drive],
+    prepared: Sequence[_Prepared],
+    sims: Sequence[tuple[FloatArray, FloatArray, FloatArray]],
+    params: VehicleParams,
+    base: dict[str, Any],
+    noise: dict[str, float],
+    options: CalibrationOptions,
+) -> tuple[list[_Prepared], _LongitudinalFit]:
+    """The longitudinal fit, each drive that carried a payload taken to the profile's vehicle (the vehicle
+    without it); returns the drives as fitted and the fit.
+
+    A loaded drive is fitted on the torque the vehicle without the payload needs to move as the loaded one moved,
+    on level ground: :func:`synth.model.payload_torque` with the drive's grade, the torque the service gives the
+    model once the payload is reported (docs/math.md 12.5, 12.6). That torque depends on what is being fitted
+    (rho = m_eff / (m_eff + payload), C_x and F_r), so the torque and the fit are iterated to their fixed point,
+    from the base's values (1.05 M_v, 0 and 0 where it gives none): a pass moves the effective mass's error by
+    payload / (m_eff + payload) of it, C_x's and F_r's by 1 - rho, a contraction for any payload. The lateral fit
+    needs no payload: the tyres' cornering stiffnesses grow with the load they carry, so a load at the centre of
+    gravity leaves the lateral accelerations, per kilogram, as they were (docs/math.md 12.5).
+    """
+    if not any(d.payload_kg > 0.0 for d in drives):
+        return list(prepared), _fit_longitudinal(prepared, sims, params, base, noise, options)
+    names = ("effective_mass_kg", "longitudinal_drag_coeff", "rolling_resistance_n")
+    floors = (1.0, 1e-3, 1.0)
+    values = [float(base.get(names[0], 1.05 * params.mass_kg)), float(base.get(names[1], 0.0))]
+    values.append(float(base.get(names[2], 0.0)))
+    for _ in range(PAYLOAD_FIT_PASSES):
+        vehicle = params.model_copy(update=dict(zip(names, values, strict=True)))
+        fitted = [_without_payload(p, d, vehicle) for p, d in zip(prepared, drives, strict=True)]
+        fit = _fit_longitudinal(fitted, sims, params, base, noise, options)
+        new = [float(fit.params[name]) for name in names]
+        moved = max(abs(a - b) / max(abs(b), f) for a, b, f in zip(new, values, floors, strict=True))
+        values = new
+        if moved <= PAYLOAD_FIT_TOLERANCE:
+            return fitted, fit
+    raise CalibrationRefused(
+        f"the fit with the recordings' payloads did not settle in {PAYLOAD_FIT_PASSES} passes (the effective mass "
+        f"moved {moved:.1e} of itself in the last): check the payloads stated for the recordings"
+    )
+
+
+def _without_payload(p: _Prepared, drive: Drive, vehicle: VehicleParams) -> _Prepared:
+    """``p`` with the torque ``vehicle`` (without the drive's payload) needs on level ground to move as the loaded
+    vehicle moved on the drive's grade; ``p`` itself for a drive without a payload."""
+    if drive.payload_kg <= 0.0:
+        return p
+    grade = 0.0 if drive.grade is None else drive.grade
+    torque, _ = payload_torque(p.v_x_raw, drive.u[:, 0], drive.payload_kg, vehicle, grade)
+    return replace(p, torque=torque)
 
 
 # -------------------------------------------------------------------------------------------- checks

@@ -77,7 +77,30 @@ def healthy_drive_on_hills_with_load_transfer() -> Drive:
     return _on_hills(CAR.model_copy(update={"cg_height_m": CG_HEIGHT_M}))
 
 
-def _on_hills(vehicle: VehicleParams) -> Drive:
+#: The load of the loaded minute: a fifth of the car's mass.
+PAYLOAD_KG = 0.2 * CAR.mass_kg
+
+
+def loaded(vehicle: VehicleParams, payload_kg: float) -> VehicleParams:
+    """The project's model of ``vehicle`` carrying ``payload_kg`` at its centre of gravity: more mass to accelerate,
+    the rolling resistance in proportion to the weight, the lateral motion as it was (the tyres' cornering
+    stiffnesses grow with the load they carry, so per kilogram the lateral forces stay the same)."""
+    return vehicle.model_copy(
+        update={
+            "effective_mass_kg": vehicle.effective_mass_kg + payload_kg,
+            "rolling_resistance_n": vehicle.rolling_resistance_n * (vehicle.mass_kg + payload_kg) / vehicle.mass_kg,
+        }
+    )
+
+
+@lru_cache(maxsize=1)
+def loaded_drive_on_hills() -> Drive:
+    """The minute on the hills of :func:`healthy_drive_on_hills` by the car carrying PAYLOAD_KG, with the grade it
+    reports (the weight's pull is the loaded car's); ``payload_kg`` is left 0 for the caller to state."""
+    return _on_hills(loaded(CAR, PAYLOAD_KG), CAR.mass_kg + PAYLOAD_KG)
+
+
+def _on_hills(vehicle: VehicleParams, weight_kg: float | None = None) -> Drive:
     import dataclasses
 
     import numpy as np
@@ -85,7 +108,7 @@ def _on_hills(vehicle: VehicleParams) -> Drive:
     from edge_client.faults import SinusoidalFault, fault_tables
     from synth.params import STANDARD_GRAVITY_MPS2
 
-    weight_torque = vehicle.wheel_radius_m * vehicle.mass_kg * STANDARD_GRAVITY_MPS2
+    weight_torque = vehicle.wheel_radius_m * (weight_kg or vehicle.mass_kg) * STANDARD_GRAVITY_MPS2
     pull = SinusoidalFault(
         channel="torque", amplitude=0.04 * weight_torque, omega_radps=0.27, offset=-0.01 * weight_torque
     )

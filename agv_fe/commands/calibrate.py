@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -65,6 +66,16 @@ def register(sub: Any) -> None:
         help="enable the loss-of-effectiveness stage in the profile and set the fault thresholds from its total "
         "faults on the recordings (the service then reports alpha and alarms on it)",
     )
+    parser.add_argument(
+        "--payload-kg",
+        type=float,
+        nargs="+",
+        default=None,
+        metavar="KG",
+        help="the load the vehicle carried [kg]: one value for every recording, or one per recording in their "
+        "order; calibration then identifies the vehicle without it, the profile a reported payload is added to "
+        "(default 0: recorded as the vehicle usually drives)",
+    )
     parser.add_argument("--report", metavar="REPORT.json", help="also write the calibration report as JSON")
     parser.set_defaults(handler=run)
 
@@ -83,10 +94,12 @@ def run(args: argparse.Namespace) -> int:
         gust = GUST_N if args.gust is None else args.gust
         if not (0.0 <= gust < float("inf")):
             raise CommandError(f"--gust must be a force of 0 N or more, got {args.gust}")
+        payloads = _payloads(args.payload_kg, len(args.recordings))
         drives = []
-        for path in args.recordings:
+        for path, payload in zip(args.recordings, payloads, strict=True):
             rec = read_input(path, args.map, float(base["params"].get("sample_period_s", 0.01)))
-            drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=Path(path).name, grade=rec.grade))
+            name = Path(path).name
+            drives.append(Drive(t=rec.t, y=rec.y, u=rec.u, name=name, grade=rec.grade, payload_kg=payload))
         print(f"calibrating from {len(drives)} recording(s) ...", flush=True)
         start = time.monotonic()
 
@@ -121,6 +134,18 @@ def run(args: argparse.Namespace) -> int:
         return fail(CommandError(f"cannot write: {exc.strerror}: {exc.filename}"))
     print(f"written {out}" + (f" and {args.report}" if args.report else ""))
     return 0
+
+
+def _payloads(given: list[float] | None, recordings: int) -> list[float]:
+    """One payload per recording from --payload-kg: none (0 kg each), one for all, or one each."""
+    if given is None:
+        return [0.0] * recordings
+    if len(given) not in (1, recordings):
+        raise CommandError(f"--payload-kg: give one value, or one per recording ({recordings}), got {len(given)}")
+    for value in given:
+        if not (math.isfinite(value) and value >= 0.0):
+            raise CommandError(f"--payload-kg: expected kg >= 0, got {value}")
+    return given * recordings if len(given) == 1 else list(given)
 
 
 def _base(path: str) -> dict[str, Any]:

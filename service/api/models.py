@@ -416,6 +416,13 @@ class RecordingUpload(BaseModel):
 
     name: str = Field("recording.csv", max_length=200, description="shown in messages")
     csv: str = Field(min_length=1, max_length=16_000_000, description="the CSV text, header first")
+    payload_kg: float = Field(
+        0.0,
+        ge=0.0,
+        allow_inf_nan=False,
+        description="the load the vehicle carried through this recording [kg], at most the base's mass_kg: the "
+        "calibration identifies the vehicle without it (0: recorded as the profile's vehicle drives)",
+    )
 
 
 class CalibrationRequest(BaseModel):

@@ -77,6 +77,18 @@ def test_calibrate_refuses_with_the_reason_and_exit_codes(files, capsys):
     assert "params must give front_axle_distance_m, rear_axle_distance_m, wheel_radius_m" in capsys.readouterr().err
     assert main(["calibrate", str(rec), "--base", str(base), "--out", str(root / "x.json"), "--gust", "-5"]) == 2
     assert "--gust must be a force of 0 N or more, got -5" in capsys.readouterr().err
+    # --payload-kg: one value for all recordings or one each, in their order
+    again = root / "again.csv"
+    again.write_text(rec.read_text())
+    two = ["calibrate", str(rec), str(again), "--base", str(base), "--out", str(root / "x.json"), "--payload-kg"]
+    assert main([*two, "0", "100", "200"]) == 2
+    assert "--payload-kg: give one value, or one per recording (2), got 3" in capsys.readouterr().err
+    assert main([*two, "-1"]) == 2
+    assert "--payload-kg: expected kg >= 0, got -1.0" in capsys.readouterr().err
+    assert main([*two, "0", "3000"]) == 3
+    assert "again.csv: a payload must be finite, 0 kg or more and at most the vehicle's" in capsys.readouterr().err
+    assert main([*two, "3000"]) == 3
+    assert "healthy.csv: a payload must be" in capsys.readouterr().err
     assert not (root / "x.json").exists()
 
 

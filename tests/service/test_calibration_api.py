@@ -77,6 +77,18 @@ def test_calibration_says_what_is_wrong(tmp_path, recording_csv):
             timeout=120.0,
         )
         assert bad.status_code == 422 and "broken.csv, line 51" in bad.json()["detail"]
+        # a payload above the vehicle's mass is refused with the reason, a negative one is a bad body
+        heavy = {"name": "heavy.csv", "csv": recording_csv, "payload_kg": 5000.0}
+        too_heavy = post(
+            "/profiles/car/calibration", json={"base": {"params": BASE}, "recordings": [heavy]}, headers=srv.auth
+        )
+        assert too_heavy.status_code == 422
+        assert "refused: heavy.csv: a payload must be finite, 0 kg or more and at most" in too_heavy.json()["detail"]
+        negative = {**heavy, "payload_kg": -1.0}
+        bad_payload = post(
+            "/profiles/car/calibration", json={"base": {"params": BASE}, "recordings": [negative]}, headers=srv.auth
+        )
+        assert bad_payload.status_code == 422 and "payload_kg" in bad_payload.text
         # a negative gust is a bad body
         gusty = post(
             "/profiles/car/calibration",

@@ -114,11 +114,13 @@ def test_a_gust_shows_as_its_steady_state_steering_equivalent_and_the_floor_ride
             assert (highest == OK).all()
 
 
-def test_a_graded_drive_is_replayed_for_the_thresholds_as_the_service_steps_it():
-    """The healthy minute on hills with its grade (the project's model): the threshold replay with the
-    effectiveness stage gives the fleet engine's total torque and steering faults for the same samples sent with
-    their grade, to the digit (the observer on the level-ground torque, the stage on the torque sent); the same
-    minute without its grade reads the weight's pull as a torque fault."""
+@pytest.mark.parametrize("loaded", [False, True], ids=["empty", "loaded"])
+def test_a_graded_drive_is_replayed_for_the_thresholds_as_the_service_steps_it(loaded):
+    """The healthy minute on hills with its grade (the project's model), by the car empty or carrying a fifth of
+    its mass told to both: the threshold replay with the effectiveness stage gives the fleet engine's total torque
+    and steering faults for the same samples sent with their grade, to the digit (the observer on the level-ground
+    torque of the car without the payload, the stage on the torque sent without it, the torque fault scaled back
+    by rho); the same minute without its grade reads the weight's pull as a torque fault."""
     import dataclasses
 
     from agv_protocol.wire import Estimate, Measurement, vehicle_key
@@ -127,9 +129,9 @@ def test_a_graded_drive_is_replayed_for_the_thresholds_as_the_service_steps_it()
     from service.profiles import ProfileSpec
     from synth.design import synthesize
     from synth.options import DesignOptions, EffectivenessOptions
-    from tests.calibration_data import CAR, healthy_drive_on_hills
+    from tests.calibration_data import CAR, PAYLOAD_KG, healthy_drive_on_hills, loaded_drive_on_hills
 
-    hills = healthy_drive_on_hills()
+    hills = dataclasses.replace(loaded_drive_on_hills(), payload_kg=PAYLOAD_KG) if loaded else healthy_drive_on_hills()
     assert hills.grade is not None
     gains = synthesize(CAR, options=DesignOptions())
     stage = EffectivenessOptions(enabled=True, torque_sigma_nm=6.0)
@@ -138,6 +140,8 @@ def test_a_graded_drive_is_replayed_for_the_thresholds_as_the_service_steps_it()
     engine.add_profile("hills", ProfileSpec(params=CAR, effectiveness=stage))
     engine.activate("hills", gains)
     engine.register("car", "hills")
+    if loaded:
+        engine.set_payload("car", PAYLOAD_KG)
     online = []
     for k in range(len(hills)):
         vx, r = hills.y[k]

@@ -13,10 +13,12 @@ from tests.calibration_data import (
     BASE,
     CAR,
     CG_HEIGHT_M,
+    PAYLOAD_KG,
     healthy_drive,
     healthy_drive_on_hills,
     healthy_drive_on_hills_with_load_transfer,
     healthy_drive_with_load_transfer,
+    loaded_drive_on_hills,
     simulated_drive,
 )
 
@@ -115,6 +117,28 @@ def test_a_recording_on_hills_calibrates_with_its_grade_as_on_level_ground(resul
     broken[7] = np.nan
     assert "row 8 has a non-finite grade" in _refusal([dataclasses.replace(hills, grade=broken)])
     assert "must give mass_kg" in _refusal([hills], {k: v for k, v in BASE.items() if k != "mass_kg"})
+
+
+def test_a_loaded_recording_told_its_payload_calibrates_the_vehicle_without_it(result):
+    """The minute on hills by the car carrying a fifth of its mass (the project's model), with its grade: told the
+    payload, calibration identifies the car without it, the profile a reported payload is added to (the
+    effective mass within 0.5 % of the truth and of the empty car's calibration, the rolling resistance within its
+    interval); not told, it identifies a heavier car (more than half the payload). A payload that is
+    negative, not finite or above the vehicle's mass is refused."""
+    hills = loaded_drive_on_hills()
+    told = calibrate([dataclasses.replace(hills, payload_kg=PAYLOAD_KG)], BASE)
+    mass = told.estimates["effective_mass_kg"]
+    assert mass.value == pytest.approx(CAR.effective_mass_kg, rel=0.005)
+    assert mass.value == pytest.approx(result.estimates["effective_mass_kg"].value, rel=0.005)
+    assert f"identified without the payloads the recordings carried (hills {PAYLOAD_KG:g} kg)" in told.notes
+    rolling = told.estimates["rolling_resistance_n"]
+    assert rolling.low < CAR.rolling_resistance_n < rolling.high
+    for name in ("front_cornering_stiffness_npr", "rear_cornering_stiffness_npr"):
+        assert told.estimates[name].value == pytest.approx(result.estimates[name].value, rel=0.02), name
+    blind = calibrate([hills], BASE)  # 1,483 kg: the payload, less the part of its weight's pull it leaves out
+    assert blind.estimates["effective_mass_kg"].value > CAR.effective_mass_kg + 0.5 * PAYLOAD_KG
+    for bad in (-1.0, float("nan"), CAR.mass_kg + 1.0):
+        assert "a payload must be finite" in _refusal([dataclasses.replace(hills, payload_kg=bad)])
 
 
 def test_on_hills_the_load_transfer_is_fitted_on_the_tyres_force_not_the_acceleration():

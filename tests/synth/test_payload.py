@@ -17,20 +17,10 @@ from synth.model import (
 from synth.observer import FuzzyObserver
 from synth.options import DesignOptions
 from synth.params import STANDARD_GRAVITY_MPS2, VehicleParams
+from tests.calibration_data import loaded
 
 PROFILE = VehicleParams(rolling_resistance_n=180.0, longitudinal_drag_coeff=0.45, effective_mass_kg=1340.0)
 PAYLOAD_KG = 240.0
-
-
-def loaded(p: VehicleParams, payload_kg: float) -> VehicleParams:
-    """The vehicle carrying ``payload_kg`` at its centre of gravity, rolling resistance proportional to weight
-    (the lateral mass and inertia kept: the term is longitudinal)."""
-    return p.model_copy(
-        update={
-            "effective_mass_kg": p.effective_mass_kg + payload_kg,
-            "rolling_resistance_n": p.rolling_resistance_n * (p.mass_kg + payload_kg) / p.mass_kg,
-        }
-    )
 
 
 @pytest.mark.parametrize("fault_nm", [0.0, -150.0])
