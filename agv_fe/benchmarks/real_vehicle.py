@@ -834,10 +834,11 @@ def calibration_figures(parameter_set: int, report: CalibrationReport, run: mb.M
 SENSITIVITY_PARAMETERS = ("effective_mass_kg", "front_cornering_stiffness_npr", "rear_cornering_stiffness_npr")
 
 
-def calibrate(parameter_set: int, run: mb.MultibodyRun) -> CalibrationReport:
-    """:func:`calibrate_profile` on one drive with the set's data sheet; raises what it raises."""
+def calibrate(parameter_set: int, run: mb.MultibodyRun, payload_kg: float = 0.0) -> CalibrationReport:
+    """:func:`calibrate_profile` on one drive with the set's data sheet, told the payload the vehicle carried on
+    it; raises what it raises."""
     return calibrate_profile(
-        [recording(run)],
+        [dataclasses.replace(recording(run), payload_kg=payload_kg)],
         mb.base_profile(parameter_set)["params"],
         description=f"CommonRoad parameter set {parameter_set}, calibrated by the real_vehicle benchmark ({run.name})",
     )
@@ -1017,7 +1018,7 @@ def payload_kg(parameter_set: int) -> float:
 
 
 def payload_jobs(parameter_set: int, plan: Plan, nominal_torque_nm: float) -> list[mb.MultibodyJob]:
-    """The loaded healthy drives, then the loaded fault run."""
+    """The loaded healthy drives, the loaded fault run, then the loaded calibration drive."""
     load = payload_kg(parameter_set)
     healthy = [
         dataclasses.replace(job, payload_kg=load)
@@ -1032,20 +1033,26 @@ def payload_jobs(parameter_set: int, plan: Plan, nominal_torque_nm: float) -> li
         seed=seed,
         payload_kg=load,
     )
-    return [*healthy, fault]
+    return [*healthy, fault, dataclasses.replace(calibration_job(parameter_set), payload_kg=load)]
 
 
 def payload_figures(
     parameter_set: int, report: CalibrationReport, runs: Sequence[mb.MultibodyRun], plan: Plan
 ) -> dict[str, Any]:
-    """Alarms on the loaded healthy drives without the payload and told it, and the told observer's delays on
-    the loaded fault run."""
+    """Alarms on the loaded healthy drives without the payload and told it, the told observer's delays on the
+    loaded fault run, and the loaded calibration drive calibrated told the payload (the runs of
+    :func:`payload_jobs`)."""
     load = payload_kg(parameter_set)
     blind = observer_factory(report.gains)
     told = payload_factory(blind, report.gains.params, load)
-    healthy, fault = list(runs[:-1]), runs[-1]
+    *healthy, fault, calibration = runs
     out = told_and_blind(report, plan, (blind, healthy), (told, healthy), (told, fault))
-    return {"payload_kg": load, "share_of_mass": PAYLOAD_SHARE, **out}
+    return {
+        "payload_kg": load,
+        "share_of_mass": PAYLOAD_SHARE,
+        **out,
+        "calibration": compared_calibration(parameter_set, report, calibration, load),
+    }
 
 
 def told_and_blind(
@@ -1074,7 +1081,12 @@ def payload_must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
     """The loaded drives: told the payload, no alarm and the torque bias detected in time; without it, shown."""
     load = result["payload"]
     what = f"{load['payload_kg']:.0f} kg payload ({100 * load['share_of_mass']:g} % of the mass), calibrated empty"
-    return told_and_blind_must_show(load, what, ("payload reported", "payload not reported"))
+    lines = told_and_blind_must_show(load, what, ("payload reported", "payload not reported"))
+    target = (
+        "calibration loaded, the payload stated: each identified parameter the MB has a value for within the empty "
+        "calibration's 95 % interval"
+    )
+    return lines + calibration_must_show(load.get("calibration"), target)
 
 
 def told_and_blind_must_show(entry: dict[str, Any], what: str, labels: tuple[str, str]) -> list[dict[str, Any]]:
@@ -1125,7 +1137,13 @@ def _payload_section(result: dict[str, Any]) -> list[str]:
         "the healthy-driving table.\n"
     )
     title = f"### Set {result['parameter_set']}: a payload, calibrated empty\n"
-    return _told_and_blind_table(load, title, intro, ("payload not reported", "payload reported"))
+    lines = _told_and_blind_table(load, title, intro, ("payload not reported", "payload reported"))
+    how = (
+        "Calibrated loaded instead: the scripted calibration drive with the same payload (noise seed {seed}), "
+        "the payload stated for the recording (`agv-fe calibrate --payload-kg`); calibration identifies the "
+        "vehicle without it (`synth.calibration._fit_with_payloads`).\n"
+    )
+    return lines + _calibration_table(load.get("calibration"), "loaded", "empty", how)
 
 
 def _told_and_blind_table(entry: dict[str, Any], title: str, intro: str, labels: tuple[str, str]) -> list[str]:
@@ -1210,31 +1228,75 @@ def hill_figures(
         "max_reported_grade_rad": float(np.abs(grades).max()),
         "grade_sigma_rad": mb.DEFAULT_GRADE_SIGMA_RAD,
         **out,
-        "calibration": hill_calibration(parameter_set, report, calibration),
+        "calibration": compared_calibration(parameter_set, report, calibration),
     }
 
 
-def hill_calibration(parameter_set: int, level: CalibrationReport, run: mb.MultibodyRun) -> dict[str, Any]:
-    """The scripted calibration drive on hills, the grade reported, calibrated as the product does: each parameter
-    of REFERENCES against the level-ground calibration ``level`` (its value and 95 % interval) and the MB's value;
-    or why it was refused."""
+def compared_calibration(
+    parameter_set: int, level: CalibrationReport, run: mb.MultibodyRun, payload_kg: float = 0.0
+) -> dict[str, Any]:
+    """The scripted calibration drive driven otherwise (on hills with the grade reported, or loaded with the
+    payload stated), calibrated as the product does: each parameter of REFERENCES (``value``) against the
+    calibration of the level, empty drive ``level`` (its value and 95 % interval) and the MB's value; or why it
+    was refused."""
     try:
-        hills = calibrate(parameter_set, run)
+        other = calibrate(parameter_set, run, payload_kg)
     except SynthesisError as exc:
         return {"refused": f"{type(exc).__name__}: {exc}"}
     reference = mb.reference_values(parameter_set)
     parameters = [
         {
             "name": name,
-            "hills": hills.calibration.estimates[name].value,
+            "value": other.calibration.estimates[name].value,
             "level": level.calibration.estimates[name].value,
             "level_ci95": [level.calibration.estimates[name].low, level.calibration.estimates[name].high],
             "reference": reference[REFERENCES[name][0]],
         }
         for name in REFERENCES
-        if name in hills.calibration.estimates and name in level.calibration.estimates
+        if name in other.calibration.estimates and name in level.calibration.estimates
     ]
     return {"refused": None, "drive": run.name, "noise_seed": run.seed, "parameters": parameters}
+
+
+def calibration_must_show(calibration: dict[str, Any] | None, target: str) -> list[dict[str, Any]]:
+    """The must-show line of a :func:`compared_calibration` (none without one): every parameter within the level,
+    empty calibration's 95 % interval."""
+    if calibration is None:
+        return []
+    if calibration["refused"] is not None:
+        return [{"target": target, "figure": calibration["refused"], "passed": False}]
+    rows = calibration["parameters"]
+    figure = ", ".join(
+        f"{row['name']} {100 * (row['value'] / row['level'] - 1):+.2f} % (interval "
+        f"{100 * (low / row['level'] - 1):+.1f} to {100 * (high / row['level'] - 1):+.1f} %)"
+        for row in rows
+        for low, high in [row["level_ci95"]]
+    )
+    passed = bool(rows) and all(row["level_ci95"][0] <= row["value"] <= row["level_ci95"][1] for row in rows)
+    return [{"target": target, "figure": figure, "passed": passed}]
+
+
+def _calibration_table(calibration: dict[str, Any] | None, label: str, level_label: str, how: str) -> list[str]:
+    """The report's table of a :func:`compared_calibration`: ``how`` (with {seed}) introduces it; ``label`` names
+    its drive, ``level_label`` the calibration it is held against."""
+    if calibration is None:
+        return []
+    if calibration["refused"] is not None:
+        return [f"Calibration {label} was refused: {calibration['refused']}\n"]
+    return [
+        how.format(seed=calibration["noise_seed"]),
+        f"| parameter | {label} | {level_label} (95 % interval) | {label} / {level_label} - 1 | the MB's value | "
+        f"{label} against it |",
+        "|---|---|---|---|---|---|",
+        *(
+            f"| {row['name']} | {row['value']:.6g} | {row['level']:.6g} ({low:.6g} to {high:.6g}) | "
+            f"{100 * (row['value'] / row['level'] - 1):+.2f} % | {row['reference']:.6g} | "
+            f"{100 * (row['value'] / row['reference'] - 1):+.2f} % |"
+            for row in calibration["parameters"]
+            for low, high in [row["level_ci95"]]
+        ),
+        "",
+    ]
 
 
 def hill_must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
@@ -1242,24 +1304,11 @@ def hill_must_show(result: dict[str, Any]) -> list[dict[str, Any]]:
     hills = result["hills"]
     what = f"grades within +-{100 * math.tan(hills['road_max_grade_rad']):.0f} %, calibrated on level ground"
     lines = told_and_blind_must_show(hills, what, ("grade reported", "grade not reported"))
-    calibration = hills.get("calibration")
-    if calibration is None:
-        return lines
     target = (
         "calibration on hills, the grade reported: each identified parameter the MB has a value for within the "
         "level-ground calibration's 95 % interval"
     )
-    if calibration["refused"] is not None:
-        return [*lines, {"target": target, "figure": calibration["refused"], "passed": False}]
-    rows = calibration["parameters"]
-    figure = ", ".join(
-        f"{row['name']} {100 * (row['hills'] / row['level'] - 1):+.2f} % (interval "
-        f"{100 * (low / row['level'] - 1):+.1f} to {100 * (high / row['level'] - 1):+.1f} %)"
-        for row in rows
-        for low, high in [row["level_ci95"]]
-    )
-    passed = bool(rows) and all(row["level_ci95"][0] <= row["hills"] <= row["level_ci95"][1] for row in rows)
-    return [*lines, {"target": target, "figure": figure, "passed": passed}]
+    return lines + calibration_must_show(hills.get("calibration"), target)
 
 
 def _hill_section(result: dict[str, Any]) -> list[str]:
@@ -1275,28 +1324,12 @@ def _hill_section(result: dict[str, Any]) -> list[str]:
     )
     title = f"### Set {result['parameter_set']}: hills\n"
     lines = _told_and_blind_table(hills, title, intro, ("grade not reported", "grade reported"))
-    calibration = hills.get("calibration")
-    if calibration is None:
-        return lines
-    if calibration["refused"] is not None:
-        return [*lines, f"Calibration on hills was refused: {calibration['refused']}\n"]
-    return [
-        *lines,
-        "Calibrated on hills instead: the scripted calibration drive on the same kind of road (noise seed "
-        f"{calibration['noise_seed']}), the grade reported as above; calibration takes it into its fits "
-        "(`synth.calibration.level_ground`, the load transfer on dv_x/dt + g sin(theta)).\n",
-        "| parameter | on hills | on level ground (95 % interval) | hills / level - 1 | the MB's value | hills "
-        "against it |",
-        "|---|---|---|---|---|---|",
-        *(
-            f"| {row['name']} | {row['hills']:.6g} | {row['level']:.6g} ({low:.6g} to {high:.6g}) | "
-            f"{100 * (row['hills'] / row['level'] - 1):+.2f} % | {row['reference']:.6g} | "
-            f"{100 * (row['hills'] / row['reference'] - 1):+.2f} % |"
-            for row in calibration["parameters"]
-            for low, high in [row["level_ci95"]]
-        ),
-        "",
-    ]
+    how = (
+        "Calibrated on hills instead: the scripted calibration drive on the same kind of road (noise seed {seed}), "
+        "the grade reported as above; calibration takes it into its fits (`synth.calibration.level_ground`, the "
+        "load transfer on dv_x/dt + g sin(theta)).\n"
+    )
+    return lines + _calibration_table(hills.get("calibration"), "on hills", "on level ground", how)
 
 
 def refused_set(parameter_set: int, reason: str) -> dict[str, Any]:

@@ -93,6 +93,7 @@ def test_must_show_has_a_line_per_target_matching_the_json(outcome, figures):
         "payload reported, healthy driving",
         "payload not reported, healthy driving",
         f"payload reported, {bench.FAULT_CASES[0].label} (",
+        "calibration loaded, the payload stated",
     ]
     for target in targets:
         matching = [row for row in rows if row.startswith(f"| {SET} | {target}")]
@@ -443,12 +444,22 @@ def test_a_payload_calibrated_empty_is_driven_without_it_and_told_it(outcome, fi
     held = {name: load[name]["channels"]["torque"]["held_peak_abs_estimate"] for name in ("blind", "told")}
     assert held["blind"] > 2.0 * held["told"]
     lines = [m for m in figures["must_show"] if "payload" in m["target"]]
-    assert [m["passed"] for m in lines][1] is None and len(lines) == 3
+    assert [m["passed"] for m in lines][1] is None and len(lines) == 4
     assert lines[0]["passed"] == all(
         load["told"]["channels"][c][k] == 0 for c in ("torque", "steer") for k in ("warn_raised", "fault_raised")
     )
     assert lines[2]["passed"] == load["fault"]["meets_target"]
     assert f"### Set {SET}: a payload, calibrated empty" in text
+    # the calibration drive loaded, calibrated told the payload, against the empty calibration: the vehicle
+    # without the payload comes back (the effective mass within its interval, not a tenth heavier)
+    calibration = load["calibration"]
+    assert calibration["refused"] is None and calibration["drive"] == "calibration"
+    rows = {row["name"]: row for row in calibration["parameters"]}
+    assert {"effective_mass_kg", "front_cornering_stiffness_npr", "rear_cornering_stiffness_npr"} <= set(rows)
+    inside = [row["level_ci95"][0] <= row["value"] <= row["level_ci95"][1] for row in rows.values()]
+    assert lines[3]["passed"] == all(inside)
+    assert rows["effective_mass_kg"]["value"] == pytest.approx(rows["effective_mass_kg"]["level"], rel=0.02)
+    assert "Calibrated loaded instead" in text and "| parameter | loaded | empty (95 % interval) |" in text
     loaded = mb.loaded_parameters(SET, 100.0)
     assert loaded.m == pytest.approx(mb.vehicle_parameters(SET).m + 100.0) and loaded.a == mb.vehicle_parameters(SET).a
     with pytest.raises(mb.MultibodyError, match="payload_kg must be finite"):
@@ -481,7 +492,7 @@ def test_hills_are_driven_without_the_grade_and_told_it(outcome, figures):
     assert set(rows) <= set(bench.REFERENCES)
     level = {row["name"]: row["value"] for row in figures["calibration"]["parameters"]}
     assert all(rows[name]["level"] == level[name] for name in rows)
-    inside = [row["level_ci95"][0] <= row["hills"] <= row["level_ci95"][1] for row in rows.values()]
+    inside = [row["level_ci95"][0] <= row["value"] <= row["level_ci95"][1] for row in rows.values()]
     assert lines[3]["passed"] == all(inside)
     assert "Calibrated on hills instead" in text
 
