@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from edge_client.scenario import Scenario, ScenarioSignals
-from synth.model import FloatArray, continuous_dynamics, model_demand
-from synth.params import VehicleParams
+from synth.model import FloatArray, continuous_dynamics, model_demand, model_inputs
+from synth.params import STANDARD_GRAVITY_MPS2, VehicleParams
 
 #: The tyre model of eq. (2) divides by v_x; below this speed the plant holds v_x here.
 MIN_SPEED_MPS = 0.5
@@ -38,6 +38,8 @@ class PlantSample:
     u : (nv, 2) demanded [T_d, delta_d]; f : (nv, 2) true faults [T_f, delta_f]
     wind : (nv,) F_w [N]; pose : (nv, 3) [X [m], Y [m], heading psi [rad]]
     active : (nv,) the vehicle's scenario has not ended
+    grade : (nv,) the road grade each vehicle reports [rad, + uphill], NaN for a vehicle whose scenario has no
+    road grade; None when none has
     """
 
     k: int
@@ -49,6 +51,7 @@ class PlantSample:
     wind: FloatArray
     pose: FloatArray
     active: np.ndarray
+    grade: FloatArray | None = None
 
 
 def dynamics_with_pose(
@@ -96,6 +99,11 @@ class PlantSimulator:
         self.noise_sigma = np.array([[n.vx_sigma_mps, n.r_sigma_radps] for n in noise])
         self.noise_bias = np.array([[n.vx_bias_mps, n.r_bias_radps] for n in noise])
         self.speed_kp = np.array([s.driver.speed_kp_per_s for s in self.scenarios])
+        payload = np.array([s.payload_kg for s in self.scenarios], dtype=float)
+        #: each vehicle's payload [kg], None when none carries one
+        self.payload: FloatArray | None = payload if payload.any() else None
+        #: which vehicles drive a road with a grade (and report it)
+        self.graded = np.array([s.road_grade is not None for s in self.scenarios])
         self.k = 0
         #: the road-wheel angle of each vehicle's steering actuator, with a lag (None until the first sample)
         self.steer_angle: FloatArray | None = None
@@ -137,6 +145,34 @@ class PlantSimulator:
     @property
     def n_vehicles(self) -> int:
         return len(self.scenarios)
+
+    def _drive_force(self, accel: FloatArray, speed: FloatArray, grade: FloatArray | None) -> FloatArray:
+        """The driver's drive force [N] for ``accel``: the inertia, drag and rolling resistance of the vehicle with
+        its payload (the rolling resistance in proportion to the weight), and the weight's pull on the grade."""
+        p = self.params
+        if self.payload is None and grade is None:
+            return p.effective_mass_kg * accel + p.longitudinal_drag_coeff * speed**2 + p.rolling_resistance_n
+        payload = 0.0 if self.payload is None else self.payload
+        weight = p.mass_kg + payload
+        force = (p.effective_mass_kg + payload) * accel + p.longitudinal_drag_coeff * speed**2
+        force += p.rolling_resistance_n * weight / p.mass_kg
+        if grade is not None:
+            force += weight * STANDARD_GRAVITY_MPS2 * np.sin(grade)
+        return np.asarray(force, dtype=float)
+
+    def _loaded_on_grade(
+        self, x: FloatArray, u: FloatArray, f: FloatArray, grade: FloatArray | None
+    ) -> tuple[FloatArray, FloatArray]:
+        """The demand and faults that drive the batch's model as the vehicles with their payloads move on their
+        grades: the torque of synth.model.model_inputs (exact for this model: docs/math.md 12.5, 12.6), a torque
+        fault T_f acting as rho T_f. The service's observer, told the payload and the grade, makes the same
+        approximations (the cornering drag's share of a payload, cos(theta)), so these vehicles check what it is
+        told, not the approximations; the multi-body benchmark (docs/benchmarks/real_vehicle.md) checks those."""
+        model_u, _, rho = model_inputs(x[:, [0, 2]], u, self.payload, grade, self.params)
+        if rho is not None:
+            f = f.copy()
+            f[:, 0] *= rho
+        return model_u, f
 
     @property
     def finished(self) -> bool:
@@ -189,13 +225,14 @@ class PlantSimulator:
         fault_add = chunk["fault_add"][offset]
         fault_gain = chunk["fault_gain"][offset]
 
+        grade = chunk["grade"][offset] if self.graded.any() else None
         x = self.state[:, :3].copy()
         y = x[:, [0, 2]] + self.noise_bias + self.noise_sigma * self.rng.standard_normal((self.n_vehicles, 2))
-        # driver: speed tracking on the measured speed, drag and rolling-resistance feed-forward; the drive
-        # force becomes a torque at the wheels
+        # driver: speed tracking on the measured speed, drag, rolling-resistance (and a load's, a grade's)
+        # feed-forward; the drive force becomes a torque at the wheels
         speed_meas = np.maximum(y[:, 0], MIN_SPEED_MPS)
         accel = speed_ref_rate + self.speed_kp * (speed_ref - speed_meas)
-        force = p.effective_mass_kg * accel + p.longitudinal_drag_coeff * speed_meas**2 + p.rolling_resistance_n
+        force = self._drive_force(accel, speed_meas, grade)
         torque = p.wheel_radius_m * force
         u = np.column_stack([torque, steer_demand])
         f = fault_add + fault_gain * u
@@ -209,9 +246,12 @@ class PlantSimulator:
             wind=wind,
             pose=self.state[:, 3:].copy(),
             active=k < self.n_samples,
+            grade=None if grade is None else np.where(self.graded, grade, np.nan),
         )
         dt = self.sample_period_s / self.substeps
         state = self.state
+        if self.payload is not None or grade is not None:
+            u, f = self._loaded_on_grade(x, u, f, grade)
         # the model's input: the demand with the load transfer's steering angle (none without a CG height)
         u_model = model_demand(x[:, [0, 2]], u, p)
         if p.steer_time_constant_s == 0.0:

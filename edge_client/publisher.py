@@ -379,7 +379,7 @@ class FleetPublisher:
         for i, vehicle_id in enumerate(self.ids):
             if not active[i]:
                 continue
-            g_i = None if grade is None else grade[i]
+            g_i = None if grade is None or grade[i] != grade[i] else grade[i]  # NaN: this vehicle reports none
             payload = Measurement(vehicle_id, k, timestamp_ns, y[i][0], y[i][1], u[i][0], u[i][1], flags, g_i).encode()
             buffer = self._buffers[i]
             if matched[i]:

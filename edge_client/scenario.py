@@ -97,6 +97,29 @@ class Gust(_Strict):
         return np.where((tau >= 0) & (tau < self.duration_s), self.force_n * shape, 0.0)
 
 
+class RoadGrade(_Strict):
+    """A road that climbs and descends: theta(t) = offset_rad + amplitude_rad sin(2 pi t / period_s + phase_rad)
+    [rad, + uphill], the road's angle to the horizontal along the vehicle's x axis. The weight pulls the vehicle
+    back with (M_v + payload) g sin(theta); the vehicle reports theta with each measurement (flag bit 1)."""
+
+    amplitude_rad: Annotated[float, Field(ge=0, le=0.2, allow_inf_nan=False)] = 0.0
+    period_s: Positive = 30.0
+    phase_rad: Finite = 0.0
+    offset_rad: Annotated[float, Field(ge=-0.2, le=0.2, allow_inf_nan=False)] = 0.0
+
+    @model_validator(mode="after")
+    def _within_a_road(self) -> RoadGrade:
+        if abs(self.offset_rad) + self.amplitude_rad > 0.3:
+            raise ValueError(
+                f"|offset_rad| + amplitude_rad must be at most 0.3 rad (a 31 % grade), got "
+                f"{abs(self.offset_rad) + self.amplitude_rad:g}"
+            )
+        return self
+
+    def grade(self, t: FloatArray) -> FloatArray:
+        return np.asarray(self.offset_rad + self.amplitude_rad * np.sin(2 * np.pi * t / self.period_s + self.phase_rad))
+
+
 class SensorNoise(_Strict):
     """Gaussian white noise and constant bias on the measured v_x and r."""
 
@@ -134,6 +157,12 @@ class Scenario(_Strict):
     noise: SensorNoise = SensorNoise()
     driver: DriverGains = DriverGains()
     vehicle: VehicleParams = VehicleParams()
+    payload_kg: NonNegative = Field(
+        0.0,
+        description="a load at the centre of gravity beyond the vehicle's parameters [kg], at most its mass_kg; "
+        "the fleet reports it to the service at the start",
+    )
+    road_grade: RoadGrade | None = Field(None, description="the road's grade; None = level ground, none reported")
     seed: Annotated[int, Field(ge=0)] = 0
     observer_initial_state: tuple[Finite, Finite, Finite] | None = Field(
         None, description="[v_x, v_y, r] the observer starts from; None = measured v_x, r and v_y = 0"
@@ -144,6 +173,10 @@ class Scenario(_Strict):
         times = [p.t_s for p in self.speed_profile]
         if any(b <= a for a, b in itertools.pairwise(times)):
             raise ValueError(f"speed_profile times must increase strictly, got {times}")
+        if self.payload_kg > self.vehicle.mass_kg:
+            raise ValueError(
+                f"payload_kg must be at most the vehicle's mass_kg ({self.vehicle.mass_kg:g}), got {self.payload_kg:g}"
+            )
         return self
 
     @property
@@ -197,6 +230,7 @@ class Scenario(_Strict):
             wind=wind,
             fault_add=fault_add,
             fault_gain=fault_gain,
+            grade=np.zeros(n) if self.road_grade is None else self.road_grade.grade(t),
         )
 
 
@@ -204,7 +238,7 @@ class Scenario(_Strict):
 class ScenarioSignals:
     """Open-loop signals of one scenario on the sample grid (K samples).
 
-    t, steer_demand [rad], speed_ref [m/s], speed_ref_rate [m/s^2], wind [N]: (K,);
+    t, steer_demand [rad], speed_ref [m/s], speed_ref_rate [m/s^2], wind [N], grade [rad, + uphill]: (K,);
     fault_add, fault_gain: (K, 2) with f = fault_add + fault_gain * u_d.
     """
 
@@ -215,6 +249,7 @@ class ScenarioSignals:
     wind: FloatArray
     fault_add: FloatArray
     fault_gain: FloatArray
+    grade: FloatArray
 
 
 def _smoothstep(z: FloatArray) -> FloatArray:

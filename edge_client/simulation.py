@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from edge_client.plant import PlantSimulator
 from edge_client.scenario import Scenario
 from synth.gains import ObserverGains
-from synth.model import FloatArray, payload_torque
+from synth.model import FloatArray, model_inputs, payload_torque
 from synth.observer import FuzzyObserver
 from synth.options import EffectivenessOptions
 from synth.params import VehicleParams
@@ -146,7 +146,8 @@ class PlantRecord:
     """What a batch of vehicles did and measured, K samples, nv vehicles.
 
     x : (K, nv, 3) true state; f : (K, nv, 2) true faults; y : (K, nv, 2) measured;
-    u : (K, nv, 2) demanded inputs; pose : (K, nv, 3); wind : (K, nv); t : (K,)
+    u : (K, nv, 2) demanded inputs; pose : (K, nv, 3); wind : (K, nv); t : (K,);
+    grade : (K, nv) the road grade each vehicle reported [rad] (NaN: none), None when none did
     """
 
     scenarios: list[Scenario]
@@ -157,6 +158,7 @@ class PlantRecord:
     u: FloatArray
     wind: FloatArray
     pose: FloatArray
+    grade: FloatArray | None = None
 
     def observer_initial_state(self) -> FloatArray | None:
         init = [s.observer_initial_state for s in self.scenarios]
@@ -204,26 +206,48 @@ def simulate_plant(scenarios: Sequence[Scenario], *, substeps: int = 10) -> Plan
         wind=np.zeros((n_samples, nv)),
         pose=np.zeros((n_samples, nv, 3)),
     )
+    if plant.graded.any():
+        rec.grade = np.full((n_samples, nv), np.nan)
     for k in range(n_samples):
         sample = plant.step()
         rec.x[k], rec.f[k], rec.y[k], rec.u[k] = sample.x, sample.f, sample.y, sample.u
         rec.wind[k], rec.pose[k] = sample.wind, sample.pose
+        if rec.grade is not None and sample.grade is not None:
+            rec.grade[k] = sample.grade
     return rec
 
 
+def told_demand(record: PlantRecord, k: int) -> tuple[FloatArray, FloatArray | None]:
+    """The demand at sample k as the service gives it to an estimator of vehicles that reported their payloads
+    and road grades (synth.model.model_inputs, with the scenarios' vehicle as the profile), and rho to scale the
+    torque fault back by (None without a payload): ``record.u[k]`` and None for empty vehicles on level ground."""
+    payload = np.array([s.payload_kg for s in record.scenarios], dtype=float)
+    if record.grade is None and not payload.any():
+        return record.u[k], None
+    grade = None if record.grade is None else np.nan_to_num(record.grade[k], nan=0.0)
+    model_u, _, rho = model_inputs(
+        record.y[k], record.u[k], payload if payload.any() else None, grade, record.scenarios[0].vehicle
+    )
+    return model_u, None if rho is None else np.asarray(rho, dtype=float)
+
+
 def estimate(record: PlantRecord, estimator: EstimatorFactory) -> SimulationResult:
-    """Run an estimator over a record; every step is timed."""
+    """Run an estimator over a record, told what its vehicles reported (their payloads and road grades:
+    :func:`told_demand`); every step is timed."""
     n_samples, nv = record.y.shape[:2]
     x_hat = np.zeros((n_samples, nv, 3))
     f_hat = np.zeros((n_samples, nv, 2))
     in_domain = np.zeros((n_samples, nv), dtype=bool)
     step_times = np.zeros(n_samples)
-    est = estimator(record.y[0], record.observer_initial_state(), record.u[0])
+    est = estimator(record.y[0], record.observer_initial_state(), told_demand(record, 0)[0])
     for k in range(n_samples):
+        u, rho = told_demand(record, k)
         started = time.perf_counter()
-        out = est.step(record.y[k], record.u[k])
+        out = est.step(record.y[k], u)
         step_times[k] = time.perf_counter() - started
         x_hat[k], f_hat[k], in_domain[k] = out.state, out.faults, out.in_domain
+        if rho is not None:  # the torque fault at the vehicle's scale, as the service reports it
+            f_hat[k, :, 0] /= rho
     return SimulationResult(**record.__dict__, x_hat=x_hat, f_hat=f_hat, in_domain=in_domain, step_times_s=step_times)
 
 

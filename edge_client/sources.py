@@ -27,7 +27,7 @@ class Tick:
     y : (nv, 2) measured [v_x [m/s], r [rad/s]]; u : (nv, 2) demanded [T_d [N m], delta_d [rad]];
     active : (nv,) the vehicle has a sample at k; x : (nv, 3) true state and f : (nv, 2) true faults,
     or None when the source does not know them (a recording); grade : (nv,) the road grade each vehicle reports
-    [rad], or None when none reports one.
+    [rad], NaN for one that reports none, or None when none reports one.
     """
 
     k: int
@@ -95,7 +95,9 @@ class SimulatedSource:
 
     def next_tick(self) -> Tick:
         sample = self.plant.step()
-        return Tick(k=sample.k, y=sample.y, u=sample.u, active=sample.active, x=sample.x, f=sample.f)
+        return Tick(
+            k=sample.k, y=sample.y, u=sample.u, active=sample.active, x=sample.x, f=sample.f, grade=sample.grade
+        )
 
 
 class OneVehicleSource:

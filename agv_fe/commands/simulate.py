@@ -113,6 +113,8 @@ def run(args: argparse.Namespace) -> int:
         "design": gains.options.design,
         "gain_version": gains.version,
         "noise": scenario.noise.model_dump(),
+        "payload_kg": scenario.payload_kg,
+        "road_grade": None if scenario.road_grade is None else scenario.road_grade.model_dump(),
         "rmse": rmse_all,
         "rmse_after_3s": rmse_late,
         "fault_amplitude": dict(zip(("T_f", "delta_f"), result.fault_amplitude()[0].tolist(), strict=True)),
@@ -130,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def write_csv(path: Path, result: Any) -> None:
-    """Every signal of vehicle 0, one row per sample; the first five columns are a replayable recording."""
+    """Every signal of vehicle 0, one row per sample; the first five columns are a replayable recording (with
+    the last, ``grade``, on a road with one)."""
     columns = {
         "t": result.t,
         "vx": result.y[:, 0, 0],
@@ -153,5 +156,7 @@ def write_csv(path: Path, result: Any) -> None:
         "steer_fault_hat": result.f_hat[:, 0, 1],
         "in_domain": result.in_domain[:, 0].astype(float),
     }
+    if result.grade is not None:  # the road grade the vehicle reported: replay and calibrate take it
+        columns["grade"] = result.grade[:, 0]
     data = np.column_stack(list(columns.values()))
     np.savetxt(path, data, delimiter=",", header=",".join(columns), comments="", fmt="%.17g")

@@ -57,6 +57,33 @@ def test_switching_flag_designs_two_gain_sets_that_simulate_runs(tmp_path):
     assert data["version"] in sim.stdout
 
 
+def test_a_loaded_scenario_on_hills_simulates_told_and_replays_to_the_same_estimates(tmp_path, gains_file):
+    """A scenario with payload_kg and road_grade: simulate estimates told both (as the service would) and writes
+    the grade column; replay with --payload-kg reproduces the estimates, and the torque fault is the injected
+    one at the vehicle's scale."""
+    from edge_client.library import builtin_scenario
+
+    scenario = builtin_scenario("paper-1").model_dump(mode="json")
+    scenario |= {"payload_kg": 200.0, "road_grade": {"amplitude_rad": 0.05, "period_s": 12.0}}
+    path = tmp_path / "loaded.json"
+    path.write_text(json.dumps(scenario))
+    sim = agv_fe("simulate", "--scenario", str(path), "--gains", str(gains_file), "--out", str(tmp_path / "sim"))
+    assert sim.returncode == 0, sim.stderr
+    summary = json.loads((tmp_path / "sim" / "summary.json").read_text())
+    assert summary["payload_kg"] == 200.0 and summary["road_grade"]["amplitude_rad"] == 0.05
+    assert summary["rmse_after_3s"]["T_f"] < 0.1 * summary["fault_amplitude"]["T_f"]
+    a = np.genfromtxt(tmp_path / "sim" / "simulation.csv", delimiter=",", names=True)
+    assert np.abs(a["grade"]).max() > 0.049
+    rep = agv_fe(
+        "replay", str(tmp_path / "sim" / "simulation.csv"), "--gains", str(gains_file), "--initial-state", "5,-1,0",
+        "--payload-kg", "200", "--out", str(tmp_path / "rep.csv"),
+    )  # fmt: skip
+    assert rep.returncode == 0, rep.stderr
+    b = np.genfromtxt(tmp_path / "rep.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(b["torque_fault_hat"], a["torque_fault_hat"], atol=REPLAY_TORQUE_FAULT_ATOL_NM)
+    np.testing.assert_allclose(b["steer_fault_hat"], a["steer_fault_hat"], atol=REPLAY_STEER_FAULT_ATOL_RAD)
+
+
 def test_bad_params_file_names_the_field(tmp_path):
     params = tmp_path / "p.json"
     params.write_text(json.dumps({"params": {"mass_kg": -5}, "bounds": {"vx_min_mps": 40}}))

@@ -117,3 +117,68 @@ def test_scenario_file_round_trip_and_errors(tmp_path):
         load_scenario(bad)
     message = str(info.value)
     assert "duration_s" in message and "manoeuvres.0" in message and "bad.json" in message
+
+
+def _drive(seconds: float, **extra) -> Scenario:
+    """Speed changes, a slalom and a torque bias, without sensor noise (each vehicle of a batch draws its own)."""
+    from edge_client.scenario import Manoeuvre, SpeedPoint
+
+    return Scenario(
+        name="hilly",
+        duration_s=seconds,
+        initial_speed_mps=12.0,
+        speed_profile=tuple(SpeedPoint(t_s=t, speed_mps=v) for t, v in ((0, 12), (4, 18), (8, 10))),
+        manoeuvres=(Manoeuvre(kind="slalom", start_s=1, duration_s=6, amplitude_rad=0.03),),
+        faults=(BiasFault(channel="torque", magnitude=120.0, onset_s=5.0),),
+        seed=4,
+        **extra,
+    )
+
+
+def _run(scenarios) -> tuple[np.ndarray, np.ndarray, list]:
+    plant = PlantSimulator(scenarios)
+    samples = [plant.step() for _ in range(int(plant.n_samples.max()))]
+    return np.array([s.x for s in samples]), np.array([s.u for s in samples]), samples
+
+
+def test_a_payload_on_hills_is_the_loaded_vehicle_pulled_back_by_its_weight():
+    """A scenario's payload_kg and road_grade: the vehicle moves as the project's model of the loaded vehicle (more
+    mass to accelerate, the rolling resistance in proportion to the weight) with the grade's pull, a torque fault
+    included; the driver's feed-forward takes both, so the demanded torque is the loaded level-ground one plus
+    R_w (M_v + payload) g sin(theta); the sample carries the grade, NaN for a vehicle on level ground."""
+    from edge_client.scenario import RoadGrade
+    from synth.params import STANDARD_GRAVITY_MPS2
+    from tests.calibration_data import loaded
+
+    payload = 300.0
+    hills = RoadGrade(amplitude_rad=0.05, period_s=9.0, phase_rad=0.4)
+    base = _drive(8.0)
+    heavier = base.model_copy(update={"vehicle": loaded(base.vehicle, payload)})
+    x, u, samples = _run([_drive(8.0, payload_kg=payload, road_grade=hills), base])  # one vehicle model a batch
+    x_heavy, u_heavy, level = _run([heavier])
+    # the scenario's payload is the loaded vehicle: the same motion, fault and all (to 0.1 mm/s: the load's drag
+    # terms are held over each 10 ms sample, as in the model the service gives the observer)
+    np.testing.assert_allclose(x[:, 0], x_heavy[:, 0], rtol=0, atol=1e-4)
+    # the loaded vehicle's level torque plus the weight's pull on the grade: the same motion as on level ground
+    grade = hills.grade(np.arange(len(samples)) * 0.01)
+    p = base.vehicle
+    pull = p.wheel_radius_m * (p.mass_kg + payload) * STANDARD_GRAVITY_MPS2 * np.sin(grade)
+    np.testing.assert_allclose(u[:, 0, 0] - u_heavy[:, 0, 0], pull, rtol=0, atol=0.5)  # pull up to 870 N m
+    assert np.abs(pull).max() > 800
+    # ... which the empty vehicle does not follow: the payload moves the speed
+    assert np.abs(x[:, 0, 0] - x[:, 1, 0]).max() > 0.05
+    reported = np.array([s.grade for s in samples])
+    np.testing.assert_array_equal(reported[:, 0], grade)
+    assert np.isnan(reported[:, 1]).all()
+    assert level[0].grade is None  # no vehicle on a grade: no grade column at all
+
+
+def test_a_payload_heavier_than_the_vehicle_and_a_road_too_steep_are_refused():
+    from edge_client.scenario import RoadGrade
+
+    with pytest.raises(ValueError, match="payload_kg must be at most the vehicle's mass_kg"):
+        _drive(1.0, payload_kg=5000.0)
+    with pytest.raises(ValueError, match=r"must be at most 0\.3 rad"):
+        RoadGrade(amplitude_rad=0.2, offset_rad=0.15)
+    with pytest.raises(ValueError, match="amplitude_rad"):
+        RoadGrade(amplitude_rad=-0.01)
