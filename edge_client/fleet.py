@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 import numpy as np
 from rich.console import Console
@@ -24,9 +25,9 @@ from rich.table import Table
 from edge_client.faults import BiasFault, Fault, LossOfEffectivenessFault, SinusoidalFault
 from edge_client.fleet_mix import DEFAULT_MIX, FleetMember, build_fleet
 from edge_client.publisher import FleetPublisher, Progress, PublisherOptions, PublishReport
-from edge_client.scenario import SensorNoise
+from edge_client.scenario import Scenario, SensorNoise
 from edge_client.sources import SimulatedSource, Tick
-from edge_client.transport import TransportOptions, close_session, open_session
+from edge_client.transport import TransportOptions, close_session, open_session, report_payload
 from synth.model import FloatArray
 
 #: Alarm kinds that say "this actuator is faulty"; others (stale, out_of_domain...) are reported apart.
@@ -43,6 +44,8 @@ class FleetConfig:
     seed: int = 0
     noise: SensorNoise | None = None
     gusts: bool = False
+    loads: bool = False
+    hills: bool = False
     id_prefix: str = "veh"
     transport: TransportOptions = field(default_factory=TransportOptions)
     publisher: PublisherOptions = field(default_factory=PublisherOptions)
@@ -64,6 +67,8 @@ class FleetConfig:
             noise=self.noise,
             id_prefix=self.id_prefix,
             gusts=self.gusts,
+            loads=self.loads,
+            hills=self.hills,
         )
 
 
@@ -110,6 +115,17 @@ def describe_fault(fault: Fault) -> str:
     return f"{text} @{fault.onset_s:.3g}s"
 
 
+def describe_conditions(scenario: Scenario) -> str:
+    """What the vehicle carries and where it drives, as it reports them: '120 kg, hills +-4.6 %', or ''."""
+    parts = []
+    if scenario.payload_kg > 0.0:
+        parts.append(f"{scenario.payload_kg:g} kg")
+    if scenario.road_grade is not None:
+        steepest = abs(scenario.road_grade.offset_rad) + scenario.road_grade.amplitude_rad
+        parts.append(f"hills ±{100 * math.tan(steepest):.1f} %")
+    return ", ".join(parts)
+
+
 @dataclass(frozen=True)
 class VehicleSummary:
     """One vehicle's outcome. Peaks are [T_f [N m], delta_f [rad]]; delays in [s]."""
@@ -131,6 +147,8 @@ class VehicleSummary:
     other_alarms: tuple[str, ...]
     #: the run reached the fault's onset (a run stopped early may end before a fault begins)
     fault_started: bool = True
+    #: its payload and road, as it reported them (:func:`describe_conditions`; '' empty on level ground)
+    conditions: str = ""
 
     @property
     def faulty(self) -> bool:
@@ -198,7 +216,8 @@ class FleetSummary:
             if v.false_alarms:
                 alarm = f"[red]{alarm} FALSE[/red]"
             after = f"{v.first_alarm_after_onset_s:.2f}s" if v.first_alarm_after_onset_s is not None else "-"
-            table.add_row(v.vehicle_id, v.injected, faulty_peak, quiet_peak, alarm, after)
+            injected = f"{v.injected}\n{v.conditions}" if v.conditions else v.injected
+            table.add_row(v.vehicle_id, injected, faulty_peak, quiet_peak, alarm, after)
         return table
 
     def render_text(self, width: int = 80) -> str:
@@ -245,6 +264,7 @@ def summarize(
                 false_alarms=false_alarms,
                 other_alarms=tuple(sorted({e.alarm.kind for e in raised if e.alarm.kind not in FAULT_ALARM_KINDS})),
                 fault_started=started,
+                conditions=describe_conditions(member.scenario),
             )
         )
     return FleetSummary(report=report, vehicles=vehicles)
@@ -268,6 +288,7 @@ def run_fleet(
     log: TextIO | None = None
     session = open_session(config.transport)
     try:
+        report_payloads(session, members, config.publisher.prefix)
         if config.log_path is not None:
             log = config.log_path.open("w")
         with FleetPublisher(
@@ -285,6 +306,19 @@ def run_fleet(
         close_session(session)
         if log is not None:
             log.close()
+
+
+def report_payloads(session: Any, members: Sequence[FleetMember], prefix: str, wait_s: float = 5.0) -> int:
+    """Report each loaded vehicle's payload on its payload key before its first sample, so the service models it
+    loaded from the start (docs/math.md 12.5); returns how many reached a subscriber. Waits at most ``wait_s`` for
+    the service once: if it is not there, the rest are sent without waiting (and lost, as the service is)."""
+    reached = 0
+    for member in members:
+        if member.scenario.payload_kg > 0.0:
+            matched = report_payload(session, member.vehicle_id, member.scenario.payload_kg, prefix, wait_s)
+            reached += matched
+            wait_s = wait_s if matched else 0.0
+    return reached
 
 
 def write_summary_json(path: Path, summary: FleetSummary) -> None:

@@ -21,7 +21,13 @@ intermittent        a torque (100-150 N m) or steering (0.02-0.03 rad) bias on
 ==================  ===========================================================
 
 With ``gusts`` every vehicle, healthy or not, also meets random lateral wind
-gusts of 300-800 N (:func:`random_gusts`): a disturbance, not a fault.
+gusts of 300-800 N (:func:`random_gusts`): a disturbance, not a fault. With
+``loads`` every vehicle carries a random payload of 0-25 % of its mass
+(:func:`random_load`), which the fleet reports to the service at the start;
+with ``hills`` every vehicle drives a road that climbs and descends (grades
+within 2-6 %, :func:`random_hills`) and reports the grade with each sample.
+Each is drawn from a stream of its own, so the drive and the fault are the
+same with or without them.
 
 Fault sizes follow the service's default alarm thresholds (:data:`ASSUMED_ALARM`, the
 defaults of ``service.profiles.AlarmThresholds``, which a test keeps equal): the WARN levels, |T_f estimate|
@@ -44,7 +50,16 @@ import numpy as np
 
 from edge_client.faults import BiasFault, Fault, IntermittentFault, LossOfEffectivenessFault, SinusoidalFault
 from edge_client.random_drive import random_drive
-from edge_client.scenario import Gust, Scenario, ScenarioError, SensorNoise, read_scenario_file, scenario_from_data
+from edge_client.scenario import (
+    Gust,
+    RoadGrade,
+    Scenario,
+    ScenarioError,
+    SensorNoise,
+    read_scenario_file,
+    scenario_from_data,
+)
+from synth.params import VehicleParams
 
 MixKind = Literal["healthy", "torque_bias", "torque_loe", "steer_bias", "steer_sinusoidal", "intermittent"]
 MIX_KINDS: tuple[MixKind, ...] = get_args(MixKind)
@@ -60,6 +75,11 @@ MAX_STEER_FAULT_RAD = 0.03
 #: Range of |F_w| of the optional random gusts [N]; a test checks that they keep healthy vehicles'
 #: estimates below the alarm thresholds.
 GUST_FORCE_N = (300.0, 800.0)
+#: Range of the optional random payloads, as a share of the vehicle's mass.
+LOAD_SHARE = (0.0, 0.25)
+#: Range of the optional hills' largest grade [rad] and of their period [s].
+HILL_GRADE_RAD = (0.02, 0.06)
+HILL_PERIOD_S = (20.0, 60.0)
 
 
 @dataclass(frozen=True)
@@ -203,6 +223,20 @@ def random_gusts(rng: np.random.Generator, duration_s: float) -> tuple[Gust, ...
     return tuple(gusts)
 
 
+def random_load(rng: np.random.Generator, vehicle: VehicleParams) -> float:
+    """A payload of LOAD_SHARE of the vehicle's mass [kg], to 10 kg."""
+    return round(float(rng.uniform(*LOAD_SHARE)) * vehicle.mass_kg, -1)
+
+
+def random_hills(rng: np.random.Generator) -> RoadGrade:
+    """A road whose grade swings within HILL_GRADE_RAD over HILL_PERIOD_S, from a random phase."""
+    return RoadGrade(
+        amplitude_rad=round(float(rng.uniform(*HILL_GRADE_RAD)), 3),
+        period_s=round(float(rng.uniform(*HILL_PERIOD_S)), 1),
+        phase_rad=round(float(rng.uniform(0.0, 2.0 * math.pi)), 2),
+    )
+
+
 def mix_scenario(
     kind: MixKind,
     vehicle_id: str,
@@ -210,11 +244,13 @@ def mix_scenario(
     seed: int,
     noise: SensorNoise | None = None,
     gusts: bool = False,
+    loads: bool = False,
+    hills: bool = False,
 ) -> Scenario:
     """The scenario of one fleet vehicle of ``kind``: a random drive plus that kind's fault, seeded.
 
-    ``gusts`` adds :func:`random_gusts` (drawn from their own stream, so the drive and the fault are the
-    same with or without them).
+    ``gusts`` adds :func:`random_gusts`, ``loads`` a :func:`random_load`, ``hills`` :func:`random_hills` (each
+    drawn from a stream of its own, so the drive and the fault are the same with or without them).
     """
     rng = np.random.default_rng(seed)
     faults = _faults_for(kind, rng, duration_s)
@@ -236,6 +272,8 @@ def mix_scenario(
         faults=faults,
         gusts=random_gusts(np.random.default_rng([seed, 1]), duration_s) if gusts else (),
         noise=noise or SensorNoise(),
+        payload_kg=random_load(np.random.default_rng([seed, 2]), VehicleParams()) if loads else 0.0,
+        road_grade=random_hills(np.random.default_rng([seed, 3])) if hills else None,
         seed=seed,
     )
 
@@ -254,8 +292,11 @@ def build_fleet(
     noise: SensorNoise | None = None,
     id_prefix: str = "veh",
     gusts: bool = False,
+    loads: bool = False,
+    hills: bool = False,
 ) -> list[FleetMember]:
-    """The fleet for ``--scenario-mix``: weights per kind, or a scenario file to cycle through.
+    """The fleet for ``--scenario-mix``: weights per kind, or a scenario file to cycle through (its scenarios
+    keep their own gusts, payloads and roads; ``gusts``, ``loads`` and ``hills`` are for the kinds).
 
     Raises MixError (bad weights) or ScenarioError (bad file), both naming what is wrong.
     """
@@ -277,7 +318,7 @@ def build_fleet(
     kinds = allocate(parse_mix(mix), n_vehicles)
     seeds = np.random.SeedSequence(seed).generate_state(n_vehicles)
     return [
-        FleetMember(vehicle_id, kind, mix_scenario(kind, vehicle_id, duration_s, int(s), noise, gusts))
+        FleetMember(vehicle_id, kind, mix_scenario(kind, vehicle_id, duration_s, int(s), noise, gusts, loads, hills))
         for vehicle_id, kind, s in zip(ids, kinds, seeds, strict=True)
     ]
 

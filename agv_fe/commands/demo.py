@@ -52,6 +52,12 @@ def register(sub: Any) -> None:
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the drives, faults and noise")
     parser.add_argument(
+        "--level-empty",
+        action="store_true",
+        help="vehicles empty on level ground (by default each carries a random load and drives hills, reporting "
+        "both: agv-fe fleet --loads --hills)",
+    )
+    parser.add_argument(
         "--data-dir", default=None, metavar="DIR", help="service data (default: a new temporary directory)"
     )
     parser.add_argument("--http-port", type=int, default=DEFAULT_HTTP_PORT, help="HTTP port (a free one if busy or 0)")
@@ -140,6 +146,7 @@ def _fleet_arguments(args: argparse.Namespace, endpoint: str, summary_path: Path
         endpoint,
         "--summary-json",
         str(summary_path),
+        *([] if args.level_empty else ["--loads", "--hills"]),
     ]
 
 

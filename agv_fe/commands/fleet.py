@@ -49,6 +49,17 @@ def register(sub: Any) -> None:
     parser.add_argument(
         "--gusts", action="store_true", help="random lateral wind gusts of 300-800 N on every vehicle (a disturbance)"
     )
+    parser.add_argument(
+        "--loads",
+        action="store_true",
+        help="every vehicle carries a random payload of 0-25 %% of its mass, reported to the service at the start",
+    )
+    parser.add_argument(
+        "--hills",
+        action="store_true",
+        help="every vehicle drives a road that climbs and descends (grades within 2-6 %%), reporting the grade "
+        "with each sample",
+    )
     parser.add_argument("--id-prefix", default="veh", help="vehicle ids are PREFIX-000, PREFIX-001, ...")
     parser.add_argument(
         "--truth-hz", type=float, default=10.0, metavar="HZ", help="ground-truth rate, 0 = off (default 10)"
@@ -96,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             noise=parse_noise(args.noise),
             gusts=args.gusts,
+            loads=args.loads,
+            hills=args.hills,
             id_prefix=args.id_prefix,
             transport=transport_options(args),
             publisher=PublisherOptions(

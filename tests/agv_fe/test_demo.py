@@ -64,9 +64,23 @@ def test_demo_alarms_every_injected_fault_and_no_healthy_vehicle(tmp_path):
         assert v["fault_alarms"] == [], v
     assert summary["false_alarms"] == 0
     assert summary["lost"] == 0 and summary["estimates"] == summary["sent"]
+    # every vehicle carried a load on hills and reported both (what --level-empty leaves out)
+    assert all("hills ±" in v["conditions"] for v in vehicles)
+    assert sum(" kg, " in v["conditions"] for v in vehicles) >= len(vehicles) // 2  # loads of 0-25 %, to 10 kg
     # what the user reads: where to look, then the per-vehicle report
     assert "web dashboard" in out.stdout and "/docs" in out.stdout
     assert f"faulty vehicles alarmed {len(faulty)}/{len(faulty)}; false alarms 0" in " ".join(out.stdout.split())
+
+
+def test_the_demo_fleet_carries_loads_on_hills_unless_told_level_empty(tmp_path):
+    from agv_fe.cli import build_parser
+    from agv_fe.commands.demo import _fleet_arguments
+
+    parser = build_parser()
+    default = _fleet_arguments(parser.parse_args(["demo"]), "tcp/127.0.0.1:7447", tmp_path / "s.json")
+    plain = _fleet_arguments(parser.parse_args(["demo", "--level-empty"]), "tcp/127.0.0.1:7447", tmp_path / "s.json")
+    assert default[-2:] == ["--loads", "--hills"] and "--loads" not in plain and "--hills" not in plain
+    assert default[: len(plain)] == plain
 
 
 # -- the open-ended demo in a terminal: Ctrl-C, and the terminal closed ------------------------------

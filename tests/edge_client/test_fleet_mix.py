@@ -7,6 +7,8 @@ from edge_client.faults import LossOfEffectivenessFault
 from edge_client.fleet_mix import (
     ASSUMED_ALARM,
     DEFAULT_MIX,
+    HILL_GRADE_RAD,
+    LOAD_SHARE,
     MIX_KINDS,
     MixError,
     allocate,
@@ -16,7 +18,7 @@ from edge_client.fleet_mix import (
 )
 from edge_client.plant import PlantSimulator
 from edge_client.scenario import ScenarioError, SensorNoise
-from edge_client.simulation import observer_factory, run
+from edge_client.simulation import estimate, observer_factory, run, simulate_plant
 
 
 def test_parse_mix_normalises_weights():
@@ -125,6 +127,30 @@ def test_random_gusts_leave_healthy_vehicles_below_the_alarm_thresholds(paper_ga
     peak = np.abs(result.f_hat[settled]).max(axis=(0, 1))
     assert peak[0] < ASSUMED_ALARM.torque_threshold_nm / 4
     assert peak[1] < ASSUMED_ALARM.steer_threshold_rad
+
+
+def test_loads_and_hills_are_drawn_apart_and_an_observer_told_them_stays_quiet(paper_gains_order1):
+    """--loads --hills: the drive and the fault are those without them (their own streams); a payload within
+    LOAD_SHARE of the mass and grades within HILL_GRADE_RAD. The offline estimate is told what the vehicles
+    report, as the service is: healthy vehicles stay quiet; not told, the payload and the grade's pull read as
+    torque faults well above WARN."""
+    import dataclasses
+
+    plain = mix_scenario("torque_bias", "v0", 30.0, seed=5)
+    both = mix_scenario("torque_bias", "v0", 30.0, seed=5, loads=True, hills=True)
+    assert (both.manoeuvres, both.faults, both.speed_profile) == (plain.manoeuvres, plain.faults, plain.speed_profile)
+    assert plain.payload_kg == 0.0 and plain.road_grade is None
+    assert 0.0 < both.payload_kg <= LOAD_SHARE[1] * both.vehicle.mass_kg
+    assert both.road_grade is not None and HILL_GRADE_RAD[0] <= both.road_grade.amplitude_rad <= HILL_GRADE_RAD[1]
+    healthy = [mix_scenario("healthy", f"v{seed}", 30.0, seed=seed, loads=True, hills=True) for seed in range(4)]
+    record = simulate_plant(healthy)
+    settled = record.t >= 2.0
+    told = estimate(record, observer_factory(paper_gains_order1))
+    peak = np.abs(told.f_hat[settled]).max(axis=(0, 1))
+    assert peak[0] < ASSUMED_ALARM.torque_threshold_nm / 2 and peak[1] < ASSUMED_ALARM.steer_threshold_rad
+    empty = [s.model_copy(update={"payload_kg": 0.0}) for s in healthy]
+    blind = estimate(dataclasses.replace(record, grade=None, scenarios=empty), observer_factory(paper_gains_order1))
+    assert np.abs(blind.f_hat[settled, :, 0]).max() > 3.0 * ASSUMED_ALARM.torque_threshold_nm
 
 
 def test_the_assumed_alarm_is_the_services_default():

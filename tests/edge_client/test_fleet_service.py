@@ -9,8 +9,10 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
+from edge_client.fleet_mix import DEFAULT_MIX
 from tests.tolerances import MAX_ALARM_DELAY_S, SILENT_LOSS_PER_VEHICLE
 
 pytestmark = pytest.mark.network
@@ -145,3 +147,35 @@ def test_router_restart_during_a_fleet_run(router, estimation_service, tmp_path)
     assert summary["false_alarms"] == 0
     assert all(v["fault_alarms"] == [] for v in summary["vehicles"] if v["onset_s"] is None)
     assert f"lost {summary['lost']}" in " ".join(output.split())
+
+
+def test_a_fleet_with_loads_on_hills_reports_both_and_raises_no_false_alarm(router, estimation_service, tmp_path):
+    """--loads --hills: every vehicle carries a payload (reported on its payload key before its first sample) and
+    drives hills (the grade sent with each sample); the service models both, so the faulty vehicles alarm on their
+    channel and the healthy ones raise nothing, and it shows each vehicle's payload and last grade."""
+    from edge_client.fleet_mix import build_fleet
+
+    duration, n = 12.0, 8
+    args = ["--vehicles", str(n), "--duration", str(duration), "--seed", "3", "--loads", "--hills"]
+    out = subprocess.run(fleet_command(router, tmp_path, *args), capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["sent"] == n * round(duration / 0.01) and summary["lost"] == 0
+    members = {m.vehicle_id: m.scenario for m in build_fleet(DEFAULT_MIX, n, duration, seed=3, loads=True, hills=True)}
+    for v in summary["vehicles"]:
+        scenario = members[v["vehicle_id"]]
+        assert scenario.payload_kg > 0 and scenario.road_grade is not None
+        assert v["conditions"].startswith(f"{scenario.payload_kg:g} kg, hills ±"), v
+        if v["onset_s"] is None:
+            assert v["fault_alarms"] == [] and v["false_alarms"] == 0, v
+        else:
+            expected = "torque_fault" if v["injected"].startswith("T_f") else "steer_fault"
+            assert v["fault_alarms"] == [expected] and v["false_alarms"] == 0, v
+        shown = estimation_service.get(f"/vehicles/{v['vehicle_id']}").json()
+        assert shown["payload_kg"] == scenario.payload_kg
+        assert shown["grade_seq"] == shown["last_seq"]  # the grade at the last sample's time, t = seq * 10 ms
+        at = np.array([shown["last_seq"] * 0.01])
+        assert shown["grade_rad"] == pytest.approx(float(scenario.road_grade.grade(at)[0]), abs=1e-9)
+    assert summary["false_alarms"] == 0
+    # the table says what each vehicle carries and where it drives, still at 80 columns
+    assert "kg, hills ±" in out.stdout and all(len(line) <= 80 for line in out.stdout.splitlines())
