@@ -8,7 +8,7 @@ estimators see exactly the same noisy data; :func:`run` does both.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -217,31 +217,37 @@ def simulate_plant(scenarios: Sequence[Scenario], *, substeps: int = 10) -> Plan
     return rec
 
 
-def told_demand(record: PlantRecord, k: int) -> tuple[FloatArray, FloatArray | None]:
-    """The demand at sample k as the service gives it to an estimator of vehicles that reported their payloads
+def told_demands(record: PlantRecord) -> Callable[[int], tuple[FloatArray, FloatArray | None]]:
+    """For sample k, the demand as the service gives it to an estimator of vehicles that reported their payloads
     and road grades (synth.model.model_inputs, with the scenarios' vehicle as the profile), and rho to scale the
     torque fault back by (None without a payload): ``record.u[k]`` and None for empty vehicles on level ground."""
-    payload = np.array([s.payload_kg for s in record.scenarios], dtype=float)
-    if record.grade is None and not payload.any():
-        return record.u[k], None
-    grade = None if record.grade is None else np.nan_to_num(record.grade[k], nan=0.0)
-    model_u, _, rho = model_inputs(
-        record.y[k], record.u[k], payload if payload.any() else None, grade, record.scenarios[0].vehicle
-    )
-    return model_u, None if rho is None else np.asarray(rho, dtype=float)
+    carried = np.array([s.payload_kg for s in record.scenarios], dtype=float)
+    payload = carried if carried.any() else None
+    grades = record.grade
+    if grades is None and payload is None:
+        return lambda k: (record.u[k], None)
+    params = record.scenarios[0].vehicle
+
+    def demand(k: int) -> tuple[FloatArray, FloatArray | None]:
+        grade = None if grades is None else np.nan_to_num(grades[k], nan=0.0)
+        model_u, _, rho = model_inputs(record.y[k], record.u[k], payload, grade, params)
+        return model_u, None if rho is None else np.asarray(rho, dtype=float)
+
+    return demand
 
 
 def estimate(record: PlantRecord, estimator: EstimatorFactory) -> SimulationResult:
     """Run an estimator over a record, told what its vehicles reported (their payloads and road grades:
-    :func:`told_demand`); every step is timed."""
+    :func:`told_demands`); every step is timed."""
     n_samples, nv = record.y.shape[:2]
     x_hat = np.zeros((n_samples, nv, 3))
     f_hat = np.zeros((n_samples, nv, 2))
     in_domain = np.zeros((n_samples, nv), dtype=bool)
     step_times = np.zeros(n_samples)
-    est = estimator(record.y[0], record.observer_initial_state(), told_demand(record, 0)[0])
+    told = told_demands(record)
+    est = estimator(record.y[0], record.observer_initial_state(), told(0)[0])
     for k in range(n_samples):
-        u, rho = told_demand(record, k)
+        u, rho = told(k)
         started = time.perf_counter()
         out = est.step(record.y[k], u)
         step_times[k] = time.perf_counter() - started
