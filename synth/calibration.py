@@ -757,7 +757,7 @@ def _fit_longitudinal(
 #: this share of itself in a pass (of 1e-3 for the drag coefficient and 1 N for the rolling resistance near zero).
 PAYLOAD_FIT_TOLERANCE = 1e-9
 #: ... or refuses after this many passes (each moves the effective mass's error by payload / (m_eff + payload)
-#: of it: under 0.5, at most 30 passes for the largest payload)
+#: of it, about 0.5 for a payload of the vehicle's mass: some 30 passes then)
 PAYLOAD_FIT_PASSES = 60
 
 
@@ -798,8 +798,8 @@ def _fit_with_payloads(
         if moved <= PAYLOAD_FIT_TOLERANCE:
             return fitted, fit
     raise CalibrationRefused(
-        f"the fit with the recordings' payloads did not settle in {PAYLOAD_FIT_PASSES} passes (the effective mass "
-        f"moved {moved:.1e} of itself in the last): check the payloads stated for the recordings"
+        f"the fit with the recordings' payloads did not settle in {PAYLOAD_FIT_PASSES} passes (a longitudinal "
+        f"parameter moved {moved:.1e} of itself in the last): check the payloads stated for the recordings"
     )
 
 
@@ -843,7 +843,8 @@ def _check_fault_blocks(
                 raise CalibrationRefused(
                     f"{p.name} looks faulty: from t = {starts[b]:.1f} s to {until:.1f} s the vehicle accelerates "
                     f"{mean:+.2f} m/s^2 ({force:+.0f} N) unlike the rest of the drive for the same torque: a torque "
-                    "fault, a slope or a different load. Calibrate from healthy drives on level road"
+                    "fault, a slope or a different load. Calibrate from healthy drives, with the road's grade (a "
+                    "grade column) and the load each carried (payload_kg) where they vary"
                 )
         r_res = (r_sim - p.r)[p.linear]
         m = max(2, round(options.fault_block_s / p.s))
@@ -956,7 +957,8 @@ def _unidentified(name: str, est: Estimate, limit: float, params: VehicleParams)
         )
     why = {
         "effective_mass_kg": (
-            "drive with firmer accelerations and braking, on level ground or with the road's grade (a grade column)"
+            "drive with firmer accelerations and braking, on level ground or with the road's grade (a grade column), "
+            "and state the load the vehicle carried (payload_kg)"
         ),
         "front_cornering_stiffness_npr": turns,
         "rear_cornering_stiffness_npr": turns,
