@@ -9,6 +9,7 @@ false alarm.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import math
@@ -166,6 +167,8 @@ class FleetSummary:
 
     report: PublishReport
     vehicles: list[VehicleSummary]
+    #: loaded vehicles whose payload report reached the service before their first sample
+    payloads_reported: int = 0
 
     @property
     def false_alarms(self) -> int:
@@ -185,6 +188,7 @@ class FleetSummary:
             "rtt_ms": {"p50": self.report.rtt_p50_ms, "p99": self.report.rtt_p99_ms, "max": self.report.rtt_max_ms},
             "link_changes": self.report.link_changes,
             "false_alarms": self.false_alarms,
+            "payloads_reported": self.payloads_reported,
             "vehicles": [asdict(v) for v in self.vehicles],
         }
 
@@ -192,11 +196,13 @@ class FleetSummary:
         r = self.report
         faulty = [v for v in self.vehicles if v.faulty]
         detected = sum(v.detected for v in faulty)
+        loaded = sum(" kg" in v.conditions for v in self.vehicles)
+        payloads = f"payloads reported {self.payloads_reported}/{loaded}; " if loaded else ""
         return (
             f"{len(self.vehicles)} vehicles, {r.elapsed_s:.1f} s at {r.sample_rate_hz:.2f} Hz "
             f"(late ticks {r.pacing.late}, overruns {r.pacing.overruns}); sent {r.sent}, lost {r.lost}, "
             f"unsent at end {r.unsent_at_end}; estimates {r.estimates}; round trip p50 {r.rtt_p50_ms:.2f} ms, "
-            f"p99 {r.rtt_p99_ms:.2f} ms; faulty vehicles alarmed {detected}/{len(faulty)}; "
+            f"p99 {r.rtt_p99_ms:.2f} ms; {payloads}faulty vehicles alarmed {detected}/{len(faulty)}; "
             f"false alarms {self.false_alarms}"
         )
 
@@ -288,7 +294,7 @@ def run_fleet(
     log: TextIO | None = None
     session = open_session(config.transport)
     try:
-        report_payloads(session, members, config.publisher.prefix)
+        reported = report_payloads(session, members, config.publisher.prefix)
         if config.log_path is not None:
             log = config.log_path.open("w")
         with FleetPublisher(
@@ -301,7 +307,8 @@ def run_fleet(
             report = publisher.run(
                 config.duration_s, stop=stop, on_progress=on_progress, progress_period_s=progress_period_s
             )
-            return summarize(members, report, source.peak, publisher.deadline_ns)
+            summary = summarize(members, report, source.peak, publisher.deadline_ns)
+            return dataclasses.replace(summary, payloads_reported=reported)
     finally:
         close_session(session)
         if log is not None:

@@ -161,6 +161,7 @@ def test_a_fleet_with_loads_on_hills_reports_both_and_raises_no_false_alarm(rout
     assert out.returncode == 0, out.stderr
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["sent"] == n * round(duration / 0.01) and summary["lost"] == 0
+    assert summary["payloads_reported"] == n and f"payloads reported {n}/{n};" in " ".join(out.stdout.split())
     members = {m.vehicle_id: m.scenario for m in build_fleet(DEFAULT_MIX, n, duration, seed=3, loads=True, hills=True)}
     for v in summary["vehicles"]:
         scenario = members[v["vehicle_id"]]
