@@ -61,8 +61,9 @@ View = Literal["fleet", "vehicle", "profiles"]
 VIEWS: tuple[View, ...] = ("fleet", "vehicle", "profiles")
 
 #: Columns of a fleet row. last_seen_s: service clock [s since the epoch, whole seconds]; vx [m/s];
-#: torque_fault [N m]; steer_fault [rad]; alive: liveliness token present (null: the vehicle declares none).
-FLEET_COLUMNS = ("id", "profile", "level", "last_seen_s", "vx", "torque_fault", "steer_fault", "alive")
+#: torque_fault [N m]; steer_fault [rad]; alive: liveliness token present (null: the vehicle declares none);
+#: payload_kg: what the vehicle reported it carries [kg] (0: none reported).
+FLEET_COLUMNS = ("id", "profile", "level", "last_seen_s", "vx", "torque_fault", "steer_fault", "alive", "payload_kg")
 #: Columns of a plot point: t [s, vehicle clock], measured v_x [m/s] and r [rad/s] (null when not known),
 #: then the estimate's float columns (agv_protocol.wire.ESTIMATE_COLUMNS; null when the profile has none).
 POINT_COLUMNS = ("t", "vx_meas", "r_meas", *ESTIMATE_COLUMNS)
@@ -82,7 +83,7 @@ _FAULT_KINDS = frozenset(
 )
 
 Measured = tuple[float, float, float, float]
-FleetRow = tuple[str, str, str, int | None, float | None, float | None, float | None, bool | None]
+FleetRow = tuple[str, str, str, int | None, float | None, float | None, float | None, bool | None, float | None]
 
 
 class TruthSource(Protocol):
@@ -503,6 +504,7 @@ class DashboardHub:
                 _rounded(tf, 1),
                 _rounded(df, 4),
                 vehicle.alive,
+                _rounded(vehicle.payload_kg, 1),
             )
         return rows
 

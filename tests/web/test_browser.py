@@ -149,6 +149,13 @@ def test_a_vehicle_view_plots_live_estimates_with_thresholds_and_ground_truth(se
     page.screenshot(path=str(output_dir / "vehicle.png"), full_page=True)
 
 
+def cell(page: Any, vehicle: str, column: str) -> Any:
+    """The fleet table's cell of ``vehicle`` under the header that sorts by ``column``."""
+    headers = page.locator("#fleet-table .vhead [role='columnheader']")
+    index = [headers.nth(i).get_attribute("data-sort") for i in range(headers.count())].index(column)
+    return row(page, vehicle).locator('[role="cell"]').nth(index)
+
+
 def test_the_road_grade_a_vehicle_sends_shows_in_the_vehicle_view(server, page):
     """agv-02 sends a grade of 0 with every sample (level ground, flag bit 1): the view shows it, as the REST
     status does; the grade it shows is the latest sample's."""
@@ -159,9 +166,12 @@ def test_the_road_grade_a_vehicle_sends_shows_in_the_vehicle_view(server, page):
     expect(page.locator('#vehicle-facts [data-fact="grade"] dd')).to_have_text("0.0 %", timeout=UI_TIMEOUT_MS)
 
 
-def test_a_reported_payload_shows_in_the_vehicle_view(server, page):
+def test_a_reported_payload_shows_in_the_fleet_table_and_the_vehicle_view(server, page):
     reported = server.http.put("/vehicles/agv-stale/payload", json={"payload_kg": 35.0}, headers=server.auth)
     assert reported.status_code == 200
+    page.goto(server.url + "/")
+    expect(cell(page, "agv-stale", "load")).to_have_text("35", timeout=UI_TIMEOUT_MS)
+    expect(cell(page, "agv-01", "load")).to_have_text("–")
     page.goto(server.url + "/#/vehicle/agv-stale")
     expect(page.locator('#vehicle-facts [data-fact="payload"] dd')).to_have_text("35 kg", timeout=UI_TIMEOUT_MS)
 

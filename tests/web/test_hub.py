@@ -81,6 +81,22 @@ def test_a_fleet_stream_starts_with_every_row_then_sends_only_changed_rows(fast_
     assert frames(client) == []
 
 
+def test_a_fleet_row_carries_the_payload_the_vehicle_reported(fast_gains):
+    """payload_kg: what the vehicle reported (0: none), in the full frame and in the delta after a new report."""
+    engine = make_engine(fast_gains)
+    hub = make_hub(engine)
+    feed(engine, [constant_measurement(v, 0) for v in ("a", "b")])
+    engine.set_payload("b", 246.04)
+    client = hub.connect("fleet")
+    rows = rows_by_id(next(data for name, data in frames(client) if name == "fleet")["rows"])
+    assert (rows["a"]["payload_kg"], rows["b"]["payload_kg"]) == (0.0, 246.0)
+    engine.set_payload("a", 80.0)  # nothing else changed: the new payload alone makes the delta
+    hub.tick(now=100.0)
+    (name, delta), *_ = frames(client)
+    assert name == "fleet" and [row[0] for row in delta["rows"]] == ["a"]
+    assert rows_by_id(delta["rows"])["a"]["payload_kg"] == 80.0
+
+
 class Announced:
     """Ownership announcements as the transport hands them over (service.web.hub.OwnershipSource)."""
 

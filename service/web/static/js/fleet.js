@@ -16,6 +16,7 @@ const COMPARE = {
   vx: (a, b) => (a.vx ?? -Infinity) - (b.vx ?? -Infinity),
   tf: (a, b) => Math.abs(a.tf ?? 0) - Math.abs(b.tf ?? 0),
   sf: (a, b) => Math.abs(a.sf ?? 0) - Math.abs(b.sf ?? 0),
+  load: (a, b) => (a.load ?? -Infinity) - (b.load ?? -Infinity),
   alarms: null, // set per render from the alarm counts
 };
 
@@ -91,7 +92,7 @@ export class FleetView {
 
   sortBy(key) {
     if (this.sort.key === key) this.sort.descending = !this.sort.descending;
-    else this.sort = { key, descending: ['level', 'tf', 'sf', 'alarms', 'seen'].includes(key) };
+    else this.sort = { key, descending: ['level', 'tf', 'sf', 'load', 'alarms', 'seen'].includes(key) };
     this.updateSortHeaders();
     this.orderDirty = true;
     this.schedule();
@@ -124,6 +125,7 @@ export class FleetView {
         tf: row.torque_fault,
         sf: row.steer_fault,
         alive: row.alive,
+        load: row.payload_kg ?? null,
       });
     }
     for (const id of frame.removed || []) this.rows.delete(id);
@@ -219,8 +221,8 @@ export class FleetView {
   createRow() {
     const cells = {};
     const node = el('div', { class: 'vrow', role: 'row' });
-    for (const name of ['id', 'level', 'profile', 'seen', 'vx', 'tf', 'sf', 'alarms']) {
-      const numeric = ['vx', 'tf', 'sf', 'alarms'].includes(name);
+    for (const name of ['id', 'level', 'profile', 'seen', 'vx', 'tf', 'sf', 'load', 'alarms']) {
+      const numeric = ['vx', 'tf', 'sf', 'load', 'alarms'].includes(name);
       cells[name] = el('span', { role: 'cell', class: numeric ? 'num' : undefined });
       node.append(cells[name]);
     }
@@ -237,6 +239,7 @@ export class FleetView {
       vx: fixed(data.vx, 2),
       tf: fixed(data.tf, 1),
       sf: fixed(data.sf, 4),
+      load: data.load > 0 ? fixed(data.load, 0) : '–',
       alarms: data.alarms ? String(data.alarms) : '',
       profile: data.profile,
     };
