@@ -134,9 +134,50 @@ def _library() -> _Library:
     return _Library(vehicle_dynamics_mb, init_mb, setup_vehicle_parameters, acceleration_constraints)
 
 
+@dataclass(frozen=True)
+class Variant:
+    """A physically different vehicle made from a parameter set, to check that calibration and alarms hold beyond
+    the vehicles the project is measured on: the sprung mass's centre of gravity moved back along the wheelbase by
+    ``cg_back_m`` [m] (forward if negative), the heights of it and of the whole vehicle's scaled by
+    ``cg_height_factor``, the tyres' cornering stiffness (the magic formula's p_ky1) scaled by
+    ``tyre_stiffness_factor``, and the brakes' front share (T_sb) set to ``brake_front_share``. The identity
+    changes nothing."""
+
+    name: str
+    cg_back_m: float = 0.0
+    cg_height_factor: float = 1.0
+    tyre_stiffness_factor: float = 1.0
+    brake_front_share: float | None = None
+
+    def apply(self, p: Any) -> Any:
+        """The MB parameters ``p`` changed as this variant says; raises :class:`MultibodyError` for a change that
+        leaves no vehicle (an axle behind the CG, a height or stiffness not positive, a share outside [0, 1])."""
+        values = (self.cg_back_m, self.cg_height_factor, self.tyre_stiffness_factor)
+        if not all(math.isfinite(v) for v in values):
+            raise MultibodyError(f"variant {self.name!r}: every change must be finite, got {values}")
+        a, b = p.a + self.cg_back_m, p.b - self.cg_back_m
+        if not (a > 0.0 and b > 0.0):
+            raise MultibodyError(f"variant {self.name!r}: cg_back_m {self.cg_back_m} leaves the CG off the wheelbase")
+        if not (self.cg_height_factor > 0.0 and self.tyre_stiffness_factor > 0.0):
+            raise MultibodyError(f"variant {self.name!r}: the height and stiffness factors must be positive")
+        share = p.T_sb if self.brake_front_share is None else self.brake_front_share
+        if not 0.0 <= share <= 1.0:
+            raise MultibodyError(f"variant {self.name!r}: brake_front_share must lie in [0, 1], got {share}")
+        return dataclasses.replace(
+            p,
+            a=a,
+            b=b,
+            h_s=p.h_s * self.cg_height_factor,
+            h_cg=p.h_cg * self.cg_height_factor,
+            T_sb=share,
+            tire=dataclasses.replace(p.tire, p_ky1=p.tire.p_ky1 * self.tyre_stiffness_factor),
+        )
+
+
 @functools.cache
-def vehicle_parameters(parameter_set: int) -> Any:
-    """The MB parameters of CommonRoad vehicle ``parameter_set`` (1..4), a ``VehicleParameters`` dataclass.
+def vehicle_parameters(parameter_set: int, variant: Variant | None = None) -> Any:
+    """The MB parameters of CommonRoad vehicle ``parameter_set`` (1..4), a ``VehicleParameters`` dataclass,
+    changed by ``variant`` if given.
 
     Raises :class:`MultibodyError` for an unknown id or a set without the
     multi-body parameters (set 4, the kinematic truck).
@@ -150,19 +191,20 @@ def vehicle_parameters(parameter_set: int) -> Any:
             f"parameter set {parameter_set} lacks multi-body parameters ({', '.join(missing)}); "
             "the multi-body plant needs a passenger-car set"
         )
-    return p
+    return p if variant is None else variant.apply(p)
 
 
-def loaded_parameters(parameter_set: int, payload_kg: float) -> Any:
+def loaded_parameters(parameter_set: int, payload_kg: float, variant: Variant | None = None) -> Any:
     """The MB parameters of ``parameter_set`` carrying ``payload_kg`` [kg] spread like its body: the sprung mass
     grows by the payload at the same centre of gravity, and its inertias (and the vehicle's yaw inertia) with
-    it in proportion (the same radii of gyration). The set's own parameters for no payload.
+    it in proportion (the same radii of gyration). The set's own parameters (of ``variant`` if given) for no
+    payload.
 
     Raises :class:`MultibodyError` for a payload that is negative or not finite.
     """
     if not (math.isfinite(payload_kg) and payload_kg >= 0.0):
         raise MultibodyError(f"payload_kg must be finite and >= 0, got {payload_kg!r}")
-    p = vehicle_parameters(parameter_set)
+    p = vehicle_parameters(parameter_set, variant)
     if payload_kg == 0.0:
         return p
     body = (p.m_s + payload_kg) / p.m_s
@@ -180,7 +222,7 @@ def loaded_parameters(parameter_set: int, payload_kg: float) -> Any:
 # --------------------------------------------------------------------------- reference values
 
 
-def static_tyre_loads_n(parameter_set: int) -> tuple[float, float]:
+def static_tyre_loads_n(parameter_set: int, variant: Variant | None = None) -> tuple[float, float]:
     """Static vertical load of one front and one rear tyre, (F_z,f, F_z,r) [N].
 
     These are the loads of ``init_mb``'s initial state: F_z = K_zt z_u with
@@ -189,14 +231,14 @@ def static_tyre_loads_n(parameter_set: int) -> tuple[float, float]:
     loads halved. They are also the loads of the MB's static equilibrium
     (sprung mass settled), which :func:`initial_state` starts from.
     """
-    p = vehicle_parameters(parameter_set)
+    p = vehicle_parameters(parameter_set, variant)
     wheelbase = p.a + p.b
     front_axle = p.m_s * GRAVITY_MPS2 * p.b / wheelbase + p.m_uf * GRAVITY_MPS2
     rear_axle = p.m_s * GRAVITY_MPS2 * p.a / wheelbase + p.m_ur * GRAVITY_MPS2
     return front_axle / 2.0, rear_axle / 2.0
 
 
-def reference_values(parameter_set: int) -> dict[str, float]:
+def reference_values(parameter_set: int, variant: Variant | None = None) -> dict[str, float]:
     """What a calibration on this vehicle should find, from the MB's own parameters.
 
     * ``mass_kg`` m, ``yaw_inertia_kgm2`` I_z, ``front_axle_distance_m`` a,
@@ -218,8 +260,8 @@ def reference_values(parameter_set: int) -> dict[str, float]:
 
     Units [kg], [kg m^2], [m], [N/rad].
     """
-    p = vehicle_parameters(parameter_set)
-    front_load, rear_load = static_tyre_loads_n(parameter_set)
+    p = vehicle_parameters(parameter_set, variant)
+    front_load, rear_load = static_tyre_loads_n(parameter_set, variant)
     return {
         "mass_kg": float(p.m),
         "effective_mass_kg": float(p.m + 4.0 * p.I_y_w / p.R_w**2),
@@ -234,14 +276,14 @@ def reference_values(parameter_set: int) -> dict[str, float]:
     }
 
 
-def base_profile(parameter_set: int) -> dict[str, dict[str, float]]:
+def base_profile(parameter_set: int, variant: Variant | None = None) -> dict[str, dict[str, float]]:
     """A ``--params`` profile with only what a vehicle engineer reads off the data sheet.
 
     ``{"params": {mass_kg, yaw_inertia_kgm2, front_axle_distance_m,
     rear_axle_distance_m, wheel_radius_m, cg_height_m}}``; cornering stiffnesses
     and the longitudinal inertia are left for a calibration to find.
     """
-    ref = reference_values(parameter_set)
+    ref = reference_values(parameter_set, variant)
     names = (
         "mass_kg", "yaw_inertia_kgm2", "front_axle_distance_m", "rear_axle_distance_m", "wheel_radius_m", "cg_height_m"
     )  # fmt: skip
@@ -818,7 +860,9 @@ class MultibodyRun:
             writer.writerows([repr(float(v)) for v in row] for row in table)
 
 
-def initial_state(parameter_set: int, speed_mps: float, payload_kg: float = 0.0) -> FloatArray:
+def initial_state(
+    parameter_set: int, speed_mps: float, payload_kg: float = 0.0, variant: Variant | None = None
+) -> FloatArray:
     """The MB state (29,) of ``init_mb`` at ``speed_mps``, straight, with the sprung mass at rest on its springs.
 
     ``init_mb`` leaves the sprung mass at z = 0 and zero pitch while the
@@ -827,7 +871,7 @@ def initial_state(parameter_set: int, speed_mps: float, payload_kg: float = 0.0)
     z_S = z_u - z_s + (a or -b) theta is zero: theta = (z_r - z_f) / (a + b),
     z_s = z_f + a theta (then camber and suspension forces are static).
     """
-    p = loaded_parameters(parameter_set, payload_kg)
+    p = loaded_parameters(parameter_set, payload_kg, variant)
     x = np.array(_library().init_mb([0.0, 0.0, 0.0, speed_mps, 0.0, 0.0, 0.0], p), dtype=float)
     x[_PITCH] = (x[_Z_REAR] - x[_Z_FRONT]) / (p.a + p.b)
     x[_Z] = x[_Z_FRONT] + p.a * x[_PITCH]
@@ -907,9 +951,10 @@ def simulate(
     driver: DriverTuning = DriverTuning(),
     steer_gain_per_s: float = STEER_SERVO_GAIN_PER_S,
     payload_kg: float = 0.0,
+    variant: Variant | None = None,
 ) -> MultibodyRun:
-    """Simulate the MB of ``parameter_set`` along ``drive`` with ``faults``; ``seed`` drives the sensor noise;
-    the vehicle carries ``payload_kg`` (:func:`loaded_parameters`).
+    """Simulate the MB of ``parameter_set`` (changed by ``variant`` if given) along ``drive`` with ``faults``;
+    ``seed`` drives the sensor noise; the vehicle carries ``payload_kg`` (:func:`loaded_parameters`).
 
     A :class:`Drive` is followed by the closed-loop driver; an
     :class:`OpenLoopDemand` is applied as it is. At each sample t_k the
@@ -917,7 +962,7 @@ def simulate(
     integrated to t_k+1 with the inputs held (see the module docstring).
     """
     lib = _library()
-    p = loaded_parameters(parameter_set, payload_kg)
+    p = loaded_parameters(parameter_set, payload_kg, variant)
     if not steer_gain_per_s > 0:
         raise MultibodyError(f"steer_gain_per_s must be positive, got {steer_gain_per_s}")
     n = drive.n_samples
@@ -931,7 +976,7 @@ def simulate(
     grade_accel = np.zeros(n) if grade is None else GRAVITY_MPS2 * np.sin(grade)
     reported_grade = None if grade is None else grade + rng.standard_normal(n) * noise.grade_sigma_rad
 
-    x = initial_state(parameter_set, drive.initial_speed_mps, payload_kg)
+    x = initial_state(parameter_set, drive.initial_speed_mps, payload_kg, variant)
     states = np.zeros((n, 29))
     derivatives = np.zeros((n, 29))
     y = np.zeros((n, 2))
@@ -984,6 +1029,7 @@ class MultibodyJob:
     driver: DriverTuning = DriverTuning()
     steer_gain_per_s: float = STEER_SERVO_GAIN_PER_S
     payload_kg: float = 0.0
+    variant: Variant | None = None
 
 
 def run_job(job: MultibodyJob) -> MultibodyRun:
@@ -997,6 +1043,7 @@ def run_job(job: MultibodyJob) -> MultibodyRun:
         driver=job.driver,
         steer_gain_per_s=job.steer_gain_per_s,
         payload_kg=job.payload_kg,
+        variant=job.variant,
     )
 
 

@@ -15,6 +15,7 @@ BENCHMARKS = {
     "publisher": "agv_fe.benchmarks.publisher",
     "soak": "agv_fe.benchmarks.soak",
     "real_vehicle": "agv_fe.benchmarks.real_vehicle",
+    "vehicle_variants": "agv_fe.benchmarks.vehicle_variants",
     "detection": "agv_fe.benchmarks.detection",
     "ros2_bridge": "agv_fe.benchmarks.ros2_bridge",
     "can_bridge": "agv_fe.benchmarks.can_bridge",

@@ -172,6 +172,65 @@ def test_reference_values(parameter_set):
     assert profile["params"]["wheel_radius_m"] == p.R_w
 
 
+def test_a_variant_changes_the_vehicle_its_reference_values_and_its_data_sheet():
+    p = mb.vehicle_parameters(1)
+    assert mb.vehicle_parameters(1, mb.Variant("identity")) == p
+    back = mb.Variant("CG back", cg_back_m=0.2)
+    q = mb.vehicle_parameters(1, back)
+    assert (q.a, q.b) == pytest.approx((p.a + 0.2, p.b - 0.2)) and q.m == p.m
+    # the CG further back loads the rear tyres: their stiffness (p_ky1 F_z) follows the load
+    front, rear = mb.static_tyre_loads_n(1)
+    front_back, rear_back = mb.static_tyre_loads_n(1, back)
+    assert front_back < front and rear_back > rear
+    assert front_back + rear_back == pytest.approx(front + rear, rel=1e-12)
+    ref, ref_back = mb.reference_values(1), mb.reference_values(1, back)
+    assert ref_back["rear_cornering_stiffness_npr"] / ref["rear_cornering_stiffness_npr"] == pytest.approx(
+        rear_back / rear, rel=1e-12
+    )
+    assert mb.base_profile(1, back)["params"]["front_axle_distance_m"] == pytest.approx(p.a + 0.2)
+    soft = mb.Variant("soft", tyre_stiffness_factor=0.8, cg_height_factor=1.25, brake_front_share=0.5)
+    r = mb.vehicle_parameters(3, soft)
+    assert mb.reference_values(3, soft)["front_cornering_stiffness_npr"] == pytest.approx(
+        0.8 * mb.reference_values(3)["front_cornering_stiffness_npr"], rel=1e-12
+    )
+    base = mb.vehicle_parameters(3)
+    assert (r.h_cg, r.h_s, r.T_sb) == pytest.approx((1.25 * base.h_cg, 1.25 * base.h_s, 0.5))
+    assert mb.vehicle_parameters(3).tire.p_ky1 == base.tire.p_ky1  # the set's own parameters are left alone
+
+
+def test_a_variant_is_what_the_plant_simulates():
+    """Softer tyres need more steering beyond the kinematic angle L r / v_x for the same turn (the understeer
+    part grows as 1 / stiffness): the plant runs the variant, not the set."""
+    drive = mb.steady_turn_drive(15.0, 4.0, 6.0)
+    stock = mb.run_job(mb.MultibodyJob(drive=drive, parameter_set=1, seed=1))
+    soft = mb.run_job(mb.MultibodyJob(drive=drive, parameter_set=1, seed=1, variant=mb.Variant("soft", 0.0, 1.0, 0.7)))
+    p = mb.vehicle_parameters(1)
+    steady = stock.t >= 4.0
+
+    def understeer(run: mb.MultibodyRun) -> float:
+        kinematic = (p.a + p.b) * run.x_true[steady, 2] / run.x_true[steady, 0]
+        return float(np.mean(run.steer_rad[steady] - kinematic))
+
+    assert soft.a_y[steady].mean() == pytest.approx(stock.a_y[steady].mean(), rel=0.05)  # the driver holds the turn
+    assert understeer(stock) > 0 and understeer(soft) > 1.3 * understeer(stock)
+
+
+@pytest.mark.parametrize(
+    ("variant", "words"),
+    [
+        (mb.Variant("far back", cg_back_m=2.0), "off the wheelbase"),
+        (mb.Variant("far forward", cg_back_m=-1.0), "off the wheelbase"),
+        (mb.Variant("flat", cg_height_factor=0.0), "must be positive"),
+        (mb.Variant("no grip", tyre_stiffness_factor=-1.0), "must be positive"),
+        (mb.Variant("nan", cg_back_m=float("nan")), "finite"),
+        (mb.Variant("brakes", brake_front_share=1.5), "brake_front_share"),
+    ],
+)
+def test_a_variant_that_leaves_no_vehicle_is_refused(variant, words):
+    with pytest.raises(mb.MultibodyError, match=words):
+        mb.vehicle_parameters(1, variant)
+
+
 @pytest.mark.parametrize("bad", [0, 5, True, "1"])
 def test_unknown_parameter_set_is_refused(bad):
     with pytest.raises(mb.MultibodyError, match="parameter_set must be one of"):
