@@ -176,6 +176,33 @@ def test_a_reported_payload_shows_in_the_fleet_table_and_the_vehicle_view(server
     expect(page.locator('#vehicle-facts [data-fact="payload"] dd')).to_have_text("35 kg", timeout=UI_TIMEOUT_MS)
 
 
+def test_an_operator_reports_a_payload_from_the_vehicle_view(server, page, page_problems):
+    """The form puts the payload through the REST API with the operator's token: refused without it, and for a
+    load the vehicle cannot carry, with the reason on the page; accepted, it shows in the facts and the fleet."""
+    status = page.locator("#payload-status")
+    page.goto(server.url + "/#/vehicle/agv-stale")
+    expect(page.locator("#vehicle-title")).to_have_text("agv-stale", timeout=UI_TIMEOUT_MS)
+    before = server.get("/vehicles/agv-stale").json()["payload_kg"]
+    page_problems.allow(r"status of (401|422)")
+    page.fill("#payload-input", "60")
+    page.get_by_role("button", name="Report", exact=True).click()
+    expect(status).to_contain_text("token", timeout=UI_TIMEOUT_MS)
+    assert server.get("/vehicles/agv-stale").json()["payload_kg"] == before
+    page.fill("#token-input", TOKEN)
+    page.get_by_role("button", name="Save token").click()
+    page.get_by_role("button", name="Report", exact=True).click()
+    expect(status).to_have_text("Reported: 60 kg", timeout=UI_TIMEOUT_MS)
+    expect(page.locator('#vehicle-facts [data-fact="payload"] dd')).to_have_text("60 kg", timeout=UI_TIMEOUT_MS)
+    assert server.get("/vehicles/agv-stale").json()["payload_kg"] == 60.0
+    page.fill("#payload-input", "1000000")  # more than the vehicle's mass
+    page.get_by_role("button", name="Report", exact=True).click()
+    expect(status).to_contain_text("Not reported", timeout=UI_TIMEOUT_MS)
+    expect(status).to_have_attribute("data-state", "error")
+    assert server.get("/vehicles/agv-stale").json()["payload_kg"] == 60.0
+    page.goto(server.url + "/")
+    expect(cell(page, "agv-stale", "load")).to_have_text("60", timeout=UI_TIMEOUT_MS)
+
+
 def test_acknowledging_an_alarm_changes_its_state_in_every_open_page(server, page, page_problems, browser_context):
     alarm_id = next(
         a["id"] for a in server.get("/alarms").json() if a["vehicle"] == "agv-warn" and a["kind"] == "torque_fault"

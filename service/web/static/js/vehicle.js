@@ -107,6 +107,13 @@ export class VehicleView {
     this.lookbackText = document.getElementById('vehicle-lookback-text');
     this.liveButton = document.getElementById('vehicle-live');
     this.liveButton.addEventListener('click', () => this.backToLive());
+    this.payloadForm = document.getElementById('payload-form');
+    this.payloadInput = document.getElementById('payload-input');
+    this.payloadStatus = document.getElementById('payload-status');
+    this.payloadForm.addEventListener('submit', (event) => {
+      event.preventDefault();
+      this.reportPayload();
+    });
     this.lookback = null;
     this.lookbackRequest = 0;
     this.plots = [];
@@ -132,6 +139,8 @@ export class VehicleView {
     this.level.replaceWith((this.level = levelBadge('–')));
     this.level.id = 'vehicle-level';
     this.facts.replaceChildren();
+    this.payloadInput.value = '';
+    this.showPayloadStatus('', '');
     this.missing.hidden = true;
     this.alarmList = new AlarmList(document.getElementById('vehicle-alarms'), this.alarmsStore, {
       vehicle,
@@ -281,6 +290,30 @@ export class VehicleView {
       ...facts.map(([key, name, value]) => el('div', { 'data-fact': key }, el('dt', {}, name), el('dd', {}, value))),
     );
     this.facts.dataset.level = level;
+  }
+
+  /** What the vehicle carries, as an operator reports it (PUT /vehicles/{id}/payload; needs the API token). */
+  async reportPayload() {
+    const vehicle = this.vehicle;
+    const payloadKg = Number(this.payloadInput.value);
+    const button = this.payloadForm.querySelector('button');
+    button.disabled = true;
+    this.showPayloadStatus('', 'Reporting…');
+    try {
+      const answer = await api('PUT', `/vehicles/${encodeURIComponent(vehicle)}/payload`, { payload_kg: payloadKg });
+      if (vehicle === this.vehicle) this.showPayloadStatus('done', `Reported: ${answer.payload_kg} kg`);
+    } catch (err) {
+      const problems = err.problems && err.problems.length ? ` (${err.problems.join('; ')})` : '';
+      if (vehicle === this.vehicle) this.showPayloadStatus('error', `Not reported: ${err.message}${problems}`);
+      if (err.status === 401) this.onUnauthorized();
+    } finally {
+      button.disabled = false;
+    }
+  }
+
+  showPayloadStatus(state, text) {
+    this.payloadStatus.dataset.state = state;
+    this.payloadStatus.textContent = text;
   }
 
   /** A "trace" frame: the history on connect (or after a reset), then the new points. */
