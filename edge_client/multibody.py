@@ -140,14 +140,16 @@ class Variant:
     the vehicles the project is measured on: the sprung mass's centre of gravity moved back along the wheelbase by
     ``cg_back_m`` [m] (forward if negative), the heights of it and of the whole vehicle's scaled by
     ``cg_height_factor``, the tyres' cornering stiffness (the magic formula's p_ky1) scaled by
-    ``tyre_stiffness_factor``, and the brakes' front share (T_sb) set to ``brake_front_share``. The identity
-    changes nothing."""
+    ``tyre_stiffness_factor``, the brakes' front share (T_sb) set to ``brake_front_share`` and the drive torque's
+    (T_se) to ``drive_front_share`` (1 front-wheel drive, 0 rear-wheel, between: all-wheel). The identity changes
+    nothing."""
 
     name: str
     cg_back_m: float = 0.0
     cg_height_factor: float = 1.0
     tyre_stiffness_factor: float = 1.0
     brake_front_share: float | None = None
+    drive_front_share: float | None = None
 
     def apply(self, p: Any) -> Any:
         """The MB parameters ``p`` changed as this variant says; raises :class:`MultibodyError` for a change that
@@ -160,16 +162,19 @@ class Variant:
             raise MultibodyError(f"variant {self.name!r}: cg_back_m {self.cg_back_m} leaves the CG off the wheelbase")
         if not (self.cg_height_factor > 0.0 and self.tyre_stiffness_factor > 0.0):
             raise MultibodyError(f"variant {self.name!r}: the height and stiffness factors must be positive")
-        share = p.T_sb if self.brake_front_share is None else self.brake_front_share
-        if not 0.0 <= share <= 1.0:
-            raise MultibodyError(f"variant {self.name!r}: brake_front_share must lie in [0, 1], got {share}")
+        brake = p.T_sb if self.brake_front_share is None else self.brake_front_share
+        drive = p.T_se if self.drive_front_share is None else self.drive_front_share
+        for name, share in (("brake_front_share", brake), ("drive_front_share", drive)):
+            if not 0.0 <= share <= 1.0:
+                raise MultibodyError(f"variant {self.name!r}: {name} must lie in [0, 1], got {share}")
         return dataclasses.replace(
             p,
             a=a,
             b=b,
             h_s=p.h_s * self.cg_height_factor,
             h_cg=p.h_cg * self.cg_height_factor,
-            T_sb=share,
+            T_sb=brake,
+            T_se=drive,
             tire=dataclasses.replace(p.tire, p_ky1=p.tire.p_ky1 * self.tyre_stiffness_factor),
         )
 

@@ -3,9 +3,9 @@
 The real-vehicle benchmark (real_vehicle.py) calibrates and judges CommonRoad's parameter sets 1 and 3. A
 product tuned to two vehicles could pass there and fail on the next one. Here each set is changed physically
 (:class:`edge_client.multibody.Variant`: the centre of gravity moved along the wheelbase or raised or lowered, the
-tyres stiffer or softer, the brakes' front share changed), and each variant goes through what a vehicle engineer
-does with a new vehicle: calibrate from the scripted calibration drive with the variant's data sheet
-(``base_profile``), then run healthy drives (the real-vehicle benchmark's mix: open road, town, braking and
+tyres stiffer or softer, the brakes' front share changed, all-wheel drive), and each variant goes through what a
+vehicle engineer does with a new vehicle: calibrate from the scripted calibration drive with the variant's data
+sheet (``base_profile``), then run healthy drives (the real-vehicle benchmark's mix: open road, town, braking and
 accelerating in turns) and the four bias faults with the calibrated profile and its alarm levels.
 
 Must show, per variant: the calibration gives a profile whose effective mass is within 1 % of the variant's;
@@ -36,7 +36,8 @@ from synth.errors import SynthesisError
 
 #: The variants: (parameter set, the change). Each changes one physical property by an amount that separates
 #: real cars of a class (a CG 0.17 m further back is a rear-engined car's share of the wheelbase; +-25 % CG
-#: height spans a saloon and a van; +-20 % tyre stiffness spans tyre makes and pressures).
+#: height spans a saloon and a van; +-20 % tyre stiffness spans tyre makes and pressures; set 1 drives its front
+#: wheels, set 3 its rear ones, and the last variant all four).
 VARIANTS: tuple[tuple[int, mb.Variant], ...] = (
     (1, mb.Variant("CG 0.17 m further back", cg_back_m=0.17)),
     (1, mb.Variant("CG 25 % higher", cg_height_factor=1.25)),
@@ -44,6 +45,7 @@ VARIANTS: tuple[tuple[int, mb.Variant], ...] = (
     (3, mb.Variant("CG 25 % lower", cg_height_factor=0.75)),
     (3, mb.Variant("tyres 20 % stiffer", tyre_stiffness_factor=1.2)),
     (3, mb.Variant("front brake share 0.76", brake_front_share=0.76)),
+    (3, mb.Variant("all-wheel drive, half the torque in front", drive_front_share=0.5)),
 )
 #: Healthy drives per variant (the real-vehicle benchmark's seeds: every third in town, the next braking and
 #: accelerating in turns), each HEALTHY_DURATION_S long.

@@ -188,13 +188,15 @@ def test_a_variant_changes_the_vehicle_its_reference_values_and_its_data_sheet()
         rear_back / rear, rel=1e-12
     )
     assert mb.base_profile(1, back)["params"]["front_axle_distance_m"] == pytest.approx(p.a + 0.2)
-    soft = mb.Variant("soft", tyre_stiffness_factor=0.8, cg_height_factor=1.25, brake_front_share=0.5)
+    soft = mb.Variant(
+        "soft", tyre_stiffness_factor=0.8, cg_height_factor=1.25, brake_front_share=0.5, drive_front_share=0.4
+    )
     r = mb.vehicle_parameters(3, soft)
     assert mb.reference_values(3, soft)["front_cornering_stiffness_npr"] == pytest.approx(
         0.8 * mb.reference_values(3)["front_cornering_stiffness_npr"], rel=1e-12
     )
     base = mb.vehicle_parameters(3)
-    assert (r.h_cg, r.h_s, r.T_sb) == pytest.approx((1.25 * base.h_cg, 1.25 * base.h_s, 0.5))
+    assert (r.h_cg, r.h_s, r.T_sb, r.T_se) == pytest.approx((1.25 * base.h_cg, 1.25 * base.h_s, 0.5, 0.4))
     assert mb.vehicle_parameters(3).tire.p_ky1 == base.tire.p_ky1  # the set's own parameters are left alone
 
 
@@ -224,6 +226,7 @@ def test_a_variant_is_what_the_plant_simulates():
         (mb.Variant("no grip", tyre_stiffness_factor=-1.0), "must be positive"),
         (mb.Variant("nan", cg_back_m=float("nan")), "finite"),
         (mb.Variant("brakes", brake_front_share=1.5), "brake_front_share"),
+        (mb.Variant("drive", drive_front_share=-0.1), "drive_front_share"),
     ],
 )
 def test_a_variant_that_leaves_no_vehicle_is_refused(variant, words):
