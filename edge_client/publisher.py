@@ -66,6 +66,12 @@ LATENCY_RING = 4096
 LINK_POLL_S = 0.001
 #: Alarm events kept per vehicle for the summary (later ones are only counted).
 MAX_ALARM_EVENTS = 200
+#: After a run's ``drain_s``, the wait for the last estimates goes on while an answered vehicle lacks some
+#: (:func:`answered`) and they still arrive (one within DRAIN_QUIET_S), DRAIN_MAX_S at most in all [s]: a busy
+#: machine's service may trail by more than the drain; one that decimates never answers every sample.
+DRAIN_QUIET_S = 0.25
+DRAIN_MAX_S = 5.0
+DRAIN_POLL_S = 0.01
 
 
 @dataclass(frozen=True)
@@ -126,6 +132,12 @@ class VehicleRecord:
     alarm_count: int = 0
     peak_quiet: np.ndarray = field(default_factory=lambda: np.zeros(2))
     peak_faulty: np.ndarray = field(default_factory=lambda: np.zeros(2))
+
+
+def answered(records: Sequence[VehicleRecord]) -> bool:
+    """Every vehicle the service answers has an estimate for each sample it sent. A vehicle without any estimate
+    is not waited for (no service, or it does not serve that vehicle)."""
+    return all(r.estimates >= r.sent for r in records if r.estimates > 0)
 
 
 @dataclass(frozen=True)
@@ -270,6 +282,7 @@ class FleetPublisher:
         self.latency = LatencyHistogram()
         self._interval_latency = LatencyHistogram()
         self.estimates = 0
+        self._last_estimate_ns = 0  # time.monotonic_ns of the latest estimate received
         self.alarms = 0
         self.bad_messages = 0
         self._log = log
@@ -319,6 +332,7 @@ class FleetPublisher:
             record = self.records[i]
             record.estimates += 1
             self.estimates += 1
+            self._last_estimate_ns = rx.received_ns
             record.last_estimate = estimate
             if estimate.seq >= self._warmup_seq:
                 peaks = record.peak_faulty if estimate.seq >= self._onset_seq[i] else record.peak_quiet
@@ -469,8 +483,9 @@ class FleetPublisher:
     ) -> PublishReport:
         """Publish until ``duration_s`` of samples (or the source's end), or ``stop`` is set.
 
-        Then flush what is buffered if it can be delivered, wait ``drain_s`` for the
-        last estimates, and return the report. Buffered samples still undeliverable
+        Then flush what is buffered if it can be delivered, wait ``drain_s`` for the last
+        estimates, longer while they still arrive for samples not yet answered (DRAIN_MAX_S
+        at most; none for ``drain_s`` 0), and return the report. Buffered samples still undeliverable
         at the end are counted in ``unsent_at_end``.
         """
         n_ticks = self.source.n_samples
@@ -487,6 +502,20 @@ class FleetPublisher:
         finally:
             gc.unfreeze()
             sys.setswitchinterval(previous_switch)
+
+    def _drain(self, drain_s: float) -> None:
+        """Wait ``drain_s`` [s], then while an answered vehicle still lacks estimates and they still arrive."""
+        if drain_s <= 0:
+            return
+        deadline = time.monotonic_ns() + round(max(drain_s, DRAIN_MAX_S) * 1e9)
+        time.sleep(drain_s)
+        while True:
+            now = time.monotonic_ns()
+            with self._rx_lock:
+                done, last = answered(self.records), self._last_estimate_ns
+            if done or now >= deadline or now - last > DRAIN_QUIET_S * 1e9:
+                return
+            time.sleep(DRAIN_POLL_S)
 
     def _run(
         self,
@@ -520,8 +549,7 @@ class FleetPublisher:
                 while buffer:
                     seq, payload = buffer.popleft()
                     self._put(i, seq, payload)
-        if drain_s > 0:
-            time.sleep(drain_s)
+        self._drain(drain_s)
         sent, lost, unsent = self._totals()
         with self._rx_lock:
             vehicles = list(self.records)

@@ -16,7 +16,7 @@ from agv_protocol.wire import (
     vehicle_key,
 )
 from edge_client.fleet_mix import DEFAULT_MIX, build_fleet
-from edge_client.publisher import FleetPublisher, PublisherOptions
+from edge_client.publisher import FleetPublisher, PublisherOptions, VehicleRecord, answered
 from edge_client.sources import SimulatedSource
 from edge_client.transport import ChannelSubscription, Subscription, TransportOptions, close_session, open_session
 from tests.edge_client.conftest import free_port
@@ -212,3 +212,14 @@ def test_the_wait_for_a_subscriber_is_bounded(router):
 def test_publisher_options_refuse_a_wait_out_of_range():
     with pytest.raises(ValueError, match="link_wait_s"):
         PublisherOptions(link_wait_s=-1.0)
+
+
+def test_the_end_of_a_run_waits_for_the_last_estimate_of_every_answered_vehicle():
+    """The drain after the last tick ends once each vehicle the service answers has an estimate per sample sent;
+    a vehicle nobody answers (no service, or not served) is not waited for."""
+    records = [VehicleRecord("a", sent=100, estimates=100), VehicleRecord("b", sent=100, estimates=98)]
+    assert not answered(records)
+    records[1].estimates = 100
+    assert answered(records)
+    records.append(VehicleRecord("c", sent=100))
+    assert answered(records)
