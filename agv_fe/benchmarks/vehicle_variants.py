@@ -55,6 +55,8 @@ QUICK_HEALTHY_SEEDS = (1, 2)
 QUICK_HEALTHY_DURATION_S = 20.0
 #: The fault cases run on every variant: the four biases, one seed each.
 FAULT_CASES = tuple(case for case in rv.FAULT_CASES if case.kind == "bias")
+#: Quick mode (tests): one bias per channel.
+QUICK_FAULT_CASES = tuple(case for case in FAULT_CASES if case.size > 0)
 FAULT_SEED = rv.FAULT_SEEDS[0]
 
 
@@ -63,6 +65,7 @@ class Plan:
     variants: tuple[tuple[int, mb.Variant], ...]
     healthy_seeds: tuple[int, ...]
     healthy_duration_s: float
+    fault_cases: tuple[rv.FaultCase, ...]
     workers: int
     quick: bool
 
@@ -99,6 +102,7 @@ def evaluate(
     variant: mb.Variant,
     report: CalibrationReport,
     healthy: Sequence[mb.MultibodyRun],
+    cases: Sequence[rv.FaultCase],
     faults: Sequence[mb.MultibodyRun],
 ) -> dict[str, Any]:
     """The calibration errors, the healthy drives' alarms and peaks, and each bias fault's delays."""
@@ -107,7 +111,7 @@ def evaluate(
     period = report.profile.params.sample_period_s
     figures = rv.healthy_figures(healthy, rv.estimate_runs(factory, healthy, alarms), alarms, period)
     fault_rows = []
-    for case, run, est in zip(FAULT_CASES, faults, rv.estimate_runs(factory, faults, alarms), strict=True):
+    for case, run, est in zip(cases, faults, rv.estimate_runs(factory, faults, alarms), strict=True):
         seed = rv.fault_run_figures(case, run, est, alarms, rv.FAULT_ONSET_S)
         fault_rows.append({"key": case.key, "label": case.label, "seed": seed, "meets_target": rv.meets(case, [seed])})
     return {
@@ -204,7 +208,7 @@ def measure(plan: Plan) -> dict[str, Any]:
         )
         for (parameter_set, variant), report in zip(plan.variants, reports, strict=True)
         if not isinstance(report, str)
-        for case in FAULT_CASES
+        for case in plan.fault_cases
     ]
     print(f"  simulating {len(fault_jobs)} fault runs ...", flush=True)
     fault_runs = iter(mb.simulate_many(fault_jobs, plan.workers))
@@ -215,8 +219,8 @@ def measure(plan: Plan) -> dict[str, Any]:
             entry["calibration_error"] = report
         else:
             healthy = runs[i * per_variant + 1 : (i + 1) * per_variant]
-            faults = [next(fault_runs) for _ in FAULT_CASES]
-            entry |= evaluate(parameter_set, variant, report, healthy, faults)
+            faults = [next(fault_runs) for _ in plan.fault_cases]
+            entry |= evaluate(parameter_set, variant, report, healthy, plan.fault_cases, faults)
         entry["must_show"] = must_show(entry)
         results.append(entry)
     return {
@@ -225,6 +229,7 @@ def measure(plan: Plan) -> dict[str, Any]:
             "healthy_seeds": list(plan.healthy_seeds),
             "healthy_duration_s": plan.healthy_duration_s,
             "fault_seed": FAULT_SEED,
+            "fault_cases": [case.key for case in plan.fault_cases],
             "quick": plan.quick,
         },
         "variants": results,
@@ -240,7 +245,7 @@ def render(document: dict[str, Any]) -> str:
         f"{len(document['variants'])} variants of CommonRoad's parameter sets 1 and 3 "
         "(`edge_client.multibody.Variant`), each calibrated from the scripted calibration drive with its own data "
         f"sheet, then {len(plan['healthy_seeds'])} healthy drives of {plan['healthy_duration_s']:g} s (the "
-        "real-vehicle benchmark's mix) and the four bias faults (seed "
+        f"real-vehicle benchmark's mix) and {len(plan['fault_cases'])} bias faults (seed "
         f"{plan['fault_seed']}) with the calibrated profile; this run took {document['runtime_s'] / 60:.1f} min. "
         "Parameter set 2 is never used here.\n"
     )
@@ -280,11 +285,12 @@ def render(document: dict[str, Any]) -> str:
 
 def run(out_dir: Path, quick: bool = False, workers: int = rv.WORKERS) -> Path:
     """Run every variant; write vehicle_variants.md and vehicle_variants.json to ``out_dir``. ``quick``: the
-    first two variants (one of each set), two short healthy drives each (for tests)."""
+    first variant of each set, two short healthy drives and one bias per channel each (for tests)."""
     plan = Plan(
         variants=(VARIANTS[0], VARIANTS[3]) if quick else VARIANTS,
         healthy_seeds=QUICK_HEALTHY_SEEDS if quick else HEALTHY_SEEDS,
         healthy_duration_s=QUICK_HEALTHY_DURATION_S if quick else HEALTHY_DURATION_S,
+        fault_cases=QUICK_FAULT_CASES if quick else FAULT_CASES,
         workers=workers,
         quick=quick,
     )
