@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Iterator
 
 import pytest
@@ -10,6 +11,15 @@ from agv_fe.pg_cluster import PostgresServer
 from synth.design import synthesize
 from synth.gains import ObserverGains
 from synth.options import DesignOptions
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every test a node id of its own: pytest-xdist's ``--dist loadfile`` (``make test``) keys its work by node id,
+    so of tests sharing one all but the first would pass without having run. A shared id is an error instead."""
+    counts = Counter(item.nodeid for item in items)
+    shared = sorted(nodeid for nodeid, n in counts.items() if n > 1)
+    if shared:
+        raise pytest.UsageError(f"tests share a node id, so a parallel run would skip all but one: {shared[:5]}")
 
 
 @pytest.fixture(scope="session")

@@ -9,8 +9,9 @@ from typing import Any
 
 import pytest
 import schemathesis
-from hypothesis import HealthCheck, settings
+from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import not_a_server_error
+from schemathesis.schemas import APIOperation
 from schemathesis.specs.openapi.checks import response_schema_conformance, status_code_conformance
 
 from tests.service.helpers import FAST_DESIGN, make_settings, running
@@ -40,18 +41,36 @@ def _openapi() -> dict[str, Any]:
 
 #: The dashboard's event stream never ends by design (server-sent events): its own tests cover it (tests/web).
 schema = schemathesis.openapi.from_dict(_openapi()).exclude(path="/ui/stream")
+#: One test per operation, parametrized by pytest itself: each gets a node id of its own (``[GET /health]``), which
+#: pytest-xdist's ``--dist loadfile`` (``make test``) needs; schemathesis's ``parametrize`` gives all one id.
+OPERATIONS = [result.ok() for result in schema.get_all_operations()]
+CHECKS = [not_a_server_error, response_schema_conformance, status_code_conformance]
 
 
-@schema.parametrize()
-@settings(
-    max_examples=EXAMPLES,
-    deadline=None,
-    suppress_health_check=list(HealthCheck),
-    derandomize=True,  # the same requests every run: a failure is reproducible, CI time is bounded
-)
-def test_no_operation_answers_5xx_or_outside_its_schema(case: Any, live: Any) -> None:
-    checks = [not_a_server_error, response_schema_conformance, status_code_conformance]
-    # a generous client timeout: a calibration request starts the worker process, slow on a busy machine
-    case.call_and_validate(base_url=live.url, headers=live.auth, checks=checks, timeout=CLIENT_TIMEOUT_S)
-    # without the token: 401 where it is needed, still as documented
-    case.call_and_validate(base_url=live.url, checks=checks, timeout=CLIENT_TIMEOUT_S)
+@pytest.mark.parametrize("operation", OPERATIONS, ids=[operation.label for operation in OPERATIONS])
+def test_no_operation_answers_5xx_or_outside_its_schema(operation: APIOperation, live: Any) -> None:
+    @given(case=operation.as_strategy())
+    @settings(
+        max_examples=EXAMPLES,
+        deadline=None,
+        suppress_health_check=list(HealthCheck),
+        derandomize=True,  # the same requests every run: a failure is reproducible, CI time is bounded
+    )
+    def calls(case: Any) -> None:
+        # a generous client timeout: a calibration request starts the worker process, slow on a busy machine
+        case.call_and_validate(base_url=live.url, headers=live.auth, checks=CHECKS, timeout=CLIENT_TIMEOUT_S)
+        # without the token: 401 where it is needed, still as documented
+        case.call_and_validate(base_url=live.url, checks=CHECKS, timeout=CLIENT_TIMEOUT_S)
+
+    calls()
+
+
+def test_every_operation_of_the_service_is_fuzzed() -> None:
+    """The parametrization above covers what the service documents (but the event stream), not a fixed list."""
+    documented = {
+        f"{method.upper()} {path}"
+        for path, methods in _openapi()["paths"].items()
+        for method in methods
+        if path != "/ui/stream"
+    }
+    assert {operation.label for operation in OPERATIONS} == documented and len(documented) >= 20
