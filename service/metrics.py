@@ -330,6 +330,13 @@ class ServiceCollector(Collector):
             stats["restarts"],
         )
         yield _one(CounterMetricFamily("agv_fe_estimates", "estimates computed"), stats["estimates"])
+        yield _one(
+            CounterMetricFamily(
+                "agv_fe_samples_beyond_grip",
+                "estimates whose vehicle was beyond its profile's grip limit (fault levels held unjudged)",
+            ),
+            stats["beyond_grip"],
+        )
         yield from self._vehicle_keys()
         yield _one(
             CounterMetricFamily(

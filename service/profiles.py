@@ -63,6 +63,24 @@ class AlarmThresholds(BaseModel):
     raise_after_s: Duration = Field(0.5, description="how long a condition must hold before it raises [s]")
     clear_after_s: Duration = Field(1.0, description="how long a condition must be gone before it clears [s]")
     warmup_s: Duration = Field(3.0, description="no fault alarms this long after an observer (re)starts [s]")
+    grip_limit_g: Annotated[float, Field(gt=0, le=3, allow_inf_nan=False)] | None = Field(
+        0.55,
+        description="the combined acceleration |(dv_x/dt, v_x r)| / g above which, while the vehicle brakes or "
+        "accelerates at grip_longitudinal_g or more, the tyres leave the model's linear range: the fault levels "
+        "are held unjudged there and for grip_hold_s after (docs/math.md 12.4; measured on a dry road, lower it "
+        "for a slippery one); null: no grip gate [g]",
+    )
+    grip_longitudinal_g: Annotated[float, Field(ge=0, le=3, allow_inf_nan=False)] = Field(
+        0.2, description="|dv_x/dt| / g from which grip_limit_g applies (below it, grip_cornering_g does) [g]"
+    )
+    grip_cornering_g: Annotated[float, Field(gt=0, le=3, allow_inf_nan=False)] = Field(
+        0.8,
+        description="the combined acceleration / g beyond which the fault levels are held whatever the "
+        "longitudinal part (steady cornering: measured to hold to 0.8 g on a dry road) [g]",
+    )
+    grip_hold_s: Duration = Field(
+        1.0, description="the fault levels stay unjudged this long after the last sample above grip_limit_g [s]"
+    )
     out_of_domain_after_s: Duration = Field(
         0.5, description="premise or estimated v_y outside the design bounds this long raises WARN [s]"
     )

@@ -92,13 +92,16 @@ class ServiceInputs:
 class Replay:
     """A recording of K samples replayed: x_hat (K, 3), f_hat (K, 2), in_domain (K,), levels (K, 2) level
     ranks of [torque, steer] (service.fleet.alarms.LEVEL_NAMES), restarts: observer restarts after a
-    non-finite estimate."""
+    non-finite estimate; beyond_grip (K,) the combined acceleration was above the profile's grip limit, judged
+    (K,) the fault levels judged the sample (after the warm-up and the grip gate's hold)."""
 
     x_hat: FloatArray
     f_hat: FloatArray
     in_domain: np.ndarray
     levels: np.ndarray
     restarts: int
+    beyond_grip: np.ndarray
+    judged: np.ndarray
     #: with the effectiveness stage: the estimated bias and effectiveness (K, 2) each, [torque, steer]
     bias: FloatArray | None = None
     alpha: FloatArray | None = None
@@ -161,6 +164,14 @@ def run(args: argparse.Namespace) -> int:
     )
     for line in level_summary(recording.t, result.levels, profile):
         print(line)
+    if result.beyond_grip.any():
+        a = profile.alarms
+        print(
+            f"beyond the grip limits ({a.grip_limit_g:g} g combined while braking or accelerating at "
+            f"{a.grip_longitudinal_g:g} g or more, {a.grip_cornering_g:g} g in any case) "
+            f"{result.beyond_grip.mean():.1%} of the time: the fault levels were held there and for "
+            f"{a.grip_hold_s:g} s after (judged {result.judged.mean():.1%} of the time)"
+        )
     if result.restarts:
         print(f"the estimate was not finite {result.restarts} time(s): the observer restarted, as the service's does")
     outside = int(outside_limits(recording, profile.limits).sum())
@@ -205,6 +216,7 @@ def replay(
     f_hat = np.zeros((n, 2))
     in_domain = np.zeros(n, dtype=bool)
     level = np.zeros((n, 2), dtype=np.intp)
+    beyond_grip, judged = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
     bias: FloatArray | None = None
     alpha: FloatArray | None = None
     alpha_sigma: FloatArray = np.zeros((1, 2))
@@ -229,8 +241,10 @@ def replay(
             alpha[k], bias[k], alpha_sigma = step.alpha[0], step.bias[0], step.alpha_sigma
             bias[k, 0] /= inputs.rho[k]
         if np.isfinite(x_hat[k]).all() and np.isfinite(f_hat[k]).all():
-            levels.update(row, f_hat[k : k + 1], t, certified=step.certified)
-            if alpha is not None and t[0] - levels.started_t_ns[0] >= levels.warmup_ns:
+            before = levels.beyond_grip
+            levels.update(row, f_hat[k : k + 1], t, certified=step.certified, measured=y)
+            beyond_grip[k], judged[k] = levels.beyond_grip > before, levels.judged(row, t)[0]
+            if alpha is not None and judged[k]:
                 effectiveness.update(row, alpha[k : k + 1], alpha_sigma, t)
         else:
             estimator = None
@@ -239,7 +253,7 @@ def replay(
             max(levels.torque.level[0], effectiveness.torque.level[0]),
             max(levels.steer.level[0], effectiveness.steer.level[0]),
         )
-    return Replay(x_hat, f_hat, in_domain, level, restarts, bias, alpha)
+    return Replay(x_hat, f_hat, in_domain, level, restarts, beyond_grip, judged, bias, alpha)
 
 
 def service_inputs(recording: Recording, payload_kg: float, gains: ObserverGains) -> ServiceInputs | None:

@@ -21,6 +21,7 @@ import numpy as np
 
 from agv_protocol.wire import LEVEL_CODES, Alarm, AlarmKind, AlarmState, Level
 from service.fleet.cusum import CusumDetector
+from service.fleet.grip import GripGate, GripLimits
 from service.profiles import AlarmThresholds
 
 #: The detectors' levels: their numbers are the protocol's level codes, which an estimate batch carries as they are.
@@ -165,6 +166,13 @@ def _detectors(capacity: int, alarms: AlarmThresholds, sample_period_s: float) -
     return torque, steer
 
 
+def grip_limits(alarms: AlarmThresholds) -> GripLimits | None:
+    """The grip gate's limits of a profile's alarm rules; None without a gate (``grip_limit_g`` null)."""
+    if alarms.grip_limit_g is None:
+        return None
+    return GripLimits(alarms.grip_limit_g, alarms.grip_longitudinal_g, alarms.grip_cornering_g)
+
+
 class FaultLevels:
     """The alarm levels of the fault channels T_f and delta_f, one row per vehicle slot.
 
@@ -174,8 +182,10 @@ class FaultLevels:
     and the warm-up rule: a row's fault estimates are evaluated only once
     ``warmup_s`` of sample time has passed since its observer (re)started
     (:meth:`restart`) and since its estimate last left the certified domain
-    (:meth:`update`). Time is the samples' time stamps [ns];
-    ``sample_period_s`` sets the CUSUM's samples per block.
+    (:meth:`update`), and not until ``grip_hold_s`` after the vehicle's
+    combined acceleration was last beyond the profile's grip limits
+    (:class:`GripGate`, on the measurements :meth:`update` is given). Time is the samples' time stamps
+    [ns]; ``sample_period_s`` sets the CUSUM's samples per block.
     """
 
     def __init__(self, capacity: int, alarms: AlarmThresholds, sample_period_s: float = 0.01) -> None:
@@ -185,6 +195,12 @@ class FaultLevels:
         self.warmup_ns = seconds_to_ns(alarms.warmup_s)
         #: when each row's observer last (re)started [ns]
         self.started_t_ns = np.zeros(capacity, dtype=np.int64)
+        self.grip = GripGate(capacity, grip_limits(alarms))
+        self.grip_hold_ns = seconds_to_ns(alarms.grip_hold_s)
+        #: per row: the levels are unjudged before this sample time, the tyres beyond the grip limit [ns]
+        self.held_until_ns = np.full(capacity, _NOT_HOLDING, dtype=np.int64)
+        #: samples the grip gate flagged (a counter for the service's statistics)
+        self.beyond_grip = 0
 
     def configure(self, alarms: AlarmThresholds) -> None:
         """New alarm settings; levels are kept, and timers too unless the rule changed (its statistics restart)."""
@@ -198,6 +214,8 @@ class FaultLevels:
             self.torque.level[:], self.steer.level[:] = torque.level, steer.level
         self.rule = alarms.rule
         self.warmup_ns = seconds_to_ns(alarms.warmup_s)
+        self.grip.configure(grip_limits(alarms))
+        self.grip_hold_ns = seconds_to_ns(alarms.grip_hold_s)
 
     def grow(self, capacity: int) -> None:
         extra = capacity - self.started_t_ns.shape[0]
@@ -205,12 +223,21 @@ class FaultLevels:
             return
         self.torque.grow(capacity)
         self.steer.grow(capacity)
+        self.grip.grow(capacity)
         self.started_t_ns = np.concatenate([self.started_t_ns, np.zeros(extra, dtype=np.int64)])
+        self.held_until_ns = np.concatenate([self.held_until_ns, np.full(extra, _NOT_HOLDING, dtype=np.int64)])
 
     def reset(self, rows: np.ndarray) -> None:
         """Forget everything of ``rows``: levels and timers (a slot given to another vehicle)."""
         self.torque.reset(rows)
         self.steer.reset(rows)
+        self.grip.reset(rows)
+        self.held_until_ns[rows] = _NOT_HOLDING
+
+    def judged(self, rows: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+        """(k,) bool: the rows whose levels a sample at ``t_ns`` is judged by (after the warm-up and the grip
+        gate's hold)."""
+        return (t_ns - self.started_t_ns[rows] >= self.warmup_ns) & (t_ns >= self.held_until_ns[rows])
 
     def restart(self, rows: np.ndarray, t_ns: np.ndarray) -> None:
         """The observers of ``rows`` (re)start at sample times ``t_ns`` [ns]: the warm-up runs from there;
@@ -226,6 +253,7 @@ class FaultLevels:
         t_ns: np.ndarray,
         usable: np.ndarray | None = None,
         certified: np.ndarray | None = None,
+        measured: np.ndarray | None = None,
     ) -> np.ndarray:
         """Feed the fault estimates of one sample per row; return the indices (into rows) whose level changed.
 
@@ -236,11 +264,22 @@ class FaultLevels:
         .certified), None for all. A row outside is judged as an observer that restarts there: its levels are
         held, its persistence timers forgotten, and its warm-up runs again from its last uncertified sample (the
         estimate carries what the model got wrong outside the box until the error has decayed).
+        measured : (k, >= 2) the rows' measurements [v_x m/s, r rad/s, ...] for the grip gate, None for no gate. A
+        row beyond the profile's grip limits (:func:`grip_limits`) has its persistence timers forgotten and its
+        levels held until ``grip_hold_s`` after.
         """
         if certified is not None and not certified.all():
             outside = np.flatnonzero(~certified)
             self.restart(rows[outside], t_ns[outside])
-        warm = t_ns - self.started_t_ns[rows] >= self.warmup_ns
+        if measured is not None and self.grip.limits is not None:
+            beyond = np.flatnonzero(self.grip.update(rows, measured[:, 0], measured[:, 1], t_ns))
+            if len(beyond):
+                held = rows[beyond]
+                self.held_until_ns[held] = t_ns[beyond] + self.grip_hold_ns
+                self.torque.reset(held, keep_level=True)
+                self.steer.reset(held, keep_level=True)
+                self.beyond_grip += len(beyond)
+        warm = self.judged(rows, t_ns)
         if usable is None and warm.all():  # the common case: every row, no picking out
             torque = self.torque.update(rows, f_hat[:, 0], t_ns)
             steer = self.steer.update(rows, f_hat[:, 1], t_ns)

@@ -157,7 +157,8 @@ class Stepped:
     """One observer step of a profile's rows, as the stages after it (detectors, publication) read it.
 
     idx : (k,) the rows' positions in ``rows``; slots : (k,) their slots in ``bank``; out : the step's output;
-    t : (k,) the rows' sample time stamps [ns]; all_finite : every estimate is finite (no row needs picking out).
+    t : (k,) the rows' sample time stamps [ns]; all_finite : every estimate is finite (no row needs picking out);
+    measured : (k, 2) the rows' measurements [v_x m/s, r rad/s].
     """
 
     bank: ProfileBank
@@ -167,6 +168,7 @@ class Stepped:
     out: StepOutput
     t: np.ndarray
     all_finite: bool
+    measured: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -210,6 +212,8 @@ class FleetEngine:
         self.started_mono = monotonic()
         self.stats: dict[str, int] = {"received": 0, "accepted": 0, "estimates": 0, "published": 0}
         self.stats.update({"missing": 0, "gaps": 0, "restarts": 0, "numerical_restarts": 0})
+        #: samples whose vehicle was beyond its profile's grip limit (fault levels held unjudged)
+        self.stats["beyond_grip"] = 0
         self.rejected: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
         #: plausibility limits of every profile, one row per bank ordinal (see _limits_row)
         self._limits = np.zeros((0, 6))
@@ -794,7 +798,7 @@ class FleetEngine:
         all_finite = bool(out.finite.all())  # the common case: no row needs picking out
         if not all_finite:
             self.stats["numerical_restarts"] += int((~out.finite).sum())
-        step = Stepped(bank, rows, idx, slots, out, t_ns[idx], all_finite)
+        step = Stepped(bank, rows, idx, slots, out, t_ns[idx], all_finite, values[idx, :2])
         self._detectors(step, result)
         self._publish_selection(step, seq, values, result)
 
@@ -804,7 +808,9 @@ class FleetEngine:
         bank, slots, t, out, all_finite = step.bank, step.slots, step.t, step.out, step.all_finite
         est, finite, certified = out.values, out.finite, out.certified
         usable = None if self._shortcuts and all_finite else finite
-        changed: set[int] = set(bank.faults.update(slots, est[:, FAULTS], t, usable, certified).tolist())
+        before = bank.faults.beyond_grip
+        changed = set(bank.faults.update(slots, est[:, FAULTS], t, usable, certified, step.measured).tolist())
+        self.stats["beyond_grip"] += bank.faults.beyond_grip - before
         if self._shortcuts and all_finite:
             changed.update(bank.domain.update(slots, (~certified).astype(float), t).tolist())
         else:
@@ -813,7 +819,7 @@ class FleetEngine:
         if bank.stage is not None:  # the effectiveness alarms, on alpha_hat and its sigma (finite rows)
             # after the fault channels' warm-up, which restarts where the estimate left the certified domain, as
             # `agv-fe replay` judges them
-            f = np.flatnonzero(finite & (t - bank.faults.started_t_ns[slots] >= bank.faults.warmup_ns))
+            f = np.flatnonzero(finite & bank.faults.judged(slots, t))
             sigma = bank.stage.alpha_sigma(slots[f])
             changed.update(f[bank.effectiveness.update(slots[f], est[f, ALPHAS], sigma, t[f])].tolist())
         for j in sorted(changed):

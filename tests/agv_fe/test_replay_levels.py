@@ -530,3 +530,57 @@ def test_a_recording_with_a_grade_column_replays_on_level_ground_as_the_service_
         rows = read_rows(out)
         assert "torque_alpha_hat" in rows[0]
         assert_the_engine_gives_the_replay(body, robust_gains_default, graded, rows, payload)
+
+
+def grip_flags(recording: Path, limit_g: float) -> np.ndarray:
+    """The samples of a recording beyond ``limit_g`` (combined and cornering) for service.fleet.grip.GripGate."""
+    from service.fleet.grip import GripGate, GripLimits
+
+    rows = read_rows(recording)
+    gate, row = GripGate(1, GripLimits(limit_g, 0.2, limit_g)), np.zeros(1, dtype=np.intp)
+    return np.array(
+        [
+            gate.update(
+                row, np.array([float(r["vx"])]), np.array([float(r["r"])]), np.array([round(float(r["t"]) * 1e9)])
+            )[0]
+            for r in rows
+        ]
+    )
+
+
+def test_beyond_the_grip_limit_the_replay_holds_the_levels_as_the_engine_does(tmp_path, capsys, robust_gains_default):
+    """A turn at about 0.26 g with a profile whose grip limits are 0.2 g, and a torque bias from inside the turn:
+    the replay judges the fault channels only from grip_hold_s after the last sample beyond the limit, says how
+    long it held them, and the engine fed the same samples does the same; without the gate the bias raises WARN
+    inside the turn."""
+    alarms = {**E2E_ALARMS, "grip_limit_g": 0.2, "grip_cornering_g": 0.2, "grip_hold_s": 0.5}
+    scenario = Scenario(
+        name="grip",
+        duration_s=10.0,
+        initial_speed_mps=12.0,
+        manoeuvres=(Manoeuvre(kind="turn", start_s=1.5, duration_s=3.0, amplitude_rad=0.05, ramp_s=0.5),),
+        faults=(BiasFault(channel="torque", onset_s=3.0, magnitude=150.0),),
+        noise=REALISTIC_NOISE,
+        seed=11,
+    )
+    recording = record(tmp_path / "turn.csv", scenario)
+    gated = replay_with_files(capsys, tmp_path, recording, robust_gains_default, {"alarms": alarms})
+    code, out, err = replay(capsys, recording, tmp_path / "again.csv", "--params", str(tmp_path / "profile.json"))
+    assert code == 0, err
+    assert "beyond the grip limits (0.2 g combined while braking" in out and "0.2 g in any case)" in out
+    assert "held there and for 0.5 s after" in out
+    (tmp_path / "off").mkdir()
+    ungated = replay_with_files(
+        capsys, tmp_path / "off", recording, robust_gains_default, {"alarms": {**alarms, "grip_limit_g": None}}
+    )
+    warn_gated, warn_ungated = (
+        first_at_least(gated, "torque_level", "WARN"),
+        first_at_least(ungated, "torque_level", "WARN"),
+    )
+    assert warn_ungated is not None and 3.0 < warn_ungated < 4.0  # inside the turn
+    # the last sample beyond the limit (the turn ends at 4.5 s), held 0.5 s after it, then raise_after_s
+    t, flagged = [float(r["t"]) for r in gated], grip_flags(recording, 0.2)
+    last = t[int(np.flatnonzero(flagged)[-1])]
+    assert 3.5 < last < 4.8 and warn_gated is not None
+    assert last + 0.5 + 0.3 - 0.011 <= warn_gated <= last + 0.5 + 0.3 + 0.011
+    assert_the_engine_gives_the_replay({"alarms": alarms}, robust_gains_default, recording, gated)

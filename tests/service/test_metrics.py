@@ -264,3 +264,22 @@ def test_a_real_service_exposes_its_series_the_process_and_the_end_to_end_delay(
         assert other_scrape.value("agv_fe_estimate_latency_seconds_count") == 0
         assert other_scrape.value("process_resident_memory_bytes") > 0
         assert parse_metrics(srv.get("/metrics").text).value("agv_fe_measurements_received_total") == n + 1
+
+
+def test_samples_beyond_the_grip_limit_are_counted_per_vehicle_sample_and_scraped(fast_gains):
+    """A vehicle in a 0.92 g turn (10 m/s at 0.9 rad/s) is beyond the default 0.8 g cornering limit from its
+    first sample (the filter starts at the sample's v_x r); one driving straight beside it never is; a profile
+    without the gate counts nothing."""
+    engine = make_engine(fast_gains)
+    for k in range(40):
+        engine.process(pairs([constant_measurement("turning", k, r=0.9), constant_measurement("straight", k)]))
+    assert engine.stats["beyond_grip"] == 40
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(ServiceCollector(_Source(engine)))
+    scrape = parse_metrics(exposition(registry).decode())
+    assert scrape.types["agv_fe_samples_beyond_grip_total"] == "counter"
+    assert scrape.value("agv_fe_samples_beyond_grip_total") == 40
+    ungated = make_engine(fast_gains, alarms={"grip_limit_g": None})
+    for k in range(40):
+        ungated.process(pairs([constant_measurement("turning", k, r=0.9)]))
+    assert ungated.stats["beyond_grip"] == 0
