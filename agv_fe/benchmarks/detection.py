@@ -415,9 +415,11 @@ class RaiseCounter:
         usable: NDArray[np.bool_] | None = None,
         alpha_sigma: FloatArray | None = None,
         certified: NDArray[np.bool_] | None = None,
+        measured: FloatArray | None = None,
     ) -> tuple[NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
         """Feed one sample's fault estimates f_hat (n, 2) [N m, rad] at ``t_ns`` [ns] (``usable``: finite rows;
-        ``certified``: the rows the design's certificate covers, as the service's levels take them); alpha_hat
+        ``certified``: the rows the design's certificate covers, as the service's levels take them; ``measured``
+        (n, 2) [v_x m/s, r rad/s] for the grip gate, as the service's levels take them); alpha_hat
         (n, 2) [-] and ``alpha_sigma`` (n, 2) [-] for the effectiveness rule (a non-finite alpha_hat raises
         nothing).
 
@@ -425,7 +427,7 @@ class RaiseCounter:
         """
         self._t_ns.fill(t_ns)
         if isinstance(self.levels, FaultLevels):
-            changed = self.levels.update(self.rows, f_hat, self._t_ns, usable, certified)
+            changed = self.levels.update(self.rows, f_hat, self._t_ns, usable, certified, measured)
         else:
             sigma = np.zeros_like(f_hat) if alpha_sigma is None else alpha_sigma
             changed = self.levels.update(self.rows, f_hat, sigma, self._t_ns)
@@ -555,11 +557,12 @@ class Tally:
         context: Callable[[int], dict[str, Any]],
         alpha_sigma: FloatArray | None = None,
         certified: NDArray[np.bool_] | None = None,
+        measured: FloatArray | None = None,
     ) -> None:
         """One sample of the batch, n vehicles: f_hat (n, 2), in_domain (n,), near_gust (n,) a gust within
         GUST_WINDOW_S; ``warm``: after the warm-up; ``context(vehicle)`` describes an alarm's vehicle;
         ``alpha_sigma`` (n, 2): alpha_hat's standard deviation, for the effectiveness rule; ``certified`` (n,):
-        the rows the design's certificate covers (None: all)."""
+        the rows the design's certificate covers (None: all); ``measured`` (n, 2) [v_x, r] for the grip gate."""
         usable = usable_rows(f_hat)
         finite = slice(None) if usable is None else usable
         if usable is not None:
@@ -575,7 +578,7 @@ class Tally:
                 self.sum_squares += np.einsum("ij,ij->j", magnitude, magnitude)
                 self.samples_after_warmup += magnitude.shape[0]
         for i, counter in enumerate(self.counters):
-            rows, to_warn, to_fault = counter.update(f_hat, t_ns, usable, alpha_sigma, certified)
+            rows, to_warn, to_fault = counter.update(f_hat, t_ns, usable, alpha_sigma, certified, measured)
             if not rows.size:
                 continue
             gust = near_gust[rows, None]
@@ -752,14 +755,21 @@ def run_fleet_job(job: FleetJob) -> dict[str, Any]:
             result = observer.step(sample.y, sample.u)
             certified = result.certified
             tallies["observer"].update(
-                result.faults, result.in_domain, t_ns, warm, near_gust, context, certified=certified
+                result.faults, result.in_domain, t_ns, warm, near_gust, context, certified=certified, measured=sample.y
             )
             second = stage.step(result, sample.y, sample.u)
             tallies[ALPHA].update(second.alpha, result.in_domain, t_ns, warm, near_gust, context, second.alpha_sigma)
             if job.n_ekf:
                 out = estimators["EKF"].step(sample.y[: job.n_ekf], sample.u[: job.n_ekf])
                 tallies["EKF"].update(
-                    out.faults, out.in_domain, t_ns, warm, near_gust[: job.n_ekf], context, certified=out.certified
+                    out.faults,
+                    out.in_domain,
+                    t_ns,
+                    warm,
+                    near_gust[: job.n_ekf],
+                    context,
+                    certified=out.certified,
+                    measured=sample.y[: job.n_ekf],
                 )
             k_total += 1
         state, steer = plant.state, plant.steer_angle
@@ -966,7 +976,7 @@ def run_fault_job(job: FaultJob) -> dict[str, Any]:
             usable = usable_rows(values)
             sigma = second.alpha_sigma if name == ALPHA else None
             for counter, tracker in zip(counters[name], trackers[name], strict=True):
-                counter.update(values, k * period_ns, usable, sigma, certified)
+                counter.update(values, k * period_ns, usable, sigma, certified, None if name == ALPHA else sample.y)
                 tracker.update(sample.t, counter.level)
     results: dict[str, Any] = {"runs": [list(r) for r in job.runs], "onset_s": onset.tolist()}
     other = 1 - channel

@@ -99,6 +99,10 @@ URBAN_YAW_RATE_RADPS = 0.65
 #: the load moves between the axles (docs/math.md 12.4).
 COMBINED_LATERAL_ACCEL_MPS2 = (2.0, 4.5)
 COMBINED_ACCEL_MPS2 = 3.5
+#: Every other one of those (seed % (2 URBAN_EVERY) == URBAN_EVERY + 1) brakes and accelerates hard in faster
+#: turns: combined accelerations to 0.8 g, beyond the profile's grip limit (docs/math.md 12.4).
+HARD_COMBINED_LATERAL_ACCEL_MPS2 = (4.0, 5.5)
+HARD_COMBINED_ACCEL_MPS2 = 5.5
 QUICK_HEALTHY_DURATION_S = 30.0
 #: Fault runs: seeds of the drive and of the sensor noise, distinct from the healthy and calibration seeds.
 FAULT_SEEDS = (1001, 1002, 1003)
@@ -362,7 +366,14 @@ def sensitivity_jobs(parameter_set: int, plan: Plan) -> list[mb.MultibodyJob]:
 
 def healthy_drive(seed: int, duration_s: float) -> mb.Drive:
     """The healthy random drive of ``seed``: in town for every URBAN_EVERY-th seed, braking and accelerating in
-    turns for the seeds after those, else on open roads."""
+    turns for the seeds after those (every other one hard), else on open roads."""
+    if seed % (2 * URBAN_EVERY) == URBAN_EVERY + 1:
+        return mb.combined_drive(
+            seed,
+            duration_s,
+            lateral_accel_mps2=HARD_COMBINED_LATERAL_ACCEL_MPS2,
+            max_accel_mps2=HARD_COMBINED_ACCEL_MPS2,
+        )
     if seed % URBAN_EVERY == 1:
         return mb.combined_drive(
             seed, duration_s, lateral_accel_mps2=COMBINED_LATERAL_ACCEL_MPS2, max_accel_mps2=COMBINED_ACCEL_MPS2
@@ -415,7 +426,8 @@ class Estimated:
     f_hat (K, 2) fault estimates [T_f N m, delta_f rad]; levels (K, 2) level ranks of [torque, steer]
     (service.fleet.alarms.LEVEL_NAMES) after each sample; in_domain (K,) premise in the design box; finite (K,)
     the estimate was finite (a non-finite one is not fed to the levels); assessed (K,) the levels judged the
-    sample (finite, after the warm-up, which runs again after each sample outside the certified domain).
+    sample (finite, after the warm-up, which runs again after each sample outside the certified domain, and not
+    within the profile's grip_hold_s of a sample beyond its grip limit).
     """
 
     f_hat: FloatArray
@@ -423,6 +435,8 @@ class Estimated:
     in_domain: NDArray[np.bool_]
     finite: NDArray[np.bool_]
     assessed: NDArray[np.bool_]
+    #: (K,) the levels were held by the grip gate (within grip_hold_s of a sample beyond the grip limit)
+    grip_held: NDArray[np.bool_]
     #: the effectiveness stage's alpha_hat (K, 2) [torque, steer]; None for the other estimators
     alpha: FloatArray | None = None
 
@@ -467,6 +481,7 @@ def _estimate_batch(
     in_domain = np.empty((n, nv), dtype=bool)
     finite = np.empty((n, nv), dtype=bool)
     assessed = np.empty((n, nv), dtype=bool)
+    grip_held = np.empty((n, nv), dtype=bool)
     alpha: FloatArray | None = None
     for k in range(n):
         step = estimator.step(y[k], u[k])
@@ -478,8 +493,10 @@ def _estimate_batch(
         in_domain[k] = step.in_domain
         finite[k] = np.isfinite(f_hat[k]).all(axis=1)
         usable = None if finite[k].all() else finite[k]
-        levels.update(rows, f_hat[k], np.full(nv, t_ns[k], dtype=np.int64), usable, step.certified)
-        assessed[k] = finite[k] & (t_ns[k] - levels.started_t_ns >= levels.warmup_ns)
+        t_k = np.full(nv, t_ns[k], dtype=np.int64)
+        levels.update(rows, f_hat[k], t_k, usable, step.certified, y[k])
+        assessed[k] = finite[k] & levels.judged(rows, t_k)
+        grip_held[k] = t_k < levels.held_until_ns
         level[k, :, 0] = levels.torque.level
         level[k, :, 1] = levels.steer.level
     return [
@@ -489,6 +506,7 @@ def _estimate_batch(
             in_domain[:, j],
             finite[:, j],
             assessed[:, j],
+            grip_held[:, j],
             None if alpha is None else alpha[:, j],
         )
         for j in range(nv)
@@ -661,6 +679,7 @@ def healthy_figures(
         "drives_with_alarm": sorted(drives_with_alarm),
         "in_domain_share": sum(int(e.in_domain.sum()) for e in estimated) / max(samples, 1),
         "assessed_share": sum(int(e.assessed.sum()) for e in estimated) / max(samples, 1),
+        "grip_held_share": sum(int(e.grip_held.sum()) for e in estimated) / max(samples, 1),
         "non_finite_samples": sum(int((~e.finite).sum()) for e in estimated),
         # every alarm counts in the figures above; the first ones are kept to be read (the paper's profile
         # raises hundreds)
@@ -1825,17 +1844,22 @@ def _healthy_section(result: dict[str, Any]) -> list[str]:
         f"yaw rates to {URBAN_YAW_RATE_RADPS:g} rad/s: corners tighter than the calibration drive's), each "
         f"drive after those brakes and accelerates in turns (|a_y| {COMBINED_LATERAL_ACCEL_MPS2[0]:g} to "
         f"{COMBINED_LATERAL_ACCEL_MPS2[1]:g} m/s^2 with |a_x| to {COMBINED_ACCEL_MPS2:g} m/s^2, 10 to 22 m/s: the "
-        "load transfer, docs/math.md 12.4), the others on open roads (8 to 22 m/s, 0.5 rad/s). "
+        "load transfer, docs/math.md 12.4; every other one of those hard, |a_y| "
+        f"{HARD_COMBINED_LATERAL_ACCEL_MPS2[0]:g} to {HARD_COMBINED_LATERAL_ACCEL_MPS2[1]:g} m/s^2 with |a_x| to "
+        f"{HARD_COMBINED_ACCEL_MPS2:g} m/s^2: "
+        "beyond the grip limits), the others on open roads (8 to 22 m/s, 0.5 rad/s). "
         "Raised: times a level went from OK to WARN or higher / reached FAULT, after the warm-up. Judged by the "
         "levels: the share of samples after the warm-up, which runs again after each sample outside the certified "
-        "domain (docs/math.md section 8); peaks and RMS are taken over those. Held peak: the "
+        "domain (docs/math.md section 8), and not within the profile's grip_hold_s of a combined acceleration "
+        "beyond its grip limits (docs/math.md 12.4; held by the grip gate: that share); peaks and RMS are taken "
+        "over those. Held peak: the "
         "largest |estimate| held for the alarm's persistence time; a level can only be raised where it reaches the "
         "threshold (held peak / WARN >= 1). The EKF's thresholds come from its own "
         "estimates on the calibration drive; the `paper` profile's are the defaults.\n",
         "| estimator | channel | WARN / FAULT threshold | WARN raised | FAULT raised "
         "| peak / held peak of the magnitude | held peak / WARN | held peak at: drive seed, t, peak a_y in it "
-        "| RMS estimate | drives with an alarm | premise in domain | judged by the levels |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| RMS estimate | drives with an alarm | premise in domain | judged by the levels | held by the grip gate |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name in ("calibrated", "EKF", "paper"):
         figures = healthy[name]
@@ -1850,7 +1874,8 @@ def _healthy_section(result: dict[str, Any]) -> list[str]:
                 f"| {_fmt(c['rms_estimate'])} "
                 f"| {len(figures['drives_with_alarm'])} of {driving['drives']} "
                 f"| {100 * figures['in_domain_share']:.1f} % "
-                f"| {100 * figures.get('assessed_share', math.nan):.1f} % |"
+                f"| {100 * figures.get('assessed_share', math.nan):.1f} % "
+                f"| {100 * figures.get('grip_held_share', math.nan):.1f} % |"
             )
     lines.append("")
     for name in ("calibrated", "EKF"):

@@ -133,8 +133,8 @@ def test_calibration_figures_against_the_plant(figures):
 
 def test_every_third_healthy_drive_is_in_town_and_every_one_after_brakes_in_turns():
     """Seeds 3, 6, 9... drive at 6-12 m/s with corners up to 0.65 rad/s (seed 9's reaches 0.64 rad/s at 7 m/s^2,
-    beyond the open roads' 0.5 rad/s); seeds 1, 4, 7... brake and accelerate in turns; seed 2 drives on open
-    roads, its speed changes on straights."""
+    beyond the open roads' 0.5 rad/s); seeds 1, 4, 7... brake and accelerate in turns, 4, 10, 16... hard (beyond
+    the grip limit); seed 2 drives on open roads, its speed changes on straights."""
     town, road = bench.healthy_drive(9, 60.0), bench.healthy_drive(2, 60.0)
     assert bench.URBAN_SPEED_MPS[0] <= town.speed_mps.min() and town.speed_mps.max() <= bench.URBAN_SPEED_MPS[1]
     assert 0.6 < np.abs(town.yaw_rate_radps).max() <= bench.URBAN_YAW_RATE_RADPS
@@ -144,12 +144,16 @@ def test_every_third_healthy_drive_is_in_town_and_every_one_after_brakes_in_turn
         a_y = np.abs(drive.speed_mps * drive.yaw_rate_radps)  # type: ignore[attr-defined]
         return float(np.mean((np.abs(drive.accel_mps2) > 1.5) & (a_y > 1.5)))  # type: ignore[attr-defined]
 
-    combined = bench.healthy_drive(4, 60.0)
-    assert combined.name == "combined_4" and combined_share(combined) > 0.2
     assert combined_share(road) == 0.0
-    a_y = np.abs(combined.speed_mps * combined.yaw_rate_radps)
-    assert a_y.max() <= bench.COMBINED_LATERAL_ACCEL_MPS2[1] + 1e-9
-    assert np.abs(combined.accel_mps2).max() <= bench.COMBINED_ACCEL_MPS2 + 1e-6
+    for seed, lateral, accel in (
+        (7, bench.COMBINED_LATERAL_ACCEL_MPS2, bench.COMBINED_ACCEL_MPS2),
+        (4, bench.HARD_COMBINED_LATERAL_ACCEL_MPS2, bench.HARD_COMBINED_ACCEL_MPS2),
+    ):
+        combined = bench.healthy_drive(seed, 60.0)
+        assert combined.name == f"combined_{seed}" and combined_share(combined) > 0.2
+        a_y = np.abs(combined.speed_mps * combined.yaw_rate_radps)
+        assert lateral[1] - 1.0 < a_y.max() <= lateral[1] + 1e-9
+        assert accel - 1.0 < np.abs(combined.accel_mps2).max() <= accel + 1e-6
 
 
 def test_healthy_counts_are_consistent(figures):
