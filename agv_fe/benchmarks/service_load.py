@@ -31,6 +31,7 @@ import gc
 import json
 import multiprocessing
 import os
+import statistics
 import struct
 import subprocess
 import sys
@@ -488,6 +489,8 @@ ENGINE_TICKS = 300
 #: The engine alone also in ticks of a fifth of the fleet: vehicles spread over the 10 ms period, in ticks 2 ms apart
 #: (the service's default tick interval).
 ENGINE_PHASES = 5
+#: The engine alone is timed this many times in each configuration, in turn; the report gives the median.
+ENGINE_REPEATS = 3
 ENGINE_SHARE = "a fifth"
 
 
@@ -507,8 +510,14 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: in
     gc.freeze()  # as the service does once started (setting ingest.gc_freeze)
     rows = []
     for n in sizes:
-        us = _engine_us(gains, n, every_n, 1)
-        spread = _engine_us(gains, n, every_n, ENGINE_PHASES)
+        # with the profile's grip gate (the default) and without, in turn: its cost as a ratio of one run
+        times: dict[tuple[int, bool], list[float]] = {}
+        for _ in range(ENGINE_REPEATS):
+            for phases in (1, ENGINE_PHASES):
+                for grip in (True, False):
+                    times.setdefault((phases, grip), []).append(_engine_us(gains, n, every_n, phases, grip))
+        us, spread = (statistics.median(times[p, True]) for p in (1, ENGINE_PHASES))
+        us_off, spread_off = (statistics.median(times[p, False]) for p in (1, ENGINE_PHASES))
         rows.append(
             {
                 "vehicles": n,
@@ -516,25 +525,31 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: in
                 "cores_at_100hz": us * 1e-6 * n * RATE_HZ,
                 "us_per_msg_spread": spread,
                 "cores_at_100hz_spread": spread * 1e-6 * n * RATE_HZ,
+                "us_per_msg_no_grip_gate": us_off,
+                "us_per_msg_spread_no_grip_gate": spread_off,
             }
         )
         print(
             f"  engine alone, {n} vehicles, every {every_n}: {us:.2f} us per measurement "
-            f"({spread:.2f} in ticks of {ENGINE_SHARE} of the fleet)",
+            f"({spread:.2f} in ticks of {ENGINE_SHARE} of the fleet); without the grip gate {us_off:.2f} "
+            f"({spread_off:.2f})",
             flush=True,
         )
     return rows
 
 
-def _engine_us(gains: Any, n: int, every_n: int, phases: int) -> float:
-    """Microseconds per measurement of a fresh engine: n vehicles, each tick a 1/phases of them, one sample each."""
+def _engine_us(gains: Any, n: int, every_n: int, phases: int, grip: bool = True) -> float:
+    """Microseconds per measurement of a fresh engine: n vehicles, each tick a 1/phases of them, one sample each;
+    the default profile, without its grip gate unless ``grip``."""
     from agv_protocol.wire import vehicle_key
     from service.fleet.engine import EngineConfig, FleetEngine
     from service.profiles import ProfileSpec
 
     pack = struct.Struct("<Qq").pack_into
     engine = FleetEngine(EngineConfig(estimate_every_n=every_n, history_samples=50))
-    engine.add_profile("default", ProfileSpec())
+    engine.add_profile(
+        "default", ProfileSpec() if grip else ProfileSpec.model_validate({"alarms": {"grip_limit_g": None}})
+    )
     engine.activate("default", gains)
     ids = vehicle_ids(n)
     keys = [vehicle_key(v, "meas") for v in ids]
@@ -747,17 +762,29 @@ def _engine_table(engine: list[dict[str, Any]]) -> list[str]:
         "The fleet engine alone, in one process without Zenoh (same gains and estimate decimation, "
         f"{ENGINE_TICKS} samples per vehicle, the start-up heap frozen as the service does): the service's own "
         f"ingest work, with every vehicle in each tick, and with {ENGINE_SHARE} of the fleet in each tick "
-        "(vehicles spread over the 10 ms period, in the service's default ticks 2 ms apart).",
+        "(vehicles spread over the 10 ms period, in the service's default ticks 2 ms apart). Each the median of "
+        f"{ENGINE_REPEATS} timings, taken in turn with the same profile without its grip gate (`grip_limit_g` null, "
+        "docs/math.md 12.4): the gate's cost is the ratio of the two.",
         "",
         "| vehicles | us per measurement, whole fleet per tick | cores needed at 100 Hz "
-        f"| us per measurement, {ENGINE_SHARE} per tick | cores needed at 100 Hz |",
-        "|---|---|---|---|---|",
+        f"| us per measurement, {ENGINE_SHARE} per tick | cores needed at 100 Hz "
+        "| without the grip gate: whole fleet / a fifth per tick | the gate's cost |",
+        "|---|---|---|---|---|---|---|",
         *(
             f"| {e['vehicles']} | {e['us_per_msg']:.2f} | {e['cores_at_100hz']:.3f} "
-            f"| {e['us_per_msg_spread']:.2f} | {e['cores_at_100hz_spread']:.3f} |"
+            f"| {e['us_per_msg_spread']:.2f} | {e['cores_at_100hz_spread']:.3f} "
+            f"| {e['us_per_msg_no_grip_gate']:.2f} / {e['us_per_msg_spread_no_grip_gate']:.2f} "
+            f"| {_gate_cost(e)} |"
             for e in engine
         ),
     ]
+
+
+def _gate_cost(e: dict[str, Any]) -> str:
+    """The grip gate's cost in the engine alone: its time over the time without it, less one [%]."""
+    whole = e["us_per_msg"] / e["us_per_msg_no_grip_gate"] - 1.0
+    spread = e["us_per_msg_spread"] / e["us_per_msg_spread_no_grip_gate"] - 1.0
+    return f"{100 * whole:+.0f} % / {100 * spread:+.0f} %"
 
 
 ANALYSIS = """## Reading

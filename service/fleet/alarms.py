@@ -201,6 +201,7 @@ class FaultLevels:
         self.held_until_ns = np.full(capacity, _NOT_HOLDING, dtype=np.int64)
         #: samples the grip gate flagged (a counter for the service's statistics)
         self.beyond_grip = 0
+        self._held_until_max = _NOT_HOLDING  # no row is held at or after this sample time [ns]
 
     def configure(self, alarms: AlarmThresholds) -> None:
         """New alarm settings; levels are kept, and timers too unless the rule changed (its statistics restart)."""
@@ -237,7 +238,10 @@ class FaultLevels:
     def judged(self, rows: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
         """(k,) bool: the rows whose levels a sample at ``t_ns`` is judged by (after the warm-up and the grip
         gate's hold)."""
-        return (t_ns - self.started_t_ns[rows] >= self.warmup_ns) & (t_ns >= self.held_until_ns[rows])
+        warm = t_ns - self.started_t_ns[rows] >= self.warmup_ns
+        if not t_ns.shape[0] or self._held_until_max <= t_ns.min():  # the common tick: nobody is held
+            return warm
+        return warm & (t_ns >= self.held_until_ns[rows])
 
     def restart(self, rows: np.ndarray, t_ns: np.ndarray) -> None:
         """The observers of ``rows`` (re)start at sample times ``t_ns`` [ns]: the warm-up runs from there;
@@ -275,7 +279,9 @@ class FaultLevels:
             beyond = np.flatnonzero(self.grip.update(rows, measured[:, 0], measured[:, 1], t_ns))
             if len(beyond):
                 held = rows[beyond]
-                self.held_until_ns[held] = t_ns[beyond] + self.grip_hold_ns
+                until = t_ns[beyond] + self.grip_hold_ns
+                self.held_until_ns[held] = until
+                self._held_until_max = max(self._held_until_max, int(until.max()))
                 self.torque.reset(held, keep_level=True)
                 self.steer.reset(held, keep_level=True)
                 self.beyond_grip += len(beyond)

@@ -47,6 +47,12 @@ def test_service_load_benchmark_reports_what_it_measured(tmp_path, monkeypatch):
         assert f"{engine['us_per_msg']:.2f} us per measurement" in text
         assert f"| 10 | {engine['us_per_msg']:.2f} | {engine['cores_at_100hz']:.3f} " in text
         assert f"| {engine['us_per_msg_spread']:.2f} | {engine['cores_at_100hz_spread']:.3f} |" in text
+        # the same engine without the grip gate, timed in turn: the gate's cost as a ratio
+        off, off_spread = engine["us_per_msg_no_grip_gate"], engine["us_per_msg_spread_no_grip_gate"]
+        assert off > 0 and off_spread > 0
+        whole, spread = engine["us_per_msg"] / off - 1, engine["us_per_msg_spread"] / off_spread - 1
+        cost = f"{100 * whole:+.0f} % / {100 * spread:+.0f} %"
+        assert f"| {off:.2f} / {off_spread:.2f} | {cost} |" in text
         # every tick drained at least one sample; the ticks' measurements add up to what was accepted
         assert 0 < row["service_ticks"] <= row["accepted"]
         assert f"({row['accepted'] / row['service_ticks']:.0f}) | {bench._verdict(row)} |" in text

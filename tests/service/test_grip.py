@@ -93,6 +93,8 @@ def test_no_limit_flags_nothing_and_rows_are_independent():
             rows, np.array([10.0, 10.0]), np.array([G_MPS2 / 10.0, 0.0]), np.array([k, k]) * PERIOD_NS
         )
     assert flagged.tolist() == [True, False] and gate.state.shape == (4, 4)
+    none = np.zeros(0, dtype=np.intp)
+    assert gate.update(none, np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64)).shape == (0,)
 
 
 #: Rules quick enough to show each transition in a few hundred samples of 10 ms; the grip hold 0.5 s.
@@ -146,3 +148,10 @@ def test_a_raised_level_is_held_not_cleared_beyond_the_grip_limit():
     assert not levels.judged(np.zeros(1, dtype=np.intp), np.array([199 * PERIOD_NS]))[0]
     torque = braking_in_a_turn(levels, 0.0, range(200, 400), hard)
     assert torque[-1] == OK
+
+
+def test_a_tick_without_rows_changes_nothing():
+    levels = FaultLevels(2, GRIP_ALARMS)
+    none = np.zeros(0, dtype=np.intp)
+    changed = levels.update(none, np.zeros((0, 2)), np.zeros(0, dtype=np.int64), measured=np.zeros((0, 2)))
+    assert changed.shape == (0,) and levels.judged(none, np.zeros(0, dtype=np.int64)).shape == (0,)
