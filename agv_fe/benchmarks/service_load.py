@@ -31,7 +31,6 @@ import gc
 import json
 import multiprocessing
 import os
-import statistics
 import struct
 import subprocess
 import sys
@@ -489,8 +488,6 @@ ENGINE_TICKS = 300
 #: The engine alone also in ticks of a fifth of the fleet: vehicles spread over the 10 ms period, in ticks 2 ms apart
 #: (the service's default tick interval).
 ENGINE_PHASES = 5
-#: The engine alone is timed this many times in each configuration, in turn; the report gives the median.
-ENGINE_REPEATS = 3
 ENGINE_SHARE = "a fifth"
 
 
@@ -510,14 +507,8 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: in
     gc.freeze()  # as the service does once started (setting ingest.gc_freeze)
     rows = []
     for n in sizes:
-        # with the profile's grip gate (the default) and without, in turn: its cost as a ratio of one run
-        times: dict[tuple[int, bool], list[float]] = {}
-        for _ in range(ENGINE_REPEATS):
-            for phases in (1, ENGINE_PHASES):
-                for grip in (True, False):
-                    times.setdefault((phases, grip), []).append(_engine_us(gains, n, every_n, phases, grip))
-        us, spread = (statistics.median(times[p, True]) for p in (1, ENGINE_PHASES))
-        us_off, spread_off = (statistics.median(times[p, False]) for p in (1, ENGINE_PHASES))
+        us, us_off = _engine_us(gains, n, every_n, 1)
+        spread, spread_off = _engine_us(gains, n, every_n, ENGINE_PHASES)
         rows.append(
             {
                 "vehicles": n,
@@ -538,23 +529,25 @@ def _engine_alone(gains_doc: dict[str, Any], sizes: tuple[int, ...], every_n: in
     return rows
 
 
-def _engine_us(gains: Any, n: int, every_n: int, phases: int, grip: bool = True) -> float:
-    """Microseconds per measurement of a fresh engine: n vehicles, each tick a 1/phases of them, one sample each;
-    the default profile, without its grip gate unless ``grip``."""
+def _engine_us(gains: Any, n: int, every_n: int, phases: int) -> tuple[float, float]:
+    """Microseconds per measurement of two fresh engines, the default profile with its grip gate and without:
+    n vehicles, each tick a 1/phases of them, one sample each. The two take each tick in turn (which one first
+    alternates), so that both see the machine as it is at that moment: their ratio is the gate's cost."""
     from agv_protocol.wire import vehicle_key
     from service.fleet.engine import EngineConfig, FleetEngine
     from service.profiles import ProfileSpec
 
     pack = struct.Struct("<Qq").pack_into
-    engine = FleetEngine(EngineConfig(estimate_every_n=every_n, history_samples=50))
-    engine.add_profile(
-        "default", ProfileSpec() if grip else ProfileSpec.model_validate({"alarms": {"grip_limit_g": None}})
-    )
-    engine.activate("default", gains)
+    engines = []
+    for spec in (ProfileSpec(), ProfileSpec.model_validate({"alarms": {"grip_limit_g": None}})):
+        engine = FleetEngine(EngineConfig(estimate_every_n=every_n, history_samples=50))
+        engine.add_profile("default", spec)
+        engine.activate("default", gains)
+        engines.append(engine)
     ids = vehicle_ids(n)
     keys = [vehicle_key(v, "meas") for v in ids]
     templates = _templates(ids)
-    elapsed, measured = 0.0, 0
+    elapsed, measured = [0.0, 0.0], 0
     for k in range((ENGINE_TICKS + 20) * phases):
         sample, group = k // phases, range(k % phases, n, phases)
         t_ns = time.time_ns()
@@ -563,12 +556,14 @@ def _engine_us(gains: Any, n: int, every_n: int, phases: int, grip: bool = True)
             pack(templates[i], 8, sample, t_ns)
             batch.append((keys[i], bytes(templates[i])))
             templates[i][5] = 0  # the first sample restarts the sequence, the others follow it
-        start = time.perf_counter()
-        engine.process(batch)
-        if sample >= 20:  # the first ticks register the vehicles
-            elapsed += time.perf_counter() - start
+        for j in (0, 1) if k % 2 else (1, 0):
+            start = time.perf_counter()
+            engines[j].process(batch)
+            if sample >= 20:  # the first ticks register the vehicles
+                elapsed[j] += time.perf_counter() - start
+        if sample >= 20:
             measured += len(batch)
-    return elapsed / measured * 1e6
+    return elapsed[0] / measured * 1e6, elapsed[1] / measured * 1e6
 
 
 def _calibration_us(vehicles: int = 1000, steps: int = 300) -> float:
@@ -762,9 +757,9 @@ def _engine_table(engine: list[dict[str, Any]]) -> list[str]:
         "The fleet engine alone, in one process without Zenoh (same gains and estimate decimation, "
         f"{ENGINE_TICKS} samples per vehicle, the start-up heap frozen as the service does): the service's own "
         f"ingest work, with every vehicle in each tick, and with {ENGINE_SHARE} of the fleet in each tick "
-        "(vehicles spread over the 10 ms period, in the service's default ticks 2 ms apart). Each the median of "
-        f"{ENGINE_REPEATS} timings, taken in turn with the same profile without its grip gate (`grip_limit_g` null, "
-        "docs/math.md 12.4): the gate's cost is the ratio of the two.",
+        "(vehicles spread over the 10 ms period, in the service's default ticks 2 ms apart). A second engine, the "
+        "same profile without its grip gate (`grip_limit_g` null, docs/math.md 12.4), takes each tick in turn with "
+        "the first: the gate's cost is the ratio of their times.",
         "",
         "| vehicles | us per measurement, whole fleet per tick | cores needed at 100 Hz "
         f"| us per measurement, {ENGINE_SHARE} per tick | cores needed at 100 Hz "
