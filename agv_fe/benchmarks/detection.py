@@ -40,6 +40,7 @@ The benchmark measures; it adjusts nothing.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import multiprocessing
@@ -697,6 +698,17 @@ def fleet_segment(
     return scenarios
 
 
+def _alarm_context(vehicles: Sequence[int], sample: Any, t_ns: int, row: int) -> dict[str, Any]:
+    """What a vehicle of the fleet was doing when one of its levels was raised: ``row`` of the plant's sample."""
+    return {
+        "vehicle": vehicles[row],
+        "t_s": t_ns / 1e9,
+        "speed_mps": float(sample.x[row, 0]),
+        "lateral_accel_mps2": float(sample.x[row, 0] * sample.x[row, 2]),
+        "wind_n": float(sample.wind[row]),
+    }
+
+
 def run_fleet_job(job: FleetJob) -> dict[str, Any]:
     """Drive the job's vehicles through their segments with the project's plant, stream every sample through
     the observer (all vehicles) and the EKF (the first ``n_ekf``) and their rules; return plain data."""
@@ -742,16 +754,7 @@ def run_fleet_job(job: FleetJob) -> dict[str, Any]:
             driving.update(sample.x, sample.wind, job.gains.bounds, job.vehicles, t_ns / 1e9)
             last_gust_ns[sample.wind != 0.0] = t_ns
             near_gust = t_ns - last_gust_ns <= gust_window_ns
-
-            def context(row: int, sample: Any = sample, t_ns: int = t_ns) -> dict[str, Any]:
-                return {
-                    "vehicle": job.vehicles[row],
-                    "t_s": t_ns / 1e9,
-                    "speed_mps": float(sample.x[row, 0]),
-                    "lateral_accel_mps2": float(sample.x[row, 0] * sample.x[row, 2]),
-                    "wind_n": float(sample.wind[row]),
-                }
-
+            context = functools.partial(_alarm_context, job.vehicles, sample, t_ns)
             result = observer.step(sample.y, sample.u)
             certified = result.certified
             tallies["observer"].update(
