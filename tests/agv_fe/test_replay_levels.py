@@ -430,6 +430,23 @@ def assert_the_engine_gives_the_replay(
     return estimates
 
 
+def turn_with_a_torque_bias(tmp_path: Path, duration_s: float, amplitude_rad: float) -> Path:
+    """A recording of 10 s at 12 m/s, a turn from 1.5 s lasting ``duration_s`` with ``amplitude_rad`` of steering,
+    a 150 N m torque bias from 3 s (inside the turn), realistic noise."""
+    scenario = Scenario(
+        name="turn",
+        duration_s=10.0,
+        initial_speed_mps=12.0,
+        manoeuvres=(
+            Manoeuvre(kind="turn", start_s=1.5, duration_s=duration_s, amplitude_rad=amplitude_rad, ramp_s=0.5),
+        ),
+        faults=(BiasFault(channel="torque", onset_s=3.0, magnitude=150.0),),
+        noise=REALISTIC_NOISE,
+        seed=11,
+    )
+    return record(tmp_path / "turn.csv", scenario)
+
+
 def test_outside_the_certified_domain_the_replay_holds_the_levels_as_the_engine_does(tmp_path, capsys):
     """A profile whose box holds yaw rates to 0.15 rad/s only, a turn beyond it, and a torque bias from inside
     the turn: neither the replay nor the engine judges the fault channels in the turn and for the warm-up after
@@ -437,16 +454,7 @@ def test_outside_the_certified_domain_the_replay_holds_the_levels_as_the_engine_
     body = {"bounds": {"r_min_radps": -0.15, "r_max_radps": 0.15}, "design": {"switching": None}, "alarms": E2E_ALARMS}
     spec = ProfileSpec.model_validate(body)
     gains = synthesize(spec.params, spec.bounds, DesignOptions(switching=None))
-    scenario = Scenario(
-        name="leaves-the-box",
-        duration_s=10.0,
-        initial_speed_mps=12.0,
-        manoeuvres=(Manoeuvre(kind="turn", start_s=1.5, duration_s=4.0, amplitude_rad=0.06, ramp_s=0.5),),
-        faults=(BiasFault(channel="torque", onset_s=3.0, magnitude=150.0),),
-        noise=REALISTIC_NOISE,
-        seed=11,
-    )
-    recording = record(tmp_path / "turn.csv", scenario)
+    recording = turn_with_a_torque_bias(tmp_path, duration_s=4.0, amplitude_rad=0.06)
     rows = replay_with_files(capsys, tmp_path, recording, gains, body)
     outside = [float(r["t"]) for r in rows if r["in_domain"] in ("False", "0", "false")]
     assert outside and 1.5 < outside[0] < 3.0 < outside[-1] < 6.0  # the turn leaves the box around the onset
@@ -554,16 +562,7 @@ def test_beyond_the_grip_limit_the_replay_holds_the_levels_as_the_engine_does(tm
     long it held them, and the engine fed the same samples does the same; without the gate the bias raises WARN
     inside the turn."""
     alarms = {**E2E_ALARMS, "grip_limit_g": 0.2, "grip_cornering_g": 0.2, "grip_hold_s": 0.5}
-    scenario = Scenario(
-        name="grip",
-        duration_s=10.0,
-        initial_speed_mps=12.0,
-        manoeuvres=(Manoeuvre(kind="turn", start_s=1.5, duration_s=3.0, amplitude_rad=0.05, ramp_s=0.5),),
-        faults=(BiasFault(channel="torque", onset_s=3.0, magnitude=150.0),),
-        noise=REALISTIC_NOISE,
-        seed=11,
-    )
-    recording = record(tmp_path / "turn.csv", scenario)
+    recording = turn_with_a_torque_bias(tmp_path, duration_s=3.0, amplitude_rad=0.05)
     gated = replay_with_files(capsys, tmp_path, recording, robust_gains_default, {"alarms": alarms})
     code, out, err = replay(capsys, recording, tmp_path / "again.csv", "--params", str(tmp_path / "profile.json"))
     assert code == 0, err
