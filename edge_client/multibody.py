@@ -141,8 +141,9 @@ class Variant:
     ``cg_back_m`` [m] (forward if negative), the heights of it and of the whole vehicle's scaled by
     ``cg_height_factor``, the tyres' cornering stiffness (the magic formula's p_ky1) scaled by
     ``tyre_stiffness_factor``, the brakes' front share (T_sb) set to ``brake_front_share`` and the drive torque's
-    (T_se) to ``drive_front_share`` (1 front-wheel drive, 0 rear-wheel, between: all-wheel). The identity changes
-    nothing."""
+    (T_se) to ``drive_front_share`` (1 front-wheel drive, 0 rear-wheel, between: all-wheel), and the road's peak
+    friction scaled by ``road_friction`` (the magic formula's p_dx1 and p_dy1, the tyres' peak force per load;
+    their slope at zero slip stays: 0.6 is about a wet asphalt road). The identity changes nothing."""
 
     name: str
     cg_back_m: float = 0.0
@@ -150,18 +151,19 @@ class Variant:
     tyre_stiffness_factor: float = 1.0
     brake_front_share: float | None = None
     drive_front_share: float | None = None
+    road_friction: float = 1.0
 
     def apply(self, p: Any) -> Any:
         """The MB parameters ``p`` changed as this variant says; raises :class:`MultibodyError` for a change that
         leaves no vehicle (an axle behind the CG, a height or stiffness not positive, a share outside [0, 1])."""
-        values = (self.cg_back_m, self.cg_height_factor, self.tyre_stiffness_factor)
+        values = (self.cg_back_m, self.cg_height_factor, self.tyre_stiffness_factor, self.road_friction)
         if not all(math.isfinite(v) for v in values):
             raise MultibodyError(f"variant {self.name!r}: every change must be finite, got {values}")
         a, b = p.a + self.cg_back_m, p.b - self.cg_back_m
         if not (a > 0.0 and b > 0.0):
             raise MultibodyError(f"variant {self.name!r}: cg_back_m {self.cg_back_m} leaves the CG off the wheelbase")
-        if not (self.cg_height_factor > 0.0 and self.tyre_stiffness_factor > 0.0):
-            raise MultibodyError(f"variant {self.name!r}: the height and stiffness factors must be positive")
+        if not (self.cg_height_factor > 0.0 and self.tyre_stiffness_factor > 0.0 and self.road_friction > 0.0):
+            raise MultibodyError(f"variant {self.name!r}: the height, stiffness and friction factors must be positive")
         brake = p.T_sb if self.brake_front_share is None else self.brake_front_share
         drive = p.T_se if self.drive_front_share is None else self.drive_front_share
         for name, share in (("brake_front_share", brake), ("drive_front_share", drive)):
@@ -175,7 +177,12 @@ class Variant:
             h_cg=p.h_cg * self.cg_height_factor,
             T_sb=brake,
             T_se=drive,
-            tire=dataclasses.replace(p.tire, p_ky1=p.tire.p_ky1 * self.tyre_stiffness_factor),
+            tire=dataclasses.replace(
+                p.tire,
+                p_ky1=p.tire.p_ky1 * self.tyre_stiffness_factor,
+                p_dx1=p.tire.p_dx1 * self.road_friction,
+                p_dy1=p.tire.p_dy1 * self.road_friction,
+            ),
         )
 
 
@@ -1000,9 +1007,15 @@ def simulate(
         accel = float(lib.acceleration_constraints(float(x[_VX]), demanded_accel, p.longitudinal))
         torque_applied[k] = torque if accel == demanded_accel else accel / accel_per_torque
         states[k] = x
-        x, derivatives[k] = _hold_sample(
-            lib.dynamics, p, x, float(steer_target[k]), accel, steer_gain_per_s, float(grade_accel[k])
-        )
+        try:
+            x, derivatives[k] = _hold_sample(
+                lib.dynamics, p, x, float(steer_target[k]), accel, steer_gain_per_s, float(grade_accel[k])
+            )
+        except ZeroDivisionError as exc:  # the MB's slips divide by each wheel's ground speed
+            raise MultibodyError(
+                f"{getattr(drive, 'name', 'drive')}: a wheel's ground speed reached 0 at t = {t[k]:.2f} s (the "
+                "vehicle slid or spun beyond its tyres' grip, where the multi-body plant stops)"
+            ) from exc
 
     v_x, v_y, r = states[:, _VX], states[:, _VY], states[:, _YAW_RATE]
     return MultibodyRun(

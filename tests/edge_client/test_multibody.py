@@ -198,6 +198,11 @@ def test_a_variant_changes_the_vehicle_its_reference_values_and_its_data_sheet()
     base = mb.vehicle_parameters(3)
     assert (r.h_cg, r.h_s, r.T_sb, r.T_se) == pytest.approx((1.25 * base.h_cg, 1.25 * base.h_s, 0.5, 0.4))
     assert mb.vehicle_parameters(3).tire.p_ky1 == base.tire.p_ky1  # the set's own parameters are left alone
+    wet = mb.vehicle_parameters(3, mb.Variant("wet", road_friction=0.6))
+    assert (wet.tire.p_dx1, wet.tire.p_dy1) == pytest.approx((0.6 * base.tire.p_dx1, 0.6 * base.tire.p_dy1))
+    assert wet.tire.p_ky1 == base.tire.p_ky1 and mb.reference_values(3, mb.Variant("wet", road_friction=0.6)) == (
+        mb.reference_values(3)
+    )  # the slope at zero slip, which calibration identifies, is the dry road's
 
 
 def test_a_variant_is_what_the_plant_simulates():
@@ -224,6 +229,8 @@ def test_a_variant_is_what_the_plant_simulates():
         (mb.Variant("far forward", cg_back_m=-1.0), "off the wheelbase"),
         (mb.Variant("flat", cg_height_factor=0.0), "must be positive"),
         (mb.Variant("no grip", tyre_stiffness_factor=-1.0), "must be positive"),
+        (mb.Variant("ice rink", road_friction=0.0), "must be positive"),
+        (mb.Variant("nan road", road_friction=float("nan")), "finite"),
         (mb.Variant("nan", cg_back_m=float("nan")), "finite"),
         (mb.Variant("brakes", brake_front_share=1.5), "brake_front_share"),
         (mb.Variant("drive", drive_front_share=-0.1), "drive_front_share"),
@@ -308,3 +315,13 @@ def test_parallel_runs_equal_serial_runs():
         np.testing.assert_array_equal(a.x_true, b.x_true)
         np.testing.assert_array_equal(a.y, b.y)
     assert [run.parameter_set for run in parallel] == [1, 3]
+
+
+def test_a_vehicle_sliding_beyond_a_slippery_road_s_grip_stops_the_plant_with_a_clear_error():
+    """Braking and accelerating in turns at 0.8 of the dry road's accelerations on a road of 0.6 of its friction:
+    set 3 spins out within 15 s, a wheel's ground speed reaches zero (the MB divides its slip by it), and the
+    plant says so instead of raising ZeroDivisionError."""
+    drive = mb.combined_drive(4, 60.0, lateral_accel_mps2=(3.2, 4.4), max_accel_mps2=4.4)
+    job = mb.MultibodyJob(drive=drive, parameter_set=3, seed=4, variant=mb.Variant("wet", road_friction=0.6))
+    with pytest.raises(mb.MultibodyError, match=r"ground speed reached 0 at t = \d+\.\d\d s"):
+        mb.run_job(job)
