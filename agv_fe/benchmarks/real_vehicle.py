@@ -113,6 +113,8 @@ FAULT_ONSET_S = 10.0
 WORKERS = 2
 #: Lateral acceleration of the random drives' manoeuvre limit [m/s^2] (random_drive's default).
 MAX_LATERAL_ACCEL_MPS2 = 7.0
+#: random_drive's peak |a_x| on a dry road [m/s^2] (its default)
+RANDOM_ACCEL_MPS2 = 3.0
 #: Must-show targets: identification errors (relative), detection delays after the onset [s].
 EFFECTIVE_MASS_TOLERANCE = 0.01
 CORNERING_STIFFNESS_TOLERANCE = 0.05
@@ -336,13 +338,14 @@ def cornering_drive(seed: int, duration_s: float, onset_s: float) -> mb.Drive:
     return builder.build(f"cornering_{seed}")
 
 
-def fault_drive(case: FaultCase, seed: int, parameter_set: int, plan: Plan) -> mb.Drive:
-    """The drive a fault case runs on, for one seed."""
+def fault_drive(case: FaultCase, seed: int, parameter_set: int, plan: Plan, grip: float = 1.0) -> mb.Drive:
+    """The drive a fault case runs on, for one seed; a random one's accelerations scaled by ``grip`` (see
+    :func:`healthy_drive`)."""
     if case.drive_kind == "accelerate_brake":
         return accelerate_brake_drive(seed, parameter_set, plan.fault_duration_s, plan.fault_onset_s)
     if case.drive_kind == "cornering":
         return cornering_drive(seed, plan.fault_duration_s, plan.fault_onset_s)
-    return mb.random_drive(seed, plan.fault_duration_s, max_lateral_accel_mps2=MAX_LATERAL_ACCEL_MPS2)
+    return open_road_drive(seed, plan.fault_duration_s, grip)
 
 
 def calibration_job(parameter_set: int) -> mb.MultibodyJob:
@@ -364,19 +367,23 @@ def sensitivity_jobs(parameter_set: int, plan: Plan) -> list[mb.MultibodyJob]:
     ]
 
 
-def healthy_drive(seed: int, duration_s: float) -> mb.Drive:
+def healthy_drive(seed: int, duration_s: float, grip: float = 1.0) -> mb.Drive:
     """The healthy random drive of ``seed``: in town for every URBAN_EVERY-th seed, braking and accelerating in
-    turns for the seeds after those (every other one hard), else on open roads."""
+    turns for the seeds after those (every other one hard), else on open roads. ``grip`` scales every
+    acceleration the drive asks for (a driver on a road of that share of the dry road's friction)."""
     if seed % (2 * URBAN_EVERY) == URBAN_EVERY + 1:
         return mb.combined_drive(
             seed,
             duration_s,
-            lateral_accel_mps2=HARD_COMBINED_LATERAL_ACCEL_MPS2,
-            max_accel_mps2=HARD_COMBINED_ACCEL_MPS2,
+            lateral_accel_mps2=_scaled(HARD_COMBINED_LATERAL_ACCEL_MPS2, grip),
+            max_accel_mps2=HARD_COMBINED_ACCEL_MPS2 * grip,
         )
     if seed % URBAN_EVERY == 1:
         return mb.combined_drive(
-            seed, duration_s, lateral_accel_mps2=COMBINED_LATERAL_ACCEL_MPS2, max_accel_mps2=COMBINED_ACCEL_MPS2
+            seed,
+            duration_s,
+            lateral_accel_mps2=_scaled(COMBINED_LATERAL_ACCEL_MPS2, grip),
+            max_accel_mps2=COMBINED_ACCEL_MPS2 * grip,
         )
     if seed % URBAN_EVERY == 0:
         return mb.random_drive(
@@ -384,9 +391,24 @@ def healthy_drive(seed: int, duration_s: float) -> mb.Drive:
             duration_s,
             speed_range_mps=URBAN_SPEED_MPS,
             max_yaw_rate_radps=URBAN_YAW_RATE_RADPS,
-            max_lateral_accel_mps2=MAX_LATERAL_ACCEL_MPS2,
+            max_lateral_accel_mps2=MAX_LATERAL_ACCEL_MPS2 * grip,
+            max_accel_mps2=RANDOM_ACCEL_MPS2 * grip,
         )
-    return mb.random_drive(seed, duration_s, max_lateral_accel_mps2=MAX_LATERAL_ACCEL_MPS2)
+    return open_road_drive(seed, duration_s, grip)
+
+
+def _scaled(pair: tuple[float, float], grip: float) -> tuple[float, float]:
+    return pair[0] * grip, pair[1] * grip
+
+
+def open_road_drive(seed: int, duration_s: float, grip: float = 1.0) -> mb.Drive:
+    """random_drive with the benchmark's limits, its accelerations scaled by ``grip`` (1: dry)."""
+    return mb.random_drive(
+        seed,
+        duration_s,
+        max_lateral_accel_mps2=MAX_LATERAL_ACCEL_MPS2 * grip,
+        max_accel_mps2=RANDOM_ACCEL_MPS2 * grip,
+    )
 
 
 def healthy_jobs(parameter_set: int, plan: Plan) -> list[mb.MultibodyJob]:

@@ -156,6 +156,22 @@ def test_every_third_healthy_drive_is_in_town_and_every_one_after_brakes_in_turn
         assert accel - 1.0 < np.abs(combined.accel_mps2).max() <= accel + 1e-6
 
 
+def test_a_drive_on_a_slippery_road_asks_for_every_acceleration_times_its_friction():
+    """grip 0.6 (a wet road): the hard combined drive's turns and speed changes, the town's and the open road's
+    turns all stay under 0.6 of the dry road's limits; grip 1 is the dry drive itself."""
+    same, dry4 = bench.healthy_drive(4, 60.0, 1.0), bench.healthy_drive(4, 60.0)
+    assert np.array_equal(same.yaw_rate_radps, dry4.yaw_rate_radps) and np.array_equal(same.accel_mps2, dry4.accel_mps2)
+    for seed, lateral, accel in (
+        (4, bench.HARD_COMBINED_LATERAL_ACCEL_MPS2[1], bench.HARD_COMBINED_ACCEL_MPS2),
+        (9, bench.MAX_LATERAL_ACCEL_MPS2, bench.RANDOM_ACCEL_MPS2),
+        (2, bench.MAX_LATERAL_ACCEL_MPS2, bench.RANDOM_ACCEL_MPS2),
+    ):
+        dry, wet = bench.healthy_drive(seed, 60.0), bench.healthy_drive(seed, 60.0, 0.6)
+        a_y = np.abs(wet.speed_mps * wet.yaw_rate_radps)
+        assert a_y.max() <= 0.6 * lateral + 1e-9 and np.abs(wet.accel_mps2).max() <= 0.6 * accel + 1e-6
+        assert a_y.max() < np.abs(dry.speed_mps * dry.yaw_rate_radps).max()
+
+
 def test_healthy_counts_are_consistent(figures):
     healthy = figures["healthy"]
     driving = healthy["driving"]

@@ -1,11 +1,12 @@
 """The vehicle-variants benchmark (agv_fe/benchmarks/vehicle_variants.py) in quick mode: two variants (one of each
-set), two short healthy drives and one bias per channel each (about 40 s on 2 cores), shared by this module's tests:
-the report and its JSON exist, and every must-show line agrees with the figures it judges."""
+set, the second a wet road), two short healthy drives and one bias per channel each (about 40 s on 2 cores), shared
+by this module's tests: the report and its JSON exist, and every must-show line agrees with the figures it judges."""
 
 from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from agv_fe.benchmarks import real_vehicle as rv
@@ -69,6 +70,22 @@ def test_must_show_lines_agree_with_the_figures(outcome):
         rows = [row for row in text.split("## Must show")[1].split("## Calibration")[0].splitlines() if label in row]
         assert len(rows) == len(lines)
         assert all(row.endswith("| pass |") == line["passed"] for row, line in zip(rows, lines, strict=True))
+
+
+def test_a_wet_road_is_a_condition_the_dry_calibration_meets():
+    """The wet variant's vehicle is calibrated on the dry road (its calibration job is the dry vehicle's) and
+    drives its healthy and fault drives with every acceleration times the road's friction."""
+    wet = next(v for _, v in bench.VARIANTS if v.road_friction != 1.0)
+    assert wet.road_friction == bench.WET_ROAD_FRICTION
+    dry = bench.on_dry_road(wet)
+    assert dry.road_friction == 1.0 and mb.vehicle_parameters(3, dry) == mb.vehicle_parameters(3)
+    assert mb.vehicle_parameters(3, wet).tire.p_dy1 == pytest.approx(0.6 * mb.vehicle_parameters(3).tire.p_dy1)
+    jobs = bench.healthy_jobs(3, wet, bench.QUICK_HEALTHY_SEEDS, bench.QUICK_HEALTHY_DURATION_S)
+    calibration, *healthy = jobs
+    assert calibration.variant == dry and calibration.drive.name == rv.calibration_job(3).drive.name
+    for job, seed in zip(healthy, bench.QUICK_HEALTHY_SEEDS, strict=True):
+        planned = rv.healthy_drive(seed, bench.QUICK_HEALTHY_DURATION_S, wet.road_friction)
+        assert job.variant == wet and np.array_equal(job.drive.yaw_rate_radps, planned.yaw_rate_radps)
 
 
 def test_a_refused_calibration_is_reported_as_a_failed_target():
