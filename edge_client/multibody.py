@@ -142,8 +142,9 @@ class Variant:
     ``cg_height_factor``, the tyres' cornering stiffness (the magic formula's p_ky1) scaled by
     ``tyre_stiffness_factor``, the brakes' front share (T_sb) set to ``brake_front_share`` and the drive torque's
     (T_se) to ``drive_front_share`` (1 front-wheel drive, 0 rear-wheel, between: all-wheel), and the road's peak
-    friction scaled by ``road_friction`` (the magic formula's p_dx1 and p_dy1, the tyres' peak force per load;
-    their slope at zero slip stays: 0.6 is about a wet asphalt road). The identity changes nothing."""
+    friction scaled by ``road_friction`` (the magic formula's p_dx1 and p_dy1, the tyres' peak force per load,
+    with its combined-slip weighting rescaled to match, :func:`_tyre_on_road`; their slope at zero slip stays: 0.6
+    is about a wet asphalt road). The identity changes nothing."""
 
     name: str
     cg_back_m: float = 0.0
@@ -177,13 +178,36 @@ class Variant:
             h_cg=p.h_cg * self.cg_height_factor,
             T_sb=brake,
             T_se=drive,
-            tire=dataclasses.replace(
-                p.tire,
-                p_ky1=p.tire.p_ky1 * self.tyre_stiffness_factor,
-                p_dx1=p.tire.p_dx1 * self.road_friction,
-                p_dy1=p.tire.p_dy1 * self.road_friction,
+            tire=_tyre_on_road(
+                dataclasses.replace(p.tire, p_ky1=p.tire.p_ky1 * self.tyre_stiffness_factor), self.road_friction
             ),
         )
+
+
+def _tyre_on_road(tire: Any, friction: float) -> Any:
+    """The magic-formula tyre on a road of ``friction`` times the data's: the peak force per load (p_dx1, p_dy1)
+    scaled, the slope at zero slip kept, and the combined-slip weighting made friction-similar. That weighting
+    reads the slips themselves (B_x_alpha = r_bx1 cos(atan(r_bx2 kappa)) on alpha, B_y_kappa = r_by1
+    cos(atan(r_by2 (alpha - r_by3))) on kappa), and with the slope kept a tyre reaches a given share of its
+    grip at ``friction`` times the slip: each slip's coefficient is divided by ``friction`` and each slip offset
+    multiplied, so that braking takes the same share of the lateral grip at the same share of the longitudinal
+    one (as a brush tyre does), not less."""
+    if friction == 1.0:
+        return tire
+    return dataclasses.replace(
+        tire,
+        p_dx1=tire.p_dx1 * friction,
+        p_dy1=tire.p_dy1 * friction,
+        r_bx1=tire.r_bx1 / friction,
+        r_bx2=tire.r_bx2 / friction,
+        r_hx1=tire.r_hx1 * friction,
+        r_by1=tire.r_by1 / friction,
+        r_by2=tire.r_by2 / friction,
+        r_by3=tire.r_by3 * friction,
+        r_hy1=tire.r_hy1 * friction,
+        r_vy4=tire.r_vy4 / friction,
+        r_vy6=tire.r_vy6 / friction,
+    )
 
 
 @functools.cache

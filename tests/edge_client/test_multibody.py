@@ -325,3 +325,27 @@ def test_a_vehicle_sliding_beyond_a_slippery_road_s_grip_stops_the_plant_with_a_
     job = mb.MultibodyJob(drive=drive, parameter_set=3, seed=4, variant=mb.Variant("wet", road_friction=0.6))
     with pytest.raises(mb.MultibodyError, match=r"ground speed reached 0 at t = \d+\.\d\d s"):
         mb.run_job(job)
+
+
+def test_on_a_slippery_road_braking_takes_the_same_share_of_the_lateral_grip_at_the_same_share_of_the_longitudinal():
+    """road_friction 0.6 keeps the slope at zero slip, so the tyre reaches a share of its (lower) grip at 0.6 of
+    the slips; the combined-slip weighting, which reads the slips themselves, is rescaled with them: at 0.6 of the
+    dry road's slips the wet tyre gives 0.6 of the dry one's pure lateral force and loses the same share of it
+    to braking, and the same share of its longitudinal force to cornering."""
+    from vehiclemodels.utils import tire_model as tm  # the plant's own tyre functions
+
+    dry, wet = mb.vehicle_parameters(3).tire, mb.vehicle_parameters(3, mb.Variant("wet", road_friction=0.6)).tire
+    load_n = 4000.0
+    for kappa, alpha in ((0.01, 0.02), (0.04, 0.05), (-0.03, 0.08)):
+        shares = []
+        for tyre, scale in ((dry, 1.0), (wet, 0.6)):
+            k, a = scale * kappa, scale * alpha
+            f_y, mu_y = tm.formula_lateral(a, 0.0, load_n, tyre)
+            f_x = tm.formula_longitudinal(k, 0.0, load_n, tyre)
+            lateral_kept = tm.formula_lateral_comb(k, a, 0.0, mu_y, load_n, f_y, tyre) / f_y
+            longitudinal_kept = tm.formula_longitudinal_comb(k, a, f_x, tyre) / f_x
+            shares.append((f_y / scale, lateral_kept, longitudinal_kept))
+        (f_y_dry, lat_dry, lon_dry), (f_y_wet, lat_wet, lon_wet) = shares
+        assert f_y_wet == pytest.approx(f_y_dry, rel=1e-9)
+        assert lat_wet == pytest.approx(lat_dry, rel=1e-9) and lon_wet == pytest.approx(lon_dry, rel=1e-9)
+        assert lat_dry < 1.0  # braking or driving does take lateral grip here
