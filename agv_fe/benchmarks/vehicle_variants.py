@@ -274,7 +274,8 @@ def render(document: dict[str, Any]) -> str:
         f"{len(document['variants'])} variants of CommonRoad's parameter sets 1 and 3 "
         "(`edge_client.multibody.Variant`), each calibrated from the scripted calibration drive with its own data "
         f"sheet, then {len(plan['healthy_seeds'])} healthy drives of {plan['healthy_duration_s']:g} s (the "
-        f"real-vehicle benchmark's mix) and {len(plan['fault_cases'])} bias faults (seed "
+        "real-vehicle benchmark's mix; a wet road's vehicle is calibrated on the dry road and drives the mix with "
+        f"every acceleration times the road's friction) and {len(plan['fault_cases'])} bias faults (seed "
         f"{plan['fault_seed']}) with the calibrated profile; this run took {document['runtime_s'] / 60:.1f} min. "
         "Parameter set 2 is never used here.\n"
     )
