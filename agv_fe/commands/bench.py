@@ -29,7 +29,9 @@ def register(sub: Any) -> None:
     parser = sub.add_parser(
         "bench",
         help="run the benchmarks, write docs/benchmarks/*.md",
-        description="Speed, accuracy and capacity benchmarks. Figures are ratios or medians measured in one run.",
+        description="Speed, accuracy and capacity benchmarks. Figures are ratios or medians measured in one run. "
+        "Run them from a checkout nobody edits meanwhile (a git worktree): their worker processes import the "
+        "project's code as they start, and a report records the commit it ran at.",
     )
     parser.add_argument("--only", default=None, help=f"comma-separated subset of: {', '.join(BENCHMARKS)}")
     parser.add_argument("--out", default="docs/benchmarks", metavar="DIR", help="where to write the reports")
