@@ -161,6 +161,8 @@ class VehicleStatus(BaseModel):
                     "payload_kg": 0.0,
                     "grade_rad": 0.021,
                     "grade_seq": 12003,
+                    "faults_judged": True,
+                    "unjudged_because": [],
                     "counters": _COUNTERS_EXAMPLE,
                     "rejected": _REJECTED_EXAMPLE,
                 }
@@ -202,6 +204,16 @@ class VehicleStatus(BaseModel):
         None,
         description="that sample's sequence number: last_seq when the latest sample carried a grade, lower when the "
         "vehicle has stopped sending it (its later samples are modelled on level ground); null when none has",
+    )
+    faults_judged: bool | None = Field(
+        None,
+        description="whether the fault alarms judged the latest estimate: false while the observer warms up (after "
+        "a start, a restart or an estimate outside the certified domain) or the vehicle drives beyond the grip "
+        "limits (docs/protocol.md, alarm rules), where a fault level is held as it was; null before the first "
+        "estimate",
+    )
+    unjudged_because: list[Literal["warm-up", "beyond grip"]] = Field(
+        default_factory=list, description="why faults_judged is false; empty when it is true or null"
     )
     counters: dict[str, int] = Field(
         description="accepted samples, estimates computed and published, missing samples, gaps, observer restarts"

@@ -243,6 +243,16 @@ class FaultLevels:
             return warm
         return warm & (t_ns >= self.held_until_ns[rows])
 
+    def unjudged_because(self, rows: np.ndarray, t_ns: np.ndarray) -> list[list[str]]:
+        """Per row, why its levels do not judge a sample at ``t_ns`` (an empty list: they do): 'warm-up' (the
+        observer (re)started, or its estimate left the certified domain, less than warmup_s before), 'beyond
+        grip' (the grip gate's hold). What :meth:`judged` decides, with its reasons; for status documents."""
+        warm = (t_ns - self.started_t_ns[rows] >= self.warmup_ns).tolist()
+        held = (t_ns < self.held_until_ns[rows]).tolist()
+        return [
+            [*(() if w else ("warm-up",)), *(("beyond grip",) if h else ())] for w, h in zip(warm, held, strict=True)
+        ]
+
     def restart(self, rows: np.ndarray, t_ns: np.ndarray) -> None:
         """The observers of ``rows`` (re)start at sample times ``t_ns`` [ns]: the warm-up runs from there;
         the persistence timers are forgotten and the levels held until the warm-up is over."""

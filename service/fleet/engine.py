@@ -140,6 +140,12 @@ def _classify(payload: bytes, vehicle_id: str) -> RejectReason:
     return "id_mismatch" if claimed != vehicle_id else "malformed"
 
 
+def _unjudged_because(bank: ProfileBank, slots: np.ndarray) -> list[list[str]]:
+    """Why the fault levels of ``slots`` did not judge their latest sample (FaultLevels.unjudged_because at each
+    slot's last sample time); an empty list: they did."""
+    return bank.faults.unjudged_because(slots, bank.last_t_ns[slots])
+
+
 class FleetError(Exception):
     """A request the fleet cannot carry out; the text says why."""
 
@@ -1064,6 +1070,7 @@ class FleetEngine:
         sample_counts: list[tuple[int, int, int]] = [(0, 0, 0)] * len(vehicles)
         gain_set: list[str | None] = [None] * len(vehicles)
         grade: list[tuple[float | None, int | None]] = [(None, None)] * len(vehicles)
+        unjudged: list[list[str] | None] = [None] * len(vehicles)
         for positions in by_bank.values():
             bank = vehicles[positions[0]].bank
             slots = np.array([vehicles[i].slot for i in positions], dtype=np.intp)
@@ -1075,6 +1082,8 @@ class FleetEngine:
             started = (bank.last_seq[slots] >= 0).tolist()
             for i, rank, count, chosen, seen in zip(positions, ranks.tolist(), counts, sets, started, strict=True):
                 level[i], sample_counts[i], gain_set[i] = rank, count, chosen if seen else None
+            for i, reasons, seen in zip(positions, _unjudged_because(bank, slots), started, strict=True):
+                unjudged[i] = reasons if seen else None
             graded_seq = bank.grade_seq[slots].tolist()
             for i, seq, value in zip(positions, graded_seq, bank.grade_rad[slots].tolist(), strict=True):
                 grade[i] = (value, seq) if seq >= 0 else (None, None)
@@ -1102,6 +1111,8 @@ class FleetEngine:
                     "payload_kg": vehicle.payload_kg,
                     "grade_rad": grade[i][0],
                     "grade_seq": grade[i][1],
+                    "faults_judged": None if unjudged[i] is None else not unjudged[i],
+                    "unjudged_because": unjudged[i] or [],
                     "counters": counters,
                     "rejected": dict(vehicle.rejected),
                 }

@@ -21,6 +21,7 @@ from agv_protocol.wire import (
     vehicle_key,
 )
 from edge_client.library import paper_1
+from service.api.models import VehicleStatus
 from service.fleet import EngineConfig, FleetEngine, UnknownVehicle
 from service.fleet.vehicle import REJECT_REASONS
 from service.profiles import ProfileSpec
@@ -817,3 +818,32 @@ def test_a_held_vehicles_stored_payload_applies_when_its_profile_runs(fast_gains
     engine.register("v", "default")
     (problem,) = engine.load_payloads({"v": mass + 1.0})
     assert problem.startswith("v: stored payload not applied") and engine.vehicles["v"].payload_kg == 0.0
+
+
+def test_a_vehicle_s_status_says_whether_its_faults_were_judged_and_why_not(fast_gains):
+    """A profile whose cornering limit is 0.05 g, a vehicle in a 0.1 g turn (10 m/s at 0.1 rad/s, well inside the
+    certified domain) and one driving straight: during the 3 s warm-up neither is judged (the turning one beyond
+    grip too); after it the straight one is, the turning one is not, beyond grip; a registered vehicle without an
+    estimate yet has no answer. The documents are what GET /vehicles/{id} answers (VehicleStatus validates
+    them)."""
+    engine = make_engine(fast_gains, alarms={"grip_cornering_g": 0.05})
+    engine.register("idle", "default")
+    assert engine.vehicle_status(engine.vehicles["idle"])["faults_judged"] is None
+
+    def statuses() -> dict[str, tuple[bool | None, list[str]]]:
+        out = {}
+        for name in ("turning", "straight", "idle"):
+            status = VehicleStatus(**engine.vehicle_status(engine.vehicles[name]))
+            out[name] = (status.faults_judged, list(status.unjudged_because))
+        return out
+
+    for k in range(40):
+        engine.process(pairs([constant_measurement("turning", k, r=0.1), constant_measurement("straight", k)]))
+    assert statuses() == {
+        "turning": (False, ["warm-up", "beyond grip"]),
+        "straight": (False, ["warm-up"]),
+        "idle": (None, []),
+    }
+    for k in range(40, 350):
+        engine.process(pairs([constant_measurement("turning", k, r=0.1), constant_measurement("straight", k)]))
+    assert statuses() == {"turning": (False, ["beyond grip"]), "straight": (True, []), "idle": (None, [])}
