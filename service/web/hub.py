@@ -528,7 +528,14 @@ class DashboardHub:
             "truth": trace is not None and trace.has_truth,
             "payload_kg": vehicle.payload_kg,
             **self._grade(vehicle),
+            **self._judging(vehicle),
         }
+
+    def _judging(self, vehicle: Vehicle) -> dict[str, Any]:
+        """Whether the fault alarms judged the vehicle's latest estimate and why not, as GET /vehicles/{id}
+        says (faults_judged, unjudged_because)."""
+        status = self.engine.vehicle_status(vehicle)
+        return {key: status[key] for key in ("faults_judged", "unjudged_because")}
 
     @staticmethod
     def _grade(vehicle: Vehicle) -> dict[str, float | int | None]:

@@ -146,6 +146,8 @@ def test_a_vehicle_view_plots_live_estimates_with_thresholds_and_ground_truth(se
     expect(page.locator("#vehicle-alarms .alarm")).to_have_count(1)
     expect(page.locator('#vehicle-facts [data-fact="payload"] dd')).to_have_text("none reported")
     expect(page.locator('#vehicle-facts [data-fact="grade"] dd')).to_have_text("not sent")
+    # past its warm-up, driving gently: the alarms judge it (GET /vehicles/{id}'s faults_judged)
+    expect(page.locator('#vehicle-facts [data-fact="judged"] dd')).to_have_text("judging", timeout=UI_TIMEOUT_MS)
     page.screenshot(path=str(output_dir / "vehicle.png"), full_page=True)
 
 

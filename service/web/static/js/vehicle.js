@@ -94,6 +94,13 @@ function roadGrade(status) {
   return `not in the latest sample (${shown} at #${status.grade_seq})`;
 }
 
+/** Whether the fault alarms judge the vehicle's estimates now, and why not (faults_judged, unjudged_because). */
+function judging(status) {
+  if (status.faults_judged === null || status.faults_judged === undefined) return 'no estimate yet';
+  if (status.faults_judged) return 'judging';
+  return `holding the levels: ${status.unjudged_because.join(', ')}`;
+}
+
 export class VehicleView {
   constructor(alarms, onUnauthorized) {
     this.alarmsStore = alarms;
@@ -279,6 +286,7 @@ export class VehicleView {
       ['seq', 'Last sample', status.last_seq === null ? '–' : `#${status.last_seq}`],
       ['payload', 'Payload', status.payload_kg > 0 ? `${status.payload_kg} kg` : 'none reported'],
       ['grade', 'Road grade', roadGrade(status)],
+      ['judged', 'Fault alarms', judging(status)],
       ['truth', 'Ground truth', status.truth ? 'shown' : 'none published'],
       ['torque', 'Torque thresholds', `WARN ${t.torque_warn_nm} / FAULT ${t.torque_fault_nm} N m`],
       ['steer', 'Steering thresholds', `WARN ${t.steer_warn_rad} / FAULT ${t.steer_fault_rad} rad`],
