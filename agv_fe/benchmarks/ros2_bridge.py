@@ -105,6 +105,7 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> bridge_latency.BridgeLatency
         for topic, s in ((s.topic, s) for s in mapping.signals().values())
     }
     put_ns: dict[int, int] = {}
+    said = ""
     usage_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "map.yaml").write_text(MAPPING)
@@ -116,7 +117,8 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> bridge_latency.BridgeLatency
         )  # fmt: skip
         try:
             _publish(publishers, builders, put_ns, bridge, run_s, seed, rmw_attachment)
-            bridge.communicate(timeout=60)
+            out, err = bridge.communicate(timeout=60)
+            said = f"exit status {bridge.returncode}; its output ends: {(out + err)[-1500:]}"
         finally:
             if bridge.poll() is None:
                 bridge.kill()
@@ -127,6 +129,8 @@ def measure(run_s: float = RUN_S, seed: int = 0) -> bridge_latency.BridgeLatency
             session.close()
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu_s = (usage.ru_utime - usage_before.ru_utime) + (usage.ru_stime - usage_before.ru_stime)
+    if not receipts.received:  # what the bridge said makes the failure explain itself
+        raise RuntimeError(f"no measurement came back from the bridge ({len(put_ns)} samples put); bridge {said}")
     return bridge_latency.summarise(receipts.received, put_ns, decode_us, cpu_s, run_s)
 
 
