@@ -80,7 +80,10 @@ class AlarmThresholds(BaseModel):
         "longitudinal part (steady cornering: measured to hold to 0.8 g on a dry road) [g]",
     )
     grip_hold_s: Duration = Field(
-        1.0, description="the fault levels stay unjudged this long after the last sample above grip_limit_g [s]"
+        2.0,
+        description="the fault levels stay unjudged this long after the last sample beyond the grip limits: the "
+        "observer's estimate settling after the model's miss there (docs/math.md 12.4: 1 s was short after "
+        "braking at 0.4 g in a 0.6 g turn, 2 s measured to cover it) [s]",
     )
     out_of_domain_after_s: Duration = Field(
         0.5, description="premise or estimated v_y outside the design bounds this long raises WARN [s]"
