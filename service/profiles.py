@@ -68,8 +68,8 @@ class AlarmThresholds(BaseModel):
         description="the combined acceleration |(dv_x/dt, v_x r)| / g above which, while the vehicle brakes or "
         "accelerates at grip_longitudinal_g or more, the tyres leave the model's linear range: the fault levels "
         "are held unjudged there and for grip_hold_s after (docs/math.md 12.4: measured on dry roads, and it holds "
-        "on a wet one driven within its grip; lower grip_longitudinal_g for a vehicle high for its track); null: "
-        "no grip gate [g]",
+        "on a wet one driven within its grip; lower it and grip_longitudinal_g for a vehicle high for its track); "
+        "null: no grip gate [g]",
     )
     grip_longitudinal_g: Annotated[float, Field(ge=0, le=3, allow_inf_nan=False)] = Field(
         0.2, description="|dv_x/dt| / g from which grip_limit_g applies (below it, grip_cornering_g does) [g]"
