@@ -164,14 +164,8 @@ def run(args: argparse.Namespace) -> int:
     )
     for line in level_summary(recording.t, result.levels, profile):
         print(line)
-    if result.beyond_grip.any():
-        a = profile.alarms
-        print(
-            f"beyond the grip limits ({a.grip_limit_g:g} g combined while braking or accelerating at "
-            f"{a.grip_longitudinal_g:g} g or more, {a.grip_cornering_g:g} g in any case) "
-            f"{result.beyond_grip.mean():.1%} of the time: the fault levels were held there and for "
-            f"{a.grip_hold_s:g} s after (judged {result.judged.mean():.1%} of the time)"
-        )
+    for line in grip_summary(recording.t, result, profile.alarms):
+        print(line)
     if result.restarts:
         print(f"the estimate was not finite {result.restarts} time(s): the observer restarted, as the service's does")
     outside = int(outside_limits(recording, profile.limits).sum())
@@ -298,6 +292,41 @@ def level_summary(t: FloatArray, levels: np.ndarray, profile: VehicleProfileFile
             first = f"first at t = {t[reached[0]]:.2f} s" if reached.size else "never"
             parts.append(f"{label} {np.count_nonzero(levels[:, c] == level) * period_s:.2f} s ({first})")
         lines.append(f"  {name:<6} ({thresholds[name]}): {', '.join(parts)}")
+    return lines
+
+
+def grip_summary(t: FloatArray, result: Replay, alarms: AlarmThresholds) -> list[str]:
+    """What the grip gate did: how long the recording was beyond the grip limits, and each level raised to WARN
+    (or higher) within ``warmup_s`` of the gate's hold ending (on a healthy recording: the model's miss beyond
+    the tyres' grip outlasting the hold, docs/math.md 12.4). t : (K,) [s]; none if the gate flagged nothing."""
+    from service.fleet.alarms import WARN
+
+    if not result.beyond_grip.any():
+        return []
+    a = alarms
+    lines = [
+        f"beyond the grip limits ({a.grip_limit_g:g} g combined while braking or accelerating at "
+        f"{a.grip_longitudinal_g:g} g or more, {a.grip_cornering_g:g} g in any case) "
+        f"{result.beyond_grip.mean():.1%} of the time: the fault levels were held there and for "
+        f"{a.grip_hold_s:g} s after (judged {result.judged.mean():.1%} of the time)"
+    ]
+    flagged = np.flatnonzero(result.beyond_grip)
+    raised = []
+    for c, name in enumerate(CHANNELS):
+        at_warn = result.levels[:, c] >= WARN
+        for k in np.flatnonzero(at_warn & ~np.concatenate([[False], at_warn[:-1]])):
+            before = flagged[flagged < k]
+            after_s = float(t[k] - t[before[-1]] - a.grip_hold_s) if before.size else -1.0
+            if 0.0 <= after_s <= a.warmup_s:
+                raised.append(f"  {name} reached WARN at t = {t[k]:.2f} s, {after_s:.2f} s after the hold ended")
+    if raised:
+        lines.append(f"levels raised within the warm-up ({a.warmup_s:g} s) of the grip gate's hold ending:")
+        lines += raised
+        lines.append(
+            "  on a healthy recording that is the model's miss beyond the tyres' grip outlasting the hold: lower "
+            "alarms.grip_limit_g and alarms.grip_longitudinal_g (a vehicle high for its track) or lengthen "
+            "alarms.grip_hold_s (docs/math.md 12.4)"
+        )
     return lines
 
 

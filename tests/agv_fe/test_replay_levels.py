@@ -559,8 +559,8 @@ def grip_flags(recording: Path, limit_g: float) -> np.ndarray:
 def test_beyond_the_grip_limit_the_replay_holds_the_levels_as_the_engine_does(tmp_path, capsys, robust_gains_default):
     """A turn at about 0.26 g with a profile whose grip limits are 0.2 g, and a torque bias from inside the turn:
     the replay judges the fault channels only from grip_hold_s after the last sample beyond the limit, says how
-    long it held them, and the engine fed the same samples does the same; without the gate the bias raises WARN
-    inside the turn."""
+    long it held them and that the torque level was raised soon after the hold ended, and the engine fed the same
+    samples does the same; without the gate the bias raises WARN inside the turn."""
     alarms = {**E2E_ALARMS, "grip_limit_g": 0.2, "grip_cornering_g": 0.2, "grip_hold_s": 0.5}
     recording = turn_with_a_torque_bias(tmp_path, duration_s=3.0, amplitude_rad=0.05)
     gated = replay_with_files(capsys, tmp_path, recording, robust_gains_default, {"alarms": alarms})
@@ -582,4 +582,8 @@ def test_beyond_the_grip_limit_the_replay_holds_the_levels_as_the_engine_does(tm
     last = t[int(np.flatnonzero(flagged)[-1])]
     assert 3.5 < last < 4.8 and warn_gated is not None
     assert last + 0.5 + 0.3 - 0.011 <= warn_gated <= last + 0.5 + 0.3 + 0.011
+    # the replay names the raise that came within the warm-up of the hold's end, and what to look at
+    assert "levels raised within the warm-up (1 s) of the grip gate's hold ending:" in out
+    assert f"torque reached WARN at t = {warn_gated:.2f} s, {warn_gated - last - 0.5:.2f} s after the hold" in out
+    assert "steer reached WARN" not in out and "alarms.grip_hold_s (docs/math.md 12.4)" in out
     assert_the_engine_gives_the_replay({"alarms": alarms}, robust_gains_default, recording, gated)
