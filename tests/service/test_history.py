@@ -52,7 +52,8 @@ def test_the_history_keeps_every_estimate_and_reads_a_vehicle_back_by_time(tmp_p
             history.append([_batch(["a", "b", "c"], seq), _batch(["staged"], seq, with_stage=True)])
         time.sleep(1.1)
         history.append([])  # the next tick after the interval: the chunk is written
-        _wait_files(history, 1)
+        # every row in a file (two files when the appends above took over chunk_s on a busy machine)
+        wait_for(lambda: history.stats.rows_written == 1200, what="1,200 rows written")
         got = history.read("b", T0_NS + 100 * PERIOD_NS, T0_NS + 200 * PERIOD_NS)
         assert got.schema.equals(SCHEMA)
         rows = list(table_rows(got))
@@ -71,7 +72,7 @@ def test_the_history_keeps_every_estimate_and_reads_a_vehicle_back_by_time(tmp_p
         history.close()
     # each column written as _ENCODINGS says: a dictionary only where the record's column is one, byte-stream
     # split for the floats, deltas for seq and t_ns (Parquet's default tries a dictionary everywhere first)
-    path = min((tmp_path / "history").rglob("*.parquet"))  # the first chunk, 1,200 rows
+    path = min((tmp_path / "history").rglob("*.parquet"))  # the first chunk
     chunk = pq.ParquetFile(path).metadata.row_group(0)
     encodings = {chunk.column(i).path_in_schema: set(chunk.column(i).encodings) for i in range(chunk.num_columns)}
     dictionary = {"RLE_DICTIONARY", "PLAIN_DICTIONARY"}  # (RLE alone: the definition levels of a nullable column)
@@ -198,7 +199,7 @@ def test_float32_precision_halves_the_file_and_keeps_seven_digits(tmp_path):
                 history.append([b])
             time.sleep(1.1)
             history.append([])
-            _wait_files(history, 1)
+            wait_for(lambda h=history: h.stats.rows_written == 1000, what="every row written")  # one file, or two
             rows = history.read("a", T0_NS, T0_NS + 500 * PERIOD_NS)
             assert rows.num_rows == 500 and rows.schema.equals(SCHEMA)  # read back as the record's float64
             sizes[precision] = history.stats.bytes_on_disk
