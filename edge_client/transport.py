@@ -286,10 +286,12 @@ class VehicleLinks:
     _tokens: list[Any] = field(init=False, default_factory=list)
     _listeners: list[Any] = field(init=False, default_factory=list)
     _lock: threading.Lock = field(init=False, default_factory=threading.Lock)
+    _reports: list[int] = field(init=False, default_factory=list)  # matching reports per vehicle, so far
     match_changes: int = field(init=False, default=0)
 
     def __post_init__(self) -> None:
         self.matched = np.zeros(len(self.vehicle_ids), dtype=bool)
+        self._reports = [0] * len(self.vehicle_ids)
         try:
             for i, vehicle_id in enumerate(self.vehicle_ids):
                 # typed Any: the stubs say matching_status is a bool, it is a MatchingStatus
@@ -305,7 +307,11 @@ class VehicleLinks:
                         zenoh.handlers.Callback(self._matching_callback(i), indirect=False)
                     )
                 )
-                self.matched[i] = publisher.matching_status.matching
+                reports = self._reports[i]
+                status = bool(publisher.matching_status.matching)
+                with self._lock:  # a report that came while the status was read is newer than what was read
+                    if self._reports[i] == reports:
+                        self.matched[i] = status
                 if self.truth:
                     self._truth.append(
                         self.session.declare_publisher(
@@ -327,6 +333,7 @@ class VehicleLinks:
                 if bool(self.matched[i]) != status.matching:
                     self.match_changes += 1
                 self.matched[i] = status.matching
+                self._reports[i] += 1
 
         return on_change
 
