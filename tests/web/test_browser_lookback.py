@@ -52,6 +52,9 @@ def test_look_back_plots_the_estimate_history_around_an_alarm_then_returns_to_li
         wait_for(lambda: number(page, "tf", "data-truth") > 0, UI_TIMEOUT_MS / 1000, "the live plot with ground truth")
         # every estimate of the look-back is in the history once its end has passed: the vehicle streams on
         time.sleep(max(0.0, alarm_s + HALF_SPAN_S + 1.0 - time.time()))
+        after = {"start": alarm_s + HALF_SPAN_S, "end": alarm_s + HALF_SPAN_S + 60.0}  # a loaded service lags
+        wait_for(lambda: srv.get(f"/vehicles/{VEHICLE}/estimates", params=after).json()["estimates"],
+                 what="an estimate after the look-back's end in the history")  # fmt: skip
         look_back = page.locator(f'#vehicle-alarms .alarm[data-alarm-id="{alarm["id"]}"]').get_by_role(
             "button", name=re.compile("Look back")
         )
