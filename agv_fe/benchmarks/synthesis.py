@@ -278,6 +278,17 @@ still compile per design (their only parameter is the decay rate of the bisectio
 
 ## History
 
+The report of 2026-11-27 22:36 UTC (commit b6e154e, Intel Xeon, load average 1.0): the default switched
+design 0.58 s (first in a process 0.99 s); the calibrated car with the cornering drag 0.96 s; the
+mirror-reduced Petersen form 0.45 s; the paper's vertex form as printed 8.99 s. The report above ran on a
+slower day of the same machine (its observer step for 1,000 vehicles took 109-116 us in the other benchmarks
+that day, against 57-68 us a day before): every design took 22-87 % longer, the default 45 %.
+
+The report of 2026-11-26 21:35 UTC (commit 724ddda, AMD EPYC; the next one was the first on an Intel Xeon,
+where every design took 20-50 % longer): the default switched design 0.40 s (first in a process 0.73 s);
+the calibrated car with the cornering drag 0.65 s; the mirror-reduced Petersen form 0.34 s; the paper's
+vertex form as printed 6.05 s.
+
 The report of 2026-11-25 00:25 UTC (commit 54f6c70, before this change; median of 5, each run
 compiling its problem): the mirror-reduced Petersen form (fault order 3) 0.37 s; the one-set
 robust design 0.37 s; the 'h2' form 0.49 s; the default switched design 1.04 s; the calibrated
