@@ -10,6 +10,7 @@ import asyncio
 import itertools
 import json
 import re
+import statistics
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -97,10 +98,12 @@ def test_a_vehicle_stream_carries_decimated_estimates_the_measurements_and_the_g
     assert traces[0]["history"] and not any(t["history"] for t in traces[1:])
     live = [p for t in traces[1:] for p in t["points"]]
     truth = [p for t in traces for p in t["truth"]]
-    assert 2.0 * 20 * 0.8 <= len(live) <= 3.2 * 20  # about 20 points a second
+    assert len(live) >= 2.0 * 20 * 0.8  # the 3 s read: at least 2 s of points
     t = [p[0] for p in live]
     steps = [b - a for a, b in itertools.pairwise(t)]
     assert min(steps) > 0 and max(steps) < 0.2
+    # 20 points a second of the samples' time (a loaded service sends a backlog at once: more in the read's 3 s)
+    assert len(live) <= (t[-1] - t[0]) * 20 + 2 and statistics.median(steps) == pytest.approx(0.05, abs=0.005)
     point = {name: i for i, name in enumerate(POINT_COLUMNS)}
     true = {name: i for i, name in enumerate(TRUTH_COLUMNS)}
     truth_at = {p[0]: p for p in truth}
