@@ -423,16 +423,18 @@ def _drive(
     )
     receiver.start()
     ready.wait(30)
-    before = http.get("/metrics").text
+    # the service's CPU read outside the two /metrics reads, so that its window holds the thread groups' (their
+    # CPU comes from the reads): read inside them, a short step's groups summed above it on a loaded machine
     cpu0, waited0 = _cpu_s(pid), _waited_s(pid)
+    before = http.get("/metrics").text
     receiver_cpu0 = _cpu_s(receiver.pid) if receiver.pid is not None else 0.0
     receiver_waited0 = _waited_s(receiver.pid) if receiver.pid is not None else None
     phases = SPREAD_PHASES if arrival == "spread" else 1
     generator = ctx.Process(target=_generator, args=(endpoint, n, duration_s, gen_q, phases, files[0]))
     generator.start()
     gen = gen_q.get(timeout=duration_s * 10 + 60)
+    loaded = http.get("/metrics").text  # the service's threads over the generator's run, as its CPU below
     cpu1, waited1 = _cpu_s(pid), _waited_s(pid)
-    loaded = http.get("/metrics").text  # the service's threads over the generator's run, as its CPU above
     receiver_cpu1 = _cpu_s(receiver.pid) if receiver.pid is not None else 0.0
     receiver_waited1 = _waited_s(receiver.pid) if receiver.pid is not None else None
     generator.join(30)
