@@ -229,8 +229,9 @@ SUMMARY_LEGEND = (
     "(what a false alarm would have to exceed); alarm = the fault alarms raised (FALSE: on a healthy channel); "
     "after = from the onset to the first alarm.\n"
     "totals: late ticks = publisher ticks that started over 1 ms late, overruns = ticks that started after the "
-    "next one was due (the machine fell behind); lost = samples sent without an estimate back; round trip = "
-    "sample sent to its estimate received."
+    "next one was due (the machine fell behind); lost = samples never sent (dropped from a vehicle's full buffer "
+    "while nothing could receive them); estimates = the estimates that came back (one per sample sent); round "
+    "trip = sample sent to its estimate received."
 )
 
 
